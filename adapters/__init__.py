@@ -1,0 +1,1 @@
+"""Adapters: one module per Gaussian model family (3DGS, Scaffold-GS, 4DGS)."""

@@ -1,0 +1,1 @@
+"""MVGS controller: backend-agnostic multi-view regulated training for Gaussian splatting."""

@@ -1,0 +1,116 @@
+"""Input checks for rasterization(): every error names the argument, what was expected and what
+was given, and is raised before any work is done."""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def shape_str(t: Tensor) -> str:
+    return "[" + ",".join(str(s) for s in t.shape) + "]"
+
+
+def check_tensor(name: str, t, expected: Sequence[Optional[int]], expected_str: str) -> Tensor:
+    """Type, shape (None = any size) and finiteness of one tensor argument."""
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape {expected_str}, got {type(t).__name__}")
+    if t.dim() != len(expected) or any(e is not None and s != e for s, e in zip(t.shape, expected)):
+        raise ValueError(f"{name} must be {expected_str}, got {shape_str(t)}")
+    if t.dtype not in FLOAT_DTYPES:
+        raise TypeError(f"{name} must be float32 or float64, got {t.dtype}")
+    check_finite(name, t)
+    return t
+
+
+def check_finite(name: str, t: Tensor) -> None:
+    bad = ~torch.isfinite(t.detach())
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(f"{name} must be finite, got {t.detach()[idx].item()} at index {list(idx)}")
+
+
+def check_range(name: str, t: Tensor, lo: float, hi: float, what: str) -> None:
+    bad = (t.detach() < lo) | (t.detach() > hi)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(f"{name} must be {what}, got {t.detach()[idx].item()} at index {list(idx)}")
+
+
+def check_same(tensors: dict) -> None:
+    """All float tensors share one dtype and one device (no silent casts or copies)."""
+    items = [(k, v) for k, v in tensors.items() if v is not None]
+    name0, t0 = items[0]
+    for name, t in items[1:]:
+        if t.dtype != t0.dtype:
+            raise TypeError(f"{name} has dtype {t.dtype} but {name0} has {t0.dtype}; all must match")
+        if t.device != t0.device:
+            raise TypeError(f"{name} is on {t.device} but {name0} is on {t0.device}; all must match")
+
+
+def check_positive_int(name: str, v) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+        raise ValueError(f"{name} must be a positive int, got {v!r}")
+    return v
+
+
+def check_scalar(name: str, v, lo: float = -math.inf, lo_open: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
+        raise ValueError(f"{name} must be a real number, got {v!r}")
+    if (v <= lo) if lo_open else (v < lo):
+        raise ValueError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
+    return float(v)
+
+
+def check_quats(quats: Tensor) -> None:
+    norms = quats.detach().norm(dim=-1)
+    zero = norms == 0
+    if bool(zero.any()):
+        i = int(zero.nonzero()[0, 0])
+        raise ValueError(f"quats must be non-zero (they are normalised), got [0,0,0,0] at row {i}")
+
+
+def check_scales(scales: Tensor) -> None:
+    check_range("scales", scales, 0.0, math.inf, ">= 0 (activated, not log-scales)")
+    # The 3D covariance squares the scales; beyond this the square overflows the dtype.
+    limit = math.sqrt(torch.finfo(scales.dtype).max) / 1e3
+    check_range("scales", scales, 0.0, limit, f"<= {limit:.3g} (its square must fit in {scales.dtype})")
+
+
+def check_viewmats(viewmats: Tensor) -> None:
+    bottom = viewmats.new_tensor([0.0, 0.0, 0.0, 1.0])
+    bad = (viewmats[:, 3, :].detach() - bottom).abs().amax(dim=-1) > 1e-6
+    if bool(bad.any()):
+        c = int(bad.nonzero()[0, 0])
+        raise ValueError(f"viewmats[{c}] last row must be [0,0,0,1], got {viewmats[c, 3].tolist()}")
+    rot = viewmats[:, :3, :3].detach()
+    err = (rot @ rot.transpose(1, 2) - torch.eye(3, dtype=rot.dtype, device=rot.device)).abs().amax(dim=(1, 2))
+    bad = err > 1e-3
+    if bool(bad.any()):
+        c = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"viewmats[{c}] must be a rigid world-to-camera transform (orthonormal rotation block), "
+            f"got R R^T - I with max abs {err[c].item():.3g}"
+        )
+
+
+def check_Ks(Ks: Tensor) -> None:
+    k = Ks.detach()
+    for name, val, ok in (
+        ("fx = Ks[c,0,0]", k[:, 0, 0], k[:, 0, 0] > 0),
+        ("fy = Ks[c,1,1]", k[:, 1, 1], k[:, 1, 1] > 0),
+        ("skew = Ks[c,0,1]", k[:, 0, 1], k[:, 0, 1] == 0),
+    ):
+        if not bool(ok.all()):
+            c = int((~ok).nonzero()[0, 0])
+            want = "0 (no skew)" if "skew" in name else "> 0"
+            raise ValueError(f"{name.replace('c', str(c), 1)} must be {want}, got {val[c].item()}")
+    rows = torch.stack([k[:, 1, 0], k[:, 2, 0], k[:, 2, 1], k[:, 2, 2] - 1], dim=-1).abs().amax(dim=-1)
+    if bool((rows > 1e-6).any()):
+        c = int((rows > 1e-6).nonzero()[0, 0])
+        raise ValueError(f"Ks[{c}] must be [[fx,0,cx],[0,fy,cy],[0,0,1]], got {k[c].tolist()}")

@@ -1,0 +1,156 @@
+"""EWA projection of 3D Gaussians to screen-space conics, radii and tile ranges (PyTorch).
+
+Follows DESIGN.md "Image formation": the classic 3DGS rules, which gsplat's projection shares.
+Everything here is plain tensor code batched over cameras, so autograd provides the gradients
+from the screen-space quantities back to means, quaternions, scales and camera poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices from quaternions w-x-y-z (normalised here).
+
+    Args:
+        quats: [N, 4], no zero rows.
+    Returns:
+        [N, 3, 3]
+    """
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(quats.shape[:-1] + (3, 3))
+
+
+def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
+    """World-space covariance R S S^T R^T.
+
+    Args:
+        quats: [N, 4] w-x-y-z; scales: [N, 3] (activated).
+    Returns:
+        [N, 3, 3]
+    """
+    m = quat_to_rotmat(quats) * scales.unsqueeze(-2)  # R @ diag(s)
+    return m @ m.transpose(-1, -2)
+
+
+@dataclass
+class Projection:
+    """Screen-space splats for C cameras and N Gaussians (pixel units, centres at +0.5).
+
+    means2d [C,N,2] (differentiable); conics [C,N,3] = upper triangle (a, b, c) of the inverse
+    2D covariance (differentiable); depths [C,N] camera-space z (differentiable); compensation
+    [C,N] = sqrt(det(cov2d) / det(cov2d + eps2d I)) for the antialiased mode (differentiable);
+    radii [C,N] int32 square radius, 0 where culled; rects [C,N,4] int32 tile ranges
+    x0, x1, y0, y1 (half-open, empty where culled); valid [C,N] bool.
+    """
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    compensation: Tensor
+    radii: Tensor
+    rects: Tensor
+    valid: Tensor
+
+
+def project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+    radius_clip: float = 0.0,
+) -> Projection:
+    """Projects N Gaussians into C pinhole cameras (OpenCV axes, world-to-camera viewmats).
+
+    Args:
+        means: [N, 3]; quats: [N, 4] w-x-y-z; scales: [N, 3]; viewmats: [C, 4, 4]; Ks: [C, 3, 3].
+    """
+    R, t = viewmats[:, None, :3, :3], viewmats[:, None, :3, 3]  # [C,1,3,3], [C,1,3]
+    p = (R @ means[None, :, :, None]).squeeze(-1) + t  # [C,N,3] camera space
+    x, y, z = p.unbind(-1)
+    in_depth = (z > near_plane) & (z < far_plane)
+    # Culled Gaussians still flow through the graph: give them a harmless depth so no inf/NaN is
+    # formed (a NaN in an unused branch of torch.where would still poison the gradients).
+    zs = torch.where(in_depth, z, torch.ones_like(z))
+
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C,1]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    # Jacobian of the perspective map at the mean, with x/z and y/z clamped to the frustum
+    # widened by 0.3 tan(fov/2) on each side: keeps splats far off-screen from exploding.
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    x_over_z = torch.clamp(x / zs, min=-(cx / fx + 0.3 * tan_x), max=(width - cx) / fx + 0.3 * tan_x)
+    y_over_z = torch.clamp(y / zs, min=-(cy / fy + 0.3 * tan_y), max=(height - cy) / fy + 0.3 * tan_y)
+    zero = torch.zeros_like(zs)
+    J = torch.stack(
+        [fx / zs, zero, -fx * x_over_z / zs, zero, fy / zs, -fy * y_over_z / zs], dim=-1
+    ).reshape(zs.shape + (2, 3))  # [C,N,2,3]
+
+    JW = J @ R  # [C,N,2,3]
+    cov2d = JW @ covariance_3d(quats, scales)[None] @ JW.transpose(-1, -2)  # [C,N,2,2]
+    a_raw, b, c_raw = cov2d[..., 0, 0], cov2d[..., 0, 1], cov2d[..., 1, 1]
+    a, c = a_raw + eps2d, c_raw + eps2d
+    det = a * c - b * b
+    ok = in_depth & (det > 0) & torch.isfinite(det)
+    det_s = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
+    # The floor keeps sqrt's derivative finite for degenerate (flat) splats.
+    det_raw = torch.where(ok, a_raw * c_raw - b * b, torch.zeros_like(det))
+    compensation = torch.sqrt(torch.clamp_min(det_raw / det_s, 1e-12))
+
+    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
+    depths = z
+
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        lam = mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))
+        radius = torch.ceil(3.0 * torch.sqrt(lam))
+        ok = ok & torch.isfinite(radius) & (radius > radius_clip)
+        radius = torch.where(ok, radius, torch.zeros_like(radius)).clamp_max(2**30)
+        rects = tile_rects(means2d.detach(), radius, width, height, tile_size)
+        ok = ok & (rects[..., 1] > rects[..., 0]) & (rects[..., 3] > rects[..., 2])
+        rects = torch.where(ok[..., None], rects, torch.zeros_like(rects))
+        radii = torch.where(ok, radius, torch.zeros_like(radius)).to(torch.int32)
+    return Projection(means2d, conics, depths, compensation, radii, rects, ok)
+
+
+def tile_rects(means2d: Tensor, radius: Tensor, width: int, height: int, tile: int) -> Tensor:
+    """Tile ranges covered by a splat's square of half-size `radius` around its centre.
+
+    x0 = clamp(floor((u - r) / T), 0, TX), x1 = clamp(floor((u + r + T - 1) / T), 0, TX), the
+    same for y; computed in float64 so float32 inputs get the same tiles as float64 ones.
+
+    Args:
+        means2d: [..., 2]; radius: [...].
+    Returns:
+        [..., 4] int32 (x0, x1, y0, y1), half-open.
+    """
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    u, v = means2d.double().unbind(-1)
+    r = radius.double()
+    # Clamp before the cast to int: far-away splats have centres beyond the int range.
+    def rng(center, n):
+        lo = torch.floor((center - r) / tile).clamp(0, n)
+        hi = torch.floor((center + r + tile - 1) / tile).clamp(0, n)
+        return lo, hi
+
+    x0, x1 = rng(u, tiles_x)
+    y0, y1 = rng(v, tiles_y)
+    return torch.stack([x0, x1, y0, y1], dim=-1).to(torch.int32)

@@ -1,0 +1,268 @@
+"""rasterization(): gsplat's call shape, classic 3DGS image formation, on the CPU.
+
+Pipeline: validate -> project (projection.py) -> colours (SH, sh.py) -> depth order and tile
+binning -> compositing (compiled kernels in csrc/, or the PyTorch reference in
+rasterize_torch.py). Projection and SH are PyTorch ops, so autograd carries gradients from the
+screen-space quantities back to the Gaussians and cameras; the compiled compositing has a
+hand-written backward that the tests check against the PyTorch path and finite differences.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from . import _cpp, rasterize_torch
+from . import _validate as V
+from .projection import project
+from .sh import sh_to_rgb
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+BACKENDS = ("cpp", "torch")
+
+
+def available_backends() -> list:
+    """Compositing backends that work here, fastest first: "cpp" (compiled on first use, CPU
+    tensors) when a C++ compiler is found, and always "torch" (any device)."""
+    return (["cpp"] if _cpp.load() is not None else []) + ["torch"]
+
+
+def _pick_backend(backend: Optional[str], device: torch.device) -> str:
+    if backend is None:
+        return "cpp" if device.type == "cpu" and _cpp.load() is not None else "torch"
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS} or None, got {backend!r}")
+    if backend == "cpp":
+        if device.type != "cpu":
+            raise ValueError(f"backend 'cpp' needs CPU tensors, got tensors on {device}")
+        if _cpp.load() is None:
+            raise RuntimeError(f"backend 'cpp' is unavailable: {_cpp.build_error()}")
+    return backend
+
+
+class _CompositeCpp(torch.autograd.Function):
+    """Compiled compositing with its hand-written backward (csrc/rasterize.cpp)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile, absgrad):
+        args = [x.contiguous() for x in (means2d, conics, opacities, colors, backgrounds)]
+        color, trans, last = _cpp.forward(*args, offsets, ids, width, height, tile)
+        ctx.save_for_backward(*args, offsets, ids, trans, last)
+        ctx.size = (width, height, tile)
+        # gsplat's convention: the summed |gradient| lands on means2d.absgrad (AbsGS).
+        ctx.absgrad_target = means2d if absgrad else None
+        return color, (1 - trans).unsqueeze(-1)
+
+    @staticmethod
+    def backward(ctx, grad_color, grad_alpha):
+        means2d, conics, opacities, colors, backgrounds, offsets, ids, trans, last = ctx.saved_tensors
+        width, height, tile = ctx.size
+        grad_color = grad_color.contiguous()
+        grad_alpha = grad_alpha.squeeze(-1).contiguous()
+        g_m, g_q, g_o, g_c, absgrad = _cpp.backward(
+            means2d, conics, opacities, colors, backgrounds, offsets, ids, trans, last,
+            grad_color, grad_alpha, width, height, tile,
+        )
+        g_bg = (grad_color * trans.unsqueeze(-1)).sum(dim=(1, 2))
+        for name, g in (("means2d", g_m), ("conics", g_q), ("opacities", g_o), ("colors", g_c)):
+            if not bool(torch.isfinite(g).all()):
+                raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the compositing backward")
+        if ctx.absgrad_target is not None:
+            ctx.absgrad_target.absgrad = absgrad
+        return g_m, g_q, g_o, g_c, g_bg, None, None, None, None, None, None
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = False,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: str = "RGB",
+    absgrad: bool = False,
+    rasterize_mode: str = "classic",
+    camera_model: str = "pinhole",
+    backend: Optional[str] = None,
+) -> Tuple[Tensor, Tensor, Dict]:
+    """Renders N 3D Gaussians into C pinhole cameras (classic 3DGS image formation).
+
+    Args:
+        means: [N, 3] world positions.
+        quats: [N, 4] rotations w-x-y-z (normalised here; a zero row is an error).
+        scales: [N, 3] activated scales (>= 0).
+        opacities: [N] or [C, N] activated opacities in [0, 1].
+        colors: [N, D] or [C, N, D] colours (used as given) when sh_degree is None;
+            [N, K, 3] or [C, N, K, 3] SH coefficients with K >= (sh_degree+1)^2 otherwise
+            (colour = SH(view dir from the camera centre) + 0.5, clamped at 0).
+        viewmats: [C, 4, 4] world-to-camera (OpenCV axes: x right, y down, z forward).
+        Ks: [C, 3, 3] pinhole intrinsics; pixel (i, j) has its centre at (i + 0.5, j + 0.5).
+        width, height: image size in pixels.
+        near_plane, far_plane: Gaussians with camera depth <= near or >= far are culled.
+        radius_clip: Gaussians whose screen radius (pixels) is <= this are culled.
+        eps2d: added to the diagonal of every 2D covariance (the 0.3 px low-pass of 3DGS).
+        sh_degree: None for plain colours, else 0..3.
+        packed: accepted for gsplat compatibility; only False (dense [C, N] outputs) is supported.
+        tile_size: tile edge in pixels (16 as the CUDA rasterizers).
+        backgrounds: [C, D] colour added with the final transmittance (black when None).
+        render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth), "RGB+D", "RGB+ED".
+        absgrad: also store sum over pixels of |d loss / d means2d| in meta["means2d"].absgrad
+            (compiled backend only), as gsplat does for AbsGS.
+        rasterize_mode: "classic", or "antialiased" (opacity times the eps2d compensation).
+        camera_model: only "pinhole".
+        backend: "cpp", "torch", or None for the fastest available (see available_backends()).
+
+    Returns:
+        render_colors [C, H, W, D'], render_alphas [C, H, W, 1], meta with means2d [C,N,2] (call
+        .retain_grad() before backward for the screen-space gradient densification uses), radii
+        [C,N,2] int32 (both entries the square radius; 0 = culled), depths [C,N], conics
+        [C,N,3], opacities [C,N], width, height, n_cameras, tile_size, tile_width, tile_height,
+        isect_offsets, flatten_ids, gaussian_ids (None: not packed), backend.
+    """
+    means, C, N = _check_inputs(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+        radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode, absgrad,
+        rasterize_mode, camera_model,
+    )
+    backend = _pick_backend(backend, means.device)
+    if absgrad and backend != "cpp":
+        raise ValueError("absgrad=True needs backend 'cpp' (the PyTorch path has no per-pixel gradients)")
+
+    proj = project(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                   tile_size, radius_clip)
+    feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C)
+    opac = opacities.expand(C, N) if opacities.dim() == 1 else opacities
+    if rasterize_mode == "antialiased":
+        opac = opac * proj.compensation
+    D = feats.shape[-1]
+    bg = torch.zeros(C, D, dtype=means.dtype, device=means.device)
+    if backgrounds is not None:
+        n_bg, n_col = backgrounds.shape[-1], D - (render_mode != "RGB")
+        if n_bg not in {D, n_col} - {0}:
+            raise ValueError(f"backgrounds must be [C,{n_col}] (or [C,{D}] with a depth entry) for "
+                             f"{D}-channel render_mode {render_mode!r}, got {V.shape_str(backgrounds)}")
+        bg = torch.cat([backgrounds, bg[:, n_bg:]], dim=-1)
+
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    with torch.no_grad():
+        key = torch.where(proj.valid, proj.depths, torch.full_like(proj.depths, float("inf")))
+        order = torch.argsort(key, dim=-1, stable=True)
+        binner = _cpp.bin_tiles if backend == "cpp" else rasterize_torch.bin_tiles
+        offsets, ids = binner(proj.rects, order, tiles_x, tiles_y)
+
+    if backend == "cpp":
+        img, alpha = _CompositeCpp.apply(proj.means2d, proj.conics, opac, feats, bg, offsets, ids,
+                                         width, height, tile_size, absgrad)
+    else:
+        img, alpha = rasterize_torch.composite(proj.means2d, proj.conics, opac, feats, bg, offsets, ids,
+                                               width, height, tile_size)
+    if render_mode in ("ED", "RGB+ED"):
+        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
+    if not bool(torch.isfinite(img).all()) or not bool(torch.isfinite(alpha).all()):
+        raise FloatingPointError("the renderer produced a non-finite pixel; please report this input")
+
+    meta = {
+        "means2d": proj.means2d,
+        "radii": torch.stack([proj.radii, proj.radii], dim=-1),
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": opac,
+        "width": width,
+        "height": height,
+        "n_cameras": C,
+        "tile_size": tile_size,
+        "tile_width": tiles_x,
+        "tile_height": tiles_y,
+        "isect_offsets": offsets[:-1].reshape(C, tiles_y, tiles_x),
+        "flatten_ids": ids,
+        "gaussian_ids": None,
+        "camera_ids": None,
+        "backend": backend,
+    }
+    return img, alpha, meta
+
+
+def _features(means, colors, viewmats, sh_degree, render_mode, depths, C) -> Tensor:
+    """Per-camera features [C, N, D] to composite: colours (from SH if asked) and/or depth."""
+    feats = []
+    if render_mode in ("RGB", "RGB+D", "RGB+ED"):
+        if sh_degree is None:
+            feats.append(colors.expand(C, *colors.shape) if colors.dim() == 2 else colors)
+        else:
+            R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
+            centers = -(R.transpose(1, 2) @ t.unsqueeze(-1)).squeeze(-1)  # [C,3]
+            dirs = torch.nn.functional.normalize(means[None] - centers[:, None], dim=-1)  # [C,N,3]
+            coeffs = colors[None] if colors.dim() == 3 else colors
+            feats.append(sh_to_rgb(sh_degree, coeffs, dirs))
+    if render_mode != "RGB":
+        feats.append(depths.unsqueeze(-1))
+    return torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+                  far_plane, radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds,
+                  render_mode, absgrad, rasterize_mode, camera_model):
+    V.check_tensor("means", means, (None, 3), "[N,3]")
+    N = means.shape[0]
+    V.check_tensor("viewmats", viewmats, (None, 4, 4), "[C,4,4]")
+    C = viewmats.shape[0]
+    if C == 0:
+        raise ValueError("viewmats must hold at least one camera, got [0,4,4]")
+    V.check_tensor("quats", quats, (N, 4), f"[N,4] with N={N}")
+    V.check_tensor("scales", scales, (N, 3), f"[N,3] with N={N}")
+    if opacities.dim() == 2 if isinstance(opacities, Tensor) else False:
+        V.check_tensor("opacities", opacities, (C, N), f"[N] or [C,N] with C={C}, N={N}")
+    else:
+        V.check_tensor("opacities", opacities, (N,), f"[N] or [C,N] with C={C}, N={N}")
+    V.check_tensor("Ks", Ks, (C, 3, 3), f"[C,3,3] with C={C}")
+    if sh_degree is not None:
+        if isinstance(sh_degree, bool) or sh_degree not in (0, 1, 2, 3):
+            raise ValueError(f"sh_degree must be None or 0..3, got {sh_degree!r}")
+        k = (sh_degree + 1) ** 2
+        lead = (C, N) if isinstance(colors, Tensor) and colors.dim() == 4 else (N,)
+        want = f"[N,K,3] or [C,N,K,3] with K >= {k} for sh_degree={sh_degree} (C={C}, N={N})"
+        V.check_tensor("colors", colors, lead + (None, 3), want)
+        if colors.shape[-2] < k:
+            raise ValueError(f"colors must be {want}, got {V.shape_str(colors)}")
+    else:
+        lead = (C, N) if isinstance(colors, Tensor) and colors.dim() == 3 else (N,)
+        V.check_tensor("colors", colors, lead + (None,), f"[N,D] or [C,N,D] (C={C}, N={N}; SH needs sh_degree)")
+    if backgrounds is not None:
+        V.check_tensor("backgrounds", backgrounds, (C, None), f"[C,D] with C={C}")
+    V.check_same({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+                  "colors": colors, "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds})
+    V.check_quats(quats)
+    V.check_scales(scales)
+    V.check_range("opacities", opacities, 0.0, 1.0, "in [0, 1] (activated, not logits)")
+    V.check_viewmats(viewmats)
+    V.check_Ks(Ks)
+    V.check_positive_int("width", width)
+    V.check_positive_int("height", height)
+    V.check_positive_int("tile_size", tile_size)
+    near = V.check_scalar("near_plane", near_plane, 0.0, lo_open=True)
+    if V.check_scalar("far_plane", far_plane) <= near:
+        raise ValueError(f"far_plane must be > near_plane={near_plane}, got {far_plane!r}")
+    V.check_scalar("radius_clip", radius_clip, 0.0)
+    V.check_scalar("eps2d", eps2d, 0.0)
+    if packed:
+        raise ValueError("packed=True is not supported: pass packed=False (outputs are dense [C, N])")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    if camera_model != "pinhole":
+        raise ValueError(f"camera_model must be 'pinhole' (the only one supported), got {camera_model!r}")
+    return means, C, N
