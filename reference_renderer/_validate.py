@@ -17,29 +17,35 @@ def shape_str(t: Tensor) -> str:
 
 
 def check_tensor(name: str, t, expected: Sequence[Optional[int]], expected_str: str) -> Tensor:
-    """Type, shape (None = any size) and finiteness of one tensor argument."""
+    """Type, shape (None = any size) and dtype of one tensor argument (finiteness: check_finite,
+    after check_same, so a tensor on another device is reported as such)."""
     if not isinstance(t, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape {expected_str}, got {type(t).__name__}")
     if t.dim() != len(expected) or any(e is not None and s != e for s, e in zip(t.shape, expected)):
         raise ValueError(f"{name} must be {expected_str}, got {shape_str(t)}")
     if t.dtype not in FLOAT_DTYPES:
         raise TypeError(f"{name} must be float32 or float64, got {t.dtype}")
-    check_finite(name, t)
     return t
 
 
 def check_finite(name: str, t: Tensor) -> None:
-    bad = ~torch.isfinite(t.detach())
+    t = t.detach()
+    # One reduction first (cheap, no mask allocated): the sum is finite when every entry is,
+    # unless finite entries overflow it, which the exact check below then clears.
+    if t.numel() == 0 or bool(torch.isfinite(t.sum(dtype=torch.float64))):
+        return
+    bad = ~torch.isfinite(t)
     if bool(bad.any()):
         idx = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(f"{name} must be finite, got {t.detach()[idx].item()} at index {list(idx)}")
+        raise ValueError(f"{name} must be finite, got {t[idx].item()} at index {list(idx)}")
 
 
 def check_range(name: str, t: Tensor, lo: float, hi: float, what: str) -> None:
-    bad = (t.detach() < lo) | (t.detach() > hi)
-    if bool(bad.any()):
-        idx = tuple(int(i) for i in bad.nonzero()[0])
-        raise ValueError(f"{name} must be {what}, got {t.detach()[idx].item()} at index {list(idx)}")
+    t = t.detach()
+    if t.numel() == 0 or (t.min().item() >= lo and t.max().item() <= hi):
+        return
+    idx = tuple(int(i) for i in ((t < lo) | (t > hi)).nonzero()[0])
+    raise ValueError(f"{name} must be {what}, got {t[idx].item()} at index {list(idx)}")
 
 
 def check_same(tensors: dict) -> None:

@@ -123,13 +123,15 @@ def composite(
         rows = (cam[:, None] * (tiles_y * tile) + origin[:, None, 1] + iy) * canvas_w
         out_rows.append((rows + origin[:, None, 0] + ix).reshape(-1))
 
+    if not out_rows:
+        # Nothing visible: an empty contribution still links the output to every input, so
+        # backward works (with zero gradients) as it does when something is visible.
+        empty = flat_m[:0, :1] + flat_q[:0, :1] + flat_o[:0, None]  # [0,1]
+        out_col, out_trans, out_rows = [flat_c[:0] + empty], [empty[:, 0]], [torch.zeros(0, dtype=torch.long, device=device)]
     canvas = C * tiles_y * tile * tiles_x * tile
-    col = torch.zeros(canvas, D, device=device, dtype=dtype)
-    trans = torch.ones(canvas, device=device, dtype=dtype)
-    if out_rows:
-        idx = torch.cat(out_rows)
-        col = col.index_copy(0, idx, torch.cat(out_col))
-        trans = trans.index_copy(0, idx, torch.cat(out_trans))
+    idx = torch.cat(out_rows)
+    col = torch.zeros(canvas, D, device=device, dtype=dtype).index_copy(0, idx, torch.cat(out_col))
+    trans = torch.ones(canvas, device=device, dtype=dtype).index_copy(0, idx, torch.cat(out_trans))
     col = col.reshape(C, tiles_y * tile, tiles_x * tile, D)[:, :height, :width]
     trans = trans.reshape(C, tiles_y * tile, tiles_x * tile, 1)[:, :height, :width]
     return col + trans * backgrounds[:, None, None, :], 1 - trans

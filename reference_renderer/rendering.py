@@ -242,8 +242,12 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         V.check_tensor("colors", colors, lead + (None,), f"[N,D] or [C,N,D] (C={C}, N={N}; SH needs sh_degree)")
     if backgrounds is not None:
         V.check_tensor("backgrounds", backgrounds, (C, None), f"[C,D] with C={C}")
-    V.check_same({"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-                  "colors": colors, "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds})
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+               "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds}
+    V.check_same(tensors)
+    for name, t in tensors.items():
+        if t is not None:
+            V.check_finite(name, t)
     V.check_quats(quats)
     V.check_scales(scales)
     V.check_range("opacities", opacities, 0.0, 1.0, "in [0, 1] (activated, not logits)")

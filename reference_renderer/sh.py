@@ -69,7 +69,7 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     """
     n = (degree + 1) ** 2
     basis = sh_basis(degree, dirs)  # [..., n]
-    return (basis.unsqueeze(-1) * coeffs[..., :n, :]).sum(dim=-2)
+    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :n, :]).squeeze(-2)
 
 
 def sh_to_rgb(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
