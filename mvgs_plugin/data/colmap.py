@@ -1,0 +1,160 @@
+"""COLMAP sparse models (binary or text) read with pycolmap."""
+
+from __future__ import annotations
+
+import posixpath
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..camera import Camera
+from .scene import PointCloud, Scene
+
+__all__ = ["load_colmap", "find_colmap_model", "normalize_name"]
+
+_MODEL_FILES = ("cameras.bin", "cameras.txt")
+
+
+def normalize_name(name: str) -> str:
+    """'/'-separated relative image name without './' or '..' detours ("train/r_000.png")."""
+    n = posixpath.normpath(str(name).replace("\\", "/"))
+    return n[2:] if n.startswith("./") else n
+
+
+def find_colmap_model(path: Path) -> Path:
+    """The model folder: ``path/sparse/0``, else ``path/sparse``, else ``path`` itself."""
+    path = Path(path)
+    tried = [path / "sparse" / "0", path / "sparse", path]
+    for folder in tried:
+        if any((folder / f).is_file() for f in _MODEL_FILES):
+            return folder
+    raise FileNotFoundError(
+        "no COLMAP model (cameras.bin or cameras.txt) in " + ", ".join(str(t) for t in tried))
+
+
+def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
+    """K [3,3] of a PINHOLE or SIMPLE_PINHOLE pycolmap camera; other models are refused."""
+    model = getattr(cam, "model_name", None) or cam.model.name
+    p = [float(v) for v in cam.params]
+    if model == "PINHOLE":
+        fx, fy, cx, cy = p
+    elif model == "SIMPLE_PINHOLE":
+        fx, cx, cy = p
+        fy = fx
+    else:
+        # Splatting renders an ideal pinhole; distorted images would be fit with wrong rays.
+        raise ValueError(
+            f"{model_dir}: image {image_name!r} uses camera model {model}; only PINHOLE and "
+            "SIMPLE_PINHOLE are supported. Undistort the images first: colmap image_undistorter "
+            "--image_path <images> --input_path <sparse/0> --output_path <out> "
+            "(then load <out>, which has images/ and sparse/)")
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _world_to_camera(image) -> np.ndarray:
+    rigid = image.cam_from_world
+    if callable(rigid):  # a method since pycolmap 3.12 (rigs/frames), a property before
+        rigid = rigid()
+    T = np.eye(4)
+    T[:3, :] = np.asarray(rigid.matrix(), dtype=np.float64)
+    return T
+
+
+def _split(names: Sequence[str], test_every: Optional[int], test_names: Optional[Iterable[str]],
+           model_dir: Path) -> set[str]:
+    """Names of the test images (``names`` is sorted)."""
+    if test_names is not None:
+        if isinstance(test_names, (str, bytes)):
+            raise ValueError(f"test_names must be a list of names, got the string {test_names!r}")
+        wanted = {normalize_name(n) for n in test_names}
+        missing = sorted(wanted - set(names))
+        if missing:
+            raise ValueError(f"{model_dir}: test_names not in the model: {missing[:5]}"
+                             + (" ..." if len(missing) > 5 else ""))
+        return wanted
+    if test_every is None or test_every == 0:
+        return set()
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise ValueError(f"test_every must be a non-negative int or None, got {test_every!r}")
+    # the original 3DGS "llffhold": indices 0, k, 2k, ... of the name-sorted images
+    return {n for i, n in enumerate(names) if i % test_every == 0}
+
+
+def _points(rec) -> Optional[PointCloud]:
+    pts = list(rec.points3D.values())
+    if not pts:
+        return None
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64)
+    rgb = np.array([p.color for p in pts], dtype=np.float64) / 255.0
+    return PointCloud(xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb))
+
+
+def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
+                test_names: Optional[Iterable[str]] = None,
+                background: Optional[Sequence[float]] = None) -> Scene:
+    """Load a COLMAP scene.
+
+    Args:
+        path: scene folder holding ``sparse/0/`` (or ``sparse/``), or the model folder itself.
+        images_dir: folder the model's image names are relative to (names may contain
+            subfolders, e.g. "train/r_000.png"). Default: ``path/images`` if it exists, else
+            ``path``.
+        test_every: every k-th image in name order is a test image (indices 0, k, 2k, ...; the
+            original 3DGS "llffhold" with k = 8). None or 0: no test images.
+        test_names: explicit test image names; overrides ``test_every``.
+        background: RGB in [0,1] to composite RGBA images on; None drops the alpha channel.
+    Returns:
+        A :class:`Scene`; camera uids are COLMAP image ids, names are the model's image names.
+        Only registered images (with a pose) are used. Every image's size is checked against its
+        camera from the file header at load time.
+    """
+    path = Path(path)
+    model_dir = find_colmap_model(path)
+    if images_dir is None:
+        images_dir = path / "images" if (path / "images").is_dir() else path
+    images_dir = Path(images_dir)
+    if not images_dir.is_dir():
+        raise FileNotFoundError(f"images folder not found: {images_dir}")
+
+    import pycolmap
+
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
+        raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+
+    records = []
+    for image_id, image in rec.images.items():
+        # unregistered images have no pose to train with ("registered" before pycolmap 3.12)
+        if not getattr(image, "has_pose", getattr(image, "registered", True)):
+            continue
+        name = normalize_name(image.name)
+        cam = rec.cameras[image.camera_id]
+        try:
+            camera = Camera(uid=int(image_id), name=name, K=_intrinsics(cam, name, model_dir),
+                            world_to_camera=_world_to_camera(image), width=int(cam.width),
+                            height=int(cam.height))
+        except ValueError as err:
+            raise ValueError(f"{model_dir}: image {name!r}: {err}") from None
+        records.append(camera)
+    if not records:
+        raise ValueError(f"{model_dir}: the model has no registered images")
+    records.sort(key=lambda c: c.name)
+    names = [c.name for c in records]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{model_dir}: duplicate image names in the model")
+
+    test = _split(names, test_every, test_names, model_dir)
+    train_cams = [c for c in records if c.name not in test]
+    test_cams = [c for c in records if c.name in test]
+    if not train_cams:
+        raise ValueError(f"{model_dir}: the train split is empty ({len(records)} images, all test)")
+    files = {c.uid: images_dir / c.name for c in records}
+    for c in records:
+        if not files[c.uid].is_file():
+            raise FileNotFoundError(f"image {c.name!r} of {model_dir} not found at {files[c.uid]} "
+                                    "(set images_dir to the folder the model's names are relative to)")
+    return Scene(train_cams, test_cams, files, points=_points(rec), background=background,
+                 source=path)

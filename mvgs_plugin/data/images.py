@@ -1,0 +1,156 @@
+"""Reading images: header sizes, decoding to float RGB, and pyramid downsampling."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["image_size", "read_rgb", "downsample", "check_background"]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8, CC are not frames.
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _png_size(head: bytes) -> Optional[tuple[int, int]]:
+    # IHDR is always the first chunk: 4-byte length, b"IHDR", width, height (big-endian).
+    if len(head) >= 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return w, h
+    return None
+
+
+def _jpeg_size(f) -> Optional[tuple[int, int]]:
+    if f.read(2) != b"\xff\xd8":
+        return None
+    while True:
+        byte = f.read(1)
+        while byte == b"\xff":  # markers may be padded with extra 0xFF bytes
+            byte = f.read(1)
+        if not byte:
+            return None
+        marker = byte[0]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length field
+            continue
+        raw = f.read(2)
+        if len(raw) < 2:
+            return None
+        (length,) = struct.unpack(">H", raw)
+        if marker in _JPEG_SOF:
+            data = f.read(5)
+            if len(data) < 5:
+                return None
+            h, w = struct.unpack(">HH", data[1:5])
+            return w, h
+        f.seek(length - 2, 1)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, from its header for PNG and JPEG.
+
+    Other formats (or headers this parser does not understand) are decoded in full. Loaders call
+    this for every image at load time, so size mismatches are reported before training starts
+    without decoding hundreds of images.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    try:
+        with open(path, "rb") as f:
+            size = _png_size(f.read(24))
+            if size is None:
+                f.seek(0)
+                size = _jpeg_size(f)
+    except OSError as err:
+        raise ValueError(f"cannot read image {path}: {err}") from None
+    if size is not None and size[0] > 0 and size[1] > 0:
+        return size
+    arr = _decode(path)
+    return arr.shape[1], arr.shape[0]
+
+
+def _decode(path: Path) -> np.ndarray:
+    import skimage.io
+
+    try:
+        arr = skimage.io.imread(str(path))
+    except Exception as err:  # the imaging backends raise many unrelated types
+        raise ValueError(f"cannot read image {path}: {err}") from None
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (1, 2, 3, 4)):
+        raise ValueError(f"image {path} has unsupported shape {list(arr.shape)} "
+                         "(expected [H,W], [H,W,1..4])")
+    return arr
+
+
+def _to_unit_float(arr: np.ndarray, path: Path) -> np.ndarray:
+    """Integer images scaled by their dtype's maximum; float images taken as they are."""
+    if np.issubdtype(arr.dtype, np.integer):
+        return arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max)
+    if np.issubdtype(arr.dtype, np.floating):
+        out = arr.astype(np.float32)
+        if not np.isfinite(out).all() or out.min() < 0 or out.max() > 1:
+            raise ValueError(f"float image {path} must hold finite values in [0,1]")
+        return out
+    if arr.dtype == np.bool_:
+        return arr.astype(np.float32)
+    raise ValueError(f"image {path} has unsupported dtype {arr.dtype}")
+
+
+def check_background(background) -> Optional[tuple[float, float, float]]:
+    """None, or three finite floats in [0, 1]."""
+    if background is None:
+        return None
+    try:
+        bg = tuple(float(v) for v in background)
+    except (TypeError, ValueError):
+        raise ValueError(f"background must be 3 floats in [0,1] or None, got {background!r}") from None
+    if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
+        raise ValueError(f"background must be 3 floats in [0,1] or None, got {background!r}")
+    return bg
+
+
+def read_rgb(path: Path, background: Optional[Sequence[float]] = None) -> torch.Tensor:
+    """Decode an image to float32 [H, W, 3] in [0, 1], values linear in the file's values.
+
+    Grayscale is repeated to three channels. With an alpha channel: composited as
+    ``rgb * a + background * (1 - a)`` (straight alpha, as Blender writes it) when
+    ``background`` is given, otherwise the alpha channel is dropped.
+    """
+    path = Path(path)
+    arr = _to_unit_float(_decode(path), path)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    c = arr.shape[2]
+    if c in (1, 2):
+        color, alpha = np.repeat(arr[:, :, :1], 3, axis=2), (arr[:, :, 1:2] if c == 2 else None)
+    else:
+        color, alpha = arr[:, :, :3], (arr[:, :, 3:4] if c == 4 else None)
+    bg = check_background(background)
+    if alpha is not None and bg is not None:
+        color = color * alpha + np.asarray(bg, dtype=np.float32) * (1.0 - alpha)
+    return torch.from_numpy(np.ascontiguousarray(color, dtype=np.float32))
+
+
+def downsample(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Resize [H, W, 3] to [height, width, 3] with an antialiasing filter.
+
+    Uses ``skimage.transform.resize(order=1, anti_aliasing=True)``: a Gaussian prefilter with
+    sigma = (s - 1) / 2 per axis (s = input/output size ratio) followed by linear interpolation.
+    The geometry maps the full frame onto the full frame (output pixel centre i + 0.5 samples the
+    input at (i + 0.5) * W / width), which is exactly what ``Camera.scaled`` assumes. Both
+    filters have non-negative weights, so values stay in [0, 1].
+    """
+    from skimage.transform import resize
+
+    if image.ndim != 3:
+        raise ValueError(f"image must be [H,W,C], got {list(image.shape)}")
+    if (image.shape[1], image.shape[0]) == (width, height):
+        return image.clone()
+    arr = image.detach().cpu().numpy().astype(np.float64)
+    out = resize(arr, (height, width, arr.shape[2]), order=1, mode="symmetric",
+                 anti_aliasing=True, preserve_range=True)
+    return torch.from_numpy(np.ascontiguousarray(out, dtype=np.float32))

@@ -1,0 +1,205 @@
+"""NeRF-synthetic (Blender) and D-NeRF scenes: transforms_{train,test}.json + images."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..camera import Camera
+from .colmap import normalize_name
+from .images import check_background, image_size
+from .scene import PointCloud, Scene
+
+__all__ = ["load_nerf_synthetic", "load_dnerf", "read_points_ply", "OPENGL_TO_OPENCV"]
+
+# Blender/OpenGL cameras look down -z with y up; OpenCV looks down +z with y down. Flipping the
+# camera's y and z axes (right-multiplying camera-to-world) converts one into the other.
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+_SPLITS = ("train", "test")  # transforms_val.json, when present, is not used (as the original 3DGS)
+
+
+def _read_json(file: Path) -> list[dict]:
+    """The frames of one transforms json, with top-level camera keys copied into each frame."""
+    if not file.is_file():
+        raise FileNotFoundError(f"missing {file}")
+    try:
+        meta = json.loads(file.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{file}: not readable JSON: {err}") from None
+    if not isinstance(meta, dict) or "frames" not in meta:
+        raise ValueError(f"{file}: no 'frames' list")
+    frames = meta["frames"]
+    if not isinstance(frames, list):
+        raise ValueError(f"{file}: 'frames' must be a list, got {type(frames).__name__}")
+    if not frames:
+        raise ValueError(f"{file}: 'frames' is empty")
+    shared = {k: v for k, v in meta.items() if k != "frames"}
+    out = []
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise ValueError(f"{file}: frame {i} must be an object, got {type(frame).__name__}")
+        out.append({**shared, **frame})  # per-frame keys (fl_x, w, ...) win over top-level ones
+    return out
+
+
+def _number(frame: dict, key: str, where: str) -> Optional[float]:
+    if key not in frame:
+        return None
+    v = frame[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"{where}: '{key}' must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _intrinsics(frame: dict, width: int, height: int, where: str) -> np.ndarray:
+    """K [3,3] from fl_x/fl_y/cx/cy or camera_angle_x/_y; cx, cy default to W/2, H/2."""
+    fx = _number(frame, "fl_x", where)
+    if fx is None:
+        ax = _number(frame, "camera_angle_x", where)
+        if ax is None:
+            raise ValueError(f"{where}: needs 'camera_angle_x' or 'fl_x'")
+        if not 0 < ax < math.pi:
+            raise ValueError(f"{where}: camera_angle_x must be in (0, pi), got {ax}")
+        fx = 0.5 * width / math.tan(0.5 * ax)
+    fy = _number(frame, "fl_y", where)
+    if fy is None:
+        ay = _number(frame, "camera_angle_y", where)
+        if ay is not None and not 0 < ay < math.pi:
+            raise ValueError(f"{where}: camera_angle_y must be in (0, pi), got {ay}")
+        fy = fx if ay is None else 0.5 * height / math.tan(0.5 * ay)
+    cx = _number(frame, "cx", where)
+    cy = _number(frame, "cy", where)
+    cx = 0.5 * width if cx is None else cx
+    cy = 0.5 * height if cy is None else cy
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _world_to_camera(frame: dict, where: str) -> np.ndarray:
+    """OpenCV world-to-camera [4,4] from the frame's OpenGL camera-to-world matrix."""
+    if "transform_matrix" not in frame:
+        raise ValueError(f"{where}: missing 'transform_matrix'")
+    try:
+        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: 'transform_matrix' must be a numeric 4x4 matrix") from None
+    if c2w.shape != (4, 4):
+        raise ValueError(f"{where}: 'transform_matrix' must be 4x4, got {list(c2w.shape)}")
+    if not np.isfinite(c2w).all():
+        raise ValueError(f"{where}: 'transform_matrix' is not finite: {c2w.tolist()}")
+    try:
+        return np.linalg.inv(c2w @ OPENGL_TO_OPENCV)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"{where}: 'transform_matrix' is singular: {c2w.tolist()}") from None
+
+
+def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool,
+                  where: str) -> tuple[Camera, Path]:
+    fp = frame.get("file_path")
+    if not isinstance(fp, str) or not fp.strip():
+        raise ValueError(f"{where}: missing 'file_path'")
+    rel = fp if Path(fp).suffix else fp + ".png"  # Blender scenes omit the extension
+    name = normalize_name(rel)
+    file = root / name
+    where = f"{where} ({name})"
+    width, height = image_size(file)  # FileNotFoundError names the file
+    for key, actual in (("w", width), ("h", height)):
+        declared = _number(frame, key, where)
+        if declared is not None and declared != actual:
+            raise ValueError(f"{where}: '{key}' is {declared:g} but the image {file} is "
+                             f"{width}x{height}")
+    time = None
+    if with_time:
+        if "time" not in frame:
+            raise ValueError(f"{where}: missing 'time' (D-NeRF frames need a time in [0,1])")
+        time = _number(frame, "time", where)
+        if not 0.0 <= time <= 1.0:
+            raise ValueError(f"{where}: 'time' must be in [0,1], got {time}")
+    try:
+        cam = Camera(uid=uid, name=name, K=_intrinsics(frame, width, height, where),
+                     world_to_camera=_world_to_camera(frame, where), width=width,
+                     height=height, time=time)
+    except ValueError as err:
+        msg = str(err)
+        raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None
+    return cam, file
+
+
+def read_points_ply(file: Path) -> PointCloud:
+    """Points from a PLY with vertex properties x y z and optionally red green blue.
+
+    Integer colours are divided by their type's maximum (255 for uchar); float colours must
+    already be in [0,1]. Without colour properties every point is mid-grey (0.5).
+    """
+    from plyfile import PlyData
+
+    try:
+        vertex = PlyData.read(str(file))["vertex"]
+    except Exception as err:  # plyfile raises PlyParseError, KeyError, ValueError, ...
+        raise ValueError(f"{file}: cannot read a 'vertex' element: {err}") from None
+    props = {p.name for p in vertex.properties}
+    if not {"x", "y", "z"} <= props:
+        raise ValueError(f"{file}: vertex needs x, y, z properties, has {sorted(props)}")
+    xyz = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in "xyz"], axis=1)
+    if {"red", "green", "blue"} <= props:
+        cols = [np.asarray(vertex[k]) for k in ("red", "green", "blue")]
+        rgb = np.stack([c.astype(np.float64) / (np.iinfo(c.dtype).max
+                                                 if np.issubdtype(c.dtype, np.integer) else 1.0)
+                        for c in cols], axis=1)
+    else:
+        rgb = np.full_like(xyz, 0.5)
+    try:
+        return PointCloud(xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb))
+    except ValueError as err:
+        raise ValueError(f"{file}: {err}") from None
+
+
+def _load_blender(path, background, with_time: bool) -> Scene:
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"scene folder not found: {root}")
+    bg = check_background(background)
+    splits: dict[str, list[Camera]] = {}
+    files: dict[int, Path] = {}
+    uid = 0
+    for split in _SPLITS:
+        jfile = root / f"transforms_{split}.json"
+        cams = []
+        for i, frame in enumerate(_read_json(jfile)):
+            cam, file = _frame_camera(frame, uid, root, with_time, f"{jfile}: frame {i}")
+            cams.append(cam)
+            files[uid] = file
+            uid += 1
+        splits[split] = cams
+    ply = root / "points3d.ply"
+    points = read_points_ply(ply) if ply.is_file() else None
+    # sizes were read from the headers above, so the Scene need not read them again
+    return Scene(splits["train"], splits["test"], files, points=points, background=bg,
+                 check_sizes=False, source=root)
+
+
+def load_nerf_synthetic(path, background: Optional[Sequence[float]] = (1.0, 1.0, 1.0)) -> Scene:
+    """Load a NeRF-synthetic (Blender) scene.
+
+    Reads ``transforms_train.json`` and ``transforms_test.json`` in ``path`` (the val split is
+    not used). Per frame: ``file_path`` relative to the json's folder, ".png" appended when it
+    has no extension; ``transform_matrix`` an OpenGL camera-to-world, converted to an OpenCV
+    world-to-camera. Intrinsics, per frame or top-level (per frame wins): ``fl_x``/``fl_y``, else
+    fx = W / (2 tan(camera_angle_x / 2)) and fy from ``camera_angle_y`` or fy = fx; ``cx``/``cy``
+    default to W/2, H/2; ``w``/``h``, when given, must match the image. RGBA images are
+    composited on ``background`` (None drops alpha). An optional ``points3d.ply`` next to the
+    jsons becomes ``scene.points``. Uids count train frames then test frames from 0; names are
+    the image paths relative to ``path`` (e.g. "train/r_000.png").
+    """
+    return _load_blender(path, background, with_time=False)
+
+
+def load_dnerf(path, background: Optional[Sequence[float]] = (1.0, 1.0, 1.0)) -> Scene:
+    """Load a D-NeRF scene: as :func:`load_nerf_synthetic`, plus every frame's ``time`` in [0,1]
+    (required) on ``Camera.time``."""
+    return _load_blender(path, background, with_time=True)

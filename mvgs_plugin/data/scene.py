@@ -1,0 +1,183 @@
+"""The Scene record: cameras, lazily loaded images with a per-factor cache, optional points."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from pathlib import Path
+from typing import Mapping, Optional, Sequence, Union
+
+import torch
+
+from ..camera import Camera, _check_factor
+from .images import check_background, downsample, image_size, read_rgb
+
+__all__ = ["Scene", "PointCloud", "camera_normalization"]
+
+ImageSource = Union[str, Path, torch.Tensor]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PointCloud:
+    """Initial points: xyz [P, 3] float32 (world units), rgb [P, 3] float32 in [0, 1]."""
+
+    xyz: torch.Tensor
+    rgb: torch.Tensor
+
+    def __post_init__(self) -> None:
+        xyz = torch.as_tensor(self.xyz).detach().to("cpu", torch.float32)
+        rgb = torch.as_tensor(self.rgb).detach().to("cpu", torch.float32)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"xyz must be [P,3], got {list(xyz.shape)}")
+        if tuple(rgb.shape) != tuple(xyz.shape):
+            raise ValueError(f"rgb must be [P,3] like xyz {list(xyz.shape)}, got {list(rgb.shape)}")
+        if not bool(torch.isfinite(xyz).all()):
+            raise ValueError("xyz must be finite")
+        if rgb.numel() and not (bool(torch.isfinite(rgb).all()) and rgb.min() >= 0 and rgb.max() <= 1):
+            raise ValueError(f"rgb must be finite and in [0,1], got range "
+                             f"[{float(rgb.min())}, {float(rgb.max())}]")
+        object.__setattr__(self, "xyz", xyz)
+        object.__setattr__(self, "rgb", rgb)
+
+    def __len__(self) -> int:
+        return self.xyz.shape[0]
+
+
+def camera_normalization(cams: Sequence[Camera]) -> tuple[torch.Tensor, float]:
+    """Scene centre and extent as the original 3DGS computes them from the training cameras.
+
+    center = mean of the camera centres [3] (float64); extent = 1.1 x the largest distance of a
+    centre from that mean. A rig whose centres all coincide (one camera, or a turntable of
+    rotations only) has extent 0, which would zero every extent-scaled learning rate and
+    threshold; 1.0 is returned instead, with a warning, so the caller can see it and override.
+    """
+    if not cams:
+        raise ValueError("camera_normalization needs at least one camera")
+    centers = torch.stack([c.center for c in cams])
+    center = centers.mean(dim=0)
+    extent = 1.1 * float(torch.linalg.norm(centers - center, dim=1).max())
+    if not extent > 0:
+        warnings.warn(f"all {len(cams)} training camera centres coincide; scene extent set to 1.0",
+                      stacklevel=2)
+        extent = 1.0
+    return center, extent
+
+
+class Scene:
+    """Cameras and images of one scene.
+
+    Args:
+        train_cameras, test_cameras: lists of :class:`Camera` (uids unique across both).
+        images: per camera uid, an image file path (decoded lazily on first use, then cached)
+            or an already loaded float [H, W, 3] tensor in [0, 1].
+        points: optional initial :class:`PointCloud`.
+        background: RGB in [0, 1] that images with alpha were composited on, or None (alpha
+            dropped / no alpha). Renderers should use the same colour behind the Gaussians.
+        check_sizes: read every image file's header now and raise if its size differs from its
+            camera's (cheap: PNG and JPEG headers are parsed, not decoded).
+
+    Attributes:
+        center: [3] float64 and extent (float): see :func:`camera_normalization`.
+    """
+
+    def __init__(self, train_cameras: Sequence[Camera], test_cameras: Sequence[Camera],
+                 images: Mapping[int, ImageSource], points: Optional[PointCloud] = None,
+                 background: Optional[Sequence[float]] = None, check_sizes: bool = True,
+                 source: Optional[Path] = None) -> None:
+        self.train_cameras = list(train_cameras)
+        self.test_cameras = list(test_cameras)
+        self.points = points
+        self.background = check_background(background)
+        self.source = None if source is None else Path(source)
+        if not self.train_cameras:
+            where = f" {self.source}" if self.source is not None else ""
+            raise ValueError(f"scene{where} has no training cameras")
+        self._by_uid: dict[int, Camera] = {}
+        for cam in self.train_cameras + self.test_cameras:
+            if not isinstance(cam, Camera):
+                raise ValueError(f"cameras must be Camera instances, got {type(cam).__name__}")
+            if cam.uid in self._by_uid:
+                raise ValueError(f"duplicate camera uid {cam.uid} ({cam.name!r} and "
+                                 f"{self._by_uid[cam.uid].name!r})")
+            self._by_uid[cam.uid] = cam
+        self._sources: dict[int, ImageSource] = {}
+        self._cache: dict[tuple[int, float], torch.Tensor] = {}
+        for uid, cam in self._by_uid.items():
+            if uid not in images:
+                raise ValueError(f"no image given for camera {cam.name!r} (uid {uid})")
+            self._add_source(cam, images[uid], check_sizes)
+        self.center, self.extent = camera_normalization(self.train_cameras)
+
+    def _add_source(self, cam: Camera, src: ImageSource, check_size: bool) -> None:
+        if isinstance(src, torch.Tensor):
+            img = src.detach().to("cpu", torch.float32)
+            if tuple(img.shape) != (cam.height, cam.width, 3):
+                raise ValueError(f"image for camera {cam.name!r} must be [{cam.height},{cam.width},3], "
+                                 f"got {list(img.shape)}")
+            if not (bool(torch.isfinite(img).all()) and img.min() >= 0 and img.max() <= 1):
+                raise ValueError(f"image for camera {cam.name!r} must be finite and in [0,1]")
+            self._cache[(cam.uid, 1.0)] = img
+        else:
+            src = Path(src)
+            if check_size:
+                w, h = image_size(src)
+                if (w, h) != (cam.width, cam.height):
+                    raise ValueError(f"image {src} is {w}x{h} but its camera {cam.name!r} expects "
+                                     f"{cam.width}x{cam.height}")
+        self._sources[cam.uid] = src
+
+    @property
+    def cameras(self) -> list[Camera]:
+        """Train then test cameras."""
+        return self.train_cameras + self.test_cameras
+
+    def camera(self, name: str) -> Camera:
+        """The camera whose image name is ``name``."""
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(f"no camera named {name!r}")
+
+    def image(self, cam: Camera, factor: float = 1) -> torch.Tensor:
+        """The image of ``cam`` downsampled by ``factor`` (1 = full resolution).
+
+        ``cam`` is the scene's full-resolution camera (its uid selects the image); the result is
+        float32 [H', W', 3] in [0, 1] with (W', H') = ``cam.scaled(factor)``'s size, made once
+        per (camera, factor) with :func:`~mvgs_plugin.data.images.downsample` and cached.
+        The cached tensor itself is returned: do not modify it in place.
+        """
+        base = self._by_uid.get(getattr(cam, "uid", None))
+        if base is None:
+            raise KeyError(f"camera {cam!r} is not part of this scene")
+        if (cam.width, cam.height) != (base.width, base.height):
+            raise ValueError(f"pass the full-resolution camera ({base.width}x{base.height}) and a "
+                             f"factor, got a {cam.width}x{cam.height} camera")
+        factor = _check_factor(factor)
+        key = (base.uid, factor)
+        if key not in self._cache:
+            full = self._full(base)
+            if factor == 1.0:
+                return full
+            small = base.scaled(factor)
+            self._cache[key] = downsample(full, small.width, small.height)
+        return self._cache[key]
+
+    def _full(self, cam: Camera) -> torch.Tensor:
+        key = (cam.uid, 1.0)
+        if key not in self._cache:
+            img = read_rgb(self._sources[cam.uid], self.background)
+            if tuple(img.shape) != (cam.height, cam.width, 3):
+                raise ValueError(f"image {self._sources[cam.uid]} is {img.shape[1]}x{img.shape[0]} "
+                                 f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
+            self._cache[key] = img
+        return self._cache[key]
+
+    def clear_cache(self) -> None:
+        """Forget decoded images loaded from files (in-memory images are kept)."""
+        self._cache = {k: v for k, v in self._cache.items()
+                       if k[1] == 1.0 and isinstance(self._sources[k[0]], torch.Tensor)}
+
+    def __repr__(self) -> str:
+        pts = "no points" if self.points is None else f"{len(self.points)} points"
+        return (f"Scene({self.source or 'in memory'}: {len(self.train_cameras)} train, "
+                f"{len(self.test_cameras)} test, {pts}, extent={self.extent:.4g})")

@@ -1,0 +1,252 @@
+"""COLMAP loader: a model written with pycolmap from known poses, checked against pycolmap's
+own projection, hand-computed splits and normalisation, and one bad input per test."""
+
+import math
+
+import numpy as np
+import pycolmap
+import pytest
+import skimage.io
+import torch
+
+from mvgs_plugin.data import load_colmap
+
+W, H = 40, 30
+
+
+def look_at(position, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)):
+    """OpenCV world-to-camera rotation [3,3] and translation [3] of a camera at ``position``."""
+    f = np.asarray(target, float) - position
+    f /= np.linalg.norm(f)
+    x = np.cross(f, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(f, x)  # points down the image, as OpenCV's y
+    R = np.stack([x, y, f])
+    return R, -R @ position
+
+
+def write_model(root, n=10, fmt="bin", model="PINHOLE", seed=0, nan_image=None):
+    """Write images/ and sparse/0 under ``root``; return what was written.
+
+    ``nan_image``: index of an image whose translation is written as NaN."""
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction()
+    params = {"PINHOLE": [50.0, 52.0, 19.5, 15.2], "SIMPLE_RADIAL": [50.0, 20.0, 15.0, 0.01]}[model]
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(camera_id=1, model=model, width=W, height=H, params=params))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(camera_id=2, model="SIMPLE_PINHOLE", width=W, height=H,
+                        params=[45.0, 20.0, 14.0]))
+    positions, names = {}, {}
+    ids = rng.permutation(np.arange(1, n + 1))  # id order differs from name order
+    for k in range(n):
+        angle = 2 * math.pi * k / n
+        pos = np.array([4.0 * math.cos(angle), 4.0 * math.sin(angle), 1.0 + 0.1 * k])
+        R, t = look_at(pos)
+        if k == nan_image:
+            t = np.array([t[0], np.nan, t[2]])
+        name = f"views/r_{k:03d}.png"
+        image = pycolmap.Image(name=name, camera_id=1 + k % 2, image_id=int(ids[k]))
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+        positions[name], names[int(ids[k])] = pos, name
+        pixels = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+        (root / "images" / "views").mkdir(parents=True, exist_ok=True)
+        skimage.io.imsave(root / "images" / name, pixels, check_contrast=False)
+    xyz = rng.uniform(-0.5, 0.5, size=(25, 3))
+    rgb = rng.integers(0, 256, size=(25, 3), dtype=np.uint8)
+    for p, c in zip(xyz, rgb):
+        rec.add_point3D(p, pycolmap.Track(), c)
+    model_dir = root / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    (rec.write_binary if fmt == "bin" else rec.write_text)(str(model_dir))
+    return dict(positions=positions, names=names, xyz=xyz, rgb=rgb, model_dir=model_dir)
+
+
+@pytest.fixture
+def scene_dir(tmp_path):
+    info = write_model(tmp_path)
+    return tmp_path, info
+
+
+@pytest.mark.parametrize("fmt", ["bin", "txt"])
+def test_projection_agrees_with_pycolmap(tmp_path, fmt):
+    info = write_model(tmp_path, fmt=fmt)
+    scene = load_colmap(tmp_path)
+    rec = pycolmap.Reconstruction(str(info["model_dir"]))
+    assert len(scene.cameras) == 10
+    for cam in scene.cameras:
+        image = rec.images[cam.uid]
+        assert cam.name == image.name and (cam.width, cam.height) == (W, H)
+        ours, depth = cam.project(torch.from_numpy(info["xyz"]))
+        assert bool((depth > 0).all())
+        theirs = np.stack([image.project_point(p) for p in info["xyz"]])
+        assert np.allclose(ours.numpy(), theirs, atol=1e-9)
+
+
+def test_rays_through_pycolmap_pixels_hit_the_point(scene_dir):
+    root, info = scene_dir
+    scene = load_colmap(root)
+    rec = pycolmap.Reconstruction(str(info["model_dir"]))
+    for cam in scene.cameras[:3]:
+        pix = np.stack([rec.images[cam.uid].project_point(p) for p in info["xyz"]])
+        o, d = cam.rays(torch.from_numpy(pix))
+        v = info["xyz"] - o.numpy()
+        t = (v * d.numpy()).sum(1)
+        assert np.abs(v - t[:, None] * d.numpy()).max() < 1e-9 and (t > 0).all()
+
+
+def test_scaled_camera_projects_to_pixel_over_s(scene_dir):
+    root, info = scene_dir
+    cam = load_colmap(root).train_cameras[0]
+    image = pycolmap.Reconstruction(str(info["model_dir"])).images[cam.uid]
+    theirs = np.stack([image.project_point(p) for p in info["xyz"]])
+    small = cam.scaled(2)  # 40x30 divides by 2 exactly
+    assert (small.width, small.height) == (20, 15)
+    assert np.allclose(small.project(torch.from_numpy(info["xyz"]))[0].numpy(), theirs / 2, atol=1e-9)
+
+
+def test_simple_pinhole_uses_one_focal(scene_dir):
+    root, _ = scene_dir
+    scene = load_colmap(root)
+    simple = [c for c in scene.cameras if abs(c.fx - 45.0) < 1e-12]
+    assert simple and all(c.fy == 45.0 and (c.cx, c.cy) == (20.0, 14.0) for c in simple)
+
+
+def test_split_every_kth_by_name_and_explicit_names(scene_dir):
+    root, info = scene_dir
+    names = sorted(info["positions"])
+    scene = load_colmap(root, test_every=3)
+    assert [c.name for c in scene.test_cameras] == [names[i] for i in (0, 3, 6, 9)]
+    assert [c.name for c in scene.train_cameras] == [names[i] for i in (1, 2, 4, 5, 7, 8)]
+    default = load_colmap(root)  # test_every=8 -> indices 0 and 8
+    assert [c.name for c in default.test_cameras] == [names[0], names[8]]
+    explicit = load_colmap(root, test_names=["views/r_004.png", "./views/r_007.png"])
+    assert sorted(c.name for c in explicit.test_cameras) == ["views/r_004.png", "views/r_007.png"]
+    assert len(explicit.train_cameras) == 8
+    assert load_colmap(root, test_every=None).test_cameras == []
+
+
+def test_center_and_extent_as_original_3dgs(scene_dir):
+    root, info = scene_dir
+    scene = load_colmap(root, test_every=3)
+    centres = np.stack([info["positions"][c.name] for c in scene.train_cameras])
+    mean = centres.mean(0)
+    assert np.allclose(scene.center.numpy(), mean, atol=1e-9)
+    assert math.isclose(scene.extent, 1.1 * np.linalg.norm(centres - mean, axis=1).max(), rel_tol=1e-9)
+
+
+def test_points_and_images(scene_dir):
+    root, info = scene_dir
+    scene = load_colmap(root)
+    assert scene.points is not None and len(scene.points) == 25
+    order = np.lexsort(info["xyz"].T)  # compare as sets: the model may reorder points
+    got = scene.points.xyz.numpy().astype(np.float64)
+    got_order = np.lexsort(got.T)
+    assert np.allclose(got[got_order], info["xyz"][order], atol=1e-6)
+    assert np.allclose(scene.points.rgb.numpy()[got_order], info["rgb"][order] / 255.0, atol=1e-6)
+    cam = scene.train_cameras[0]
+    img = scene.image(cam)
+    expected = skimage.io.imread(root / "images" / cam.name) / 255.0
+    assert img.dtype == torch.float32 and img.shape == (H, W, 3)
+    assert np.allclose(img.numpy(), expected, atol=1e-6)
+    assert scene.image(cam) is img  # cached
+    small = scene.image(cam, 2)
+    assert small.shape == (cam.scaled(2).height, cam.scaled(2).width, 3) == (15, 20, 3)
+
+
+def test_legacy_model_without_rigs_and_frames(tmp_path):
+    info = write_model(tmp_path, fmt="txt")
+    for f in ("rigs.txt", "frames.txt"):  # COLMAP < 3.12 writes neither
+        (info["model_dir"] / f).unlink()
+    scene = load_colmap(tmp_path)
+    assert len(scene.cameras) == 10
+    cam = scene.camera("views/r_005.png")
+    assert np.allclose(cam.center.numpy(), info["positions"]["views/r_005.png"], atol=1e-9)
+
+
+def test_images_dir_and_model_folder_given_directly(scene_dir):
+    root, info = scene_dir
+    scene = load_colmap(info["model_dir"], images_dir=root / "images")
+    assert len(scene.cameras) == 10
+
+
+# ---- bad input: one clear error each -----------------------------------------------------
+
+def test_distorted_camera_model_is_refused(tmp_path):
+    write_model(tmp_path, model="SIMPLE_RADIAL")
+    with pytest.raises(ValueError, match="SIMPLE_RADIAL.*image_undistorter"):
+        load_colmap(tmp_path)
+
+
+def test_missing_model(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no COLMAP model"):
+        load_colmap(tmp_path)
+
+
+def test_missing_image_file(scene_dir):
+    root, _ = scene_dir
+    (root / "images" / "views" / "r_003.png").unlink()
+    with pytest.raises(FileNotFoundError, match="r_003.png"):
+        load_colmap(root)
+
+
+def test_image_size_disagrees_with_camera(scene_dir):
+    root, _ = scene_dir
+    skimage.io.imsave(root / "images" / "views" / "r_002.png",
+                      np.zeros((H, W + 1, 3), np.uint8), check_contrast=False)
+    with pytest.raises(ValueError, match=r"r_002.png is 41x30 .* expects 40x30"):
+        load_colmap(root)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its plugins
+def test_unreadable_image(scene_dir):
+    root, _ = scene_dir
+    (root / "images" / "views" / "r_001.png").write_bytes(b"not an image at all")
+    with pytest.raises(ValueError, match="r_001.png"):
+        load_colmap(root)
+
+
+def test_nan_pose(tmp_path):
+    # COLMAP's text reader rejects "nan" itself; the binary format stores it as is
+    write_model(tmp_path, fmt="bin", nan_image=4)
+    with pytest.raises(ValueError, match=r"r_004.png.*finite"):
+        load_colmap(tmp_path)
+
+
+def test_empty_train_split_and_unknown_test_name(scene_dir):
+    root, _ = scene_dir
+    with pytest.raises(ValueError, match="train split is empty"):
+        load_colmap(root, test_every=1)
+    with pytest.raises(ValueError, match="nope.png"):
+        load_colmap(root, test_names=["nope.png"])
+
+
+# ---- the bundled scene ---------------------------------------------------------------------
+
+def test_bundled_scene_loads_identically_in_both_layouts():
+    from pathlib import Path
+
+    from mvgs_plugin.data import load_nerf_synthetic
+
+    root = Path(__file__).resolve().parent.parent / "examples" / "scenes" / "tabletop"
+    nerf = load_nerf_synthetic(root)
+    test_names = sorted(p.relative_to(root).as_posix() for p in (root / "test").glob("*.png"))
+    colmap = load_colmap(root, test_names=test_names)
+    assert sorted(c.name for c in colmap.test_cameras) == sorted(c.name for c in nerf.test_cameras) \
+        == test_names
+    assert sorted(c.name for c in colmap.train_cameras) == sorted(c.name for c in nerf.train_cameras)
+    for cam in colmap.cameras:
+        other = nerf.camera(cam.name)
+        assert (cam.width, cam.height) == (other.width, other.height)
+        assert torch.allclose(cam.K, other.K, atol=1e-6, rtol=0)
+        assert torch.allclose(cam.world_to_camera, other.world_to_camera, atol=1e-6, rtol=0)
+    assert torch.allclose(colmap.center, nerf.center, atol=1e-6)
+    assert math.isclose(colmap.extent, nerf.extent, rel_tol=1e-6)
+    name = colmap.test_cameras[0].name  # same pixels through both loaders
+    assert torch.equal(colmap.image(colmap.camera(name)), nerf.image(nerf.camera(name)))
+    # the PLY next to the json and the COLMAP points3D hold the same points
+    a, b = colmap.points, nerf.points
+    assert a is not None and b is not None and len(a) == len(b)
+    ia, ib = np.lexsort(a.xyz.numpy().T), np.lexsort(b.xyz.numpy().T)
+    assert torch.allclose(a.xyz[ia], b.xyz[ib], atol=1e-5)
+    assert torch.allclose(a.rgb[ia], b.rgb[ib], atol=1e-6)
