@@ -1,0 +1,177 @@
+"""MVGSConfig: every knob of the controller, with presets.
+
+- ``MVGSConfig.baseline()``: the original 3DGS recipe (one view per step, one stage). With it the
+  controller is plain 3DGS training, so baseline and MVGS run through the same code.
+- ``MVGSConfig.paper()``: the released MVGS behaviour (MVGS_METHOD.md): stages {8,4,2,1} with
+  M {48,24,12,8}; schedules restart at every stage and opacities are reset at each hand-off;
+  densification statistics from the last view of a step only.
+- ``MVGSConfig.default()``: the paper's method with our fixes: one continuous schedule, no reset
+  at hand-offs, statistics from all views of the step.
+
+Every deviation from the paper is a named field. Step counts follow the original 30k-step
+recipe; ``with_total_steps(n)`` rescales every step-valued field for short runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Tuple, Union
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One level of cross-intrinsic guidance: image pyramid factor, views per step, steps."""
+
+    factor: int
+    views: int
+    steps: int
+
+    def __post_init__(self):
+        for name in ("factor", "views", "steps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"Stage.{name} must be a positive int, got {v!r}")
+
+
+@dataclass
+class MVGSConfig:
+    """Controller settings (adapter settings live in the adapter's own config).
+
+    stages: the stage plan (cross-intrinsic guidance); one Stage(1, M, steps) means no pyramid.
+    reduction: "sum" of the per-view losses (the paper) or "mean".
+    stats_from: densification statistics from "all" views of a step (ours) or the "last" one
+        (the released code).
+    chunk_size: views rendered and backpropagated together; memory grows with it, not with M.
+    lambda_dssim: weight of the SSIM term in (1 - λ) L1 + λ (1 - SSIM).
+    densify_from / densify_until / densify_every / opacity_reset_every: the 3DGS clock
+        (densify when from < step < until and step % every == 0; reset at multiples of
+        opacity_reset_every while step < until).
+    grad_threshold: β, the screen-space gradient threshold (NDC units).
+    prune_large_after: size-based pruning is active once the step exceeds this.
+    restart_per_stage: restart the learning-rate and densification clocks at each stage (the
+        released code ran its stages as separate processes).
+    opacity_reset_at_handoff: reset opacities when a stage hands over (released code: a side
+        effect of its per-stage restart).
+    background: "auto" (the colour the scene's RGBA images were composited on, else black),
+        "black", "white", "random" (per view and step) or an (r, g, b) tuple.
+    max_views_rule: what happens when a stage asks for more views than there are training views:
+        "cap" (use them all; the only rule: repeats within a step are never allowed).
+    seed: seeds the view sampler, random backgrounds and the adapter's own randomness.
+    """
+
+    stages: Tuple[Stage, ...] = (Stage(1, 1, 30_000),)
+    reduction: str = "sum"
+    stats_from: str = "all"
+    chunk_size: int = 1
+    lambda_dssim: float = 0.2
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    opacity_reset_every: int = 3_000
+    grad_threshold: float = 2e-4
+    prune_large_after: int = 3_000
+    restart_per_stage: bool = False
+    opacity_reset_at_handoff: bool = False
+    background: Union[str, Tuple[float, float, float]] = "auto"
+    max_views_rule: str = "cap"
+    seed: int = 0
+    preset: str = field(default="custom", compare=False)
+
+    def __post_init__(self):
+        self.stages = tuple(self.stages)
+        if not self.stages or not all(isinstance(s, Stage) for s in self.stages):
+            raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
+        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",)}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        for name in ("chunk_size", "densify_every", "opacity_reset_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        if not (0.0 <= self.lambda_dssim <= 1.0):
+            raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
+        if not self.grad_threshold > 0:
+            raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold!r}")
+        bg = self.background
+        if isinstance(bg, str):
+            if bg not in ("auto", "black", "white", "random"):
+                raise ValueError(f"background must be 'auto', 'black', 'white', 'random' or (r, g, b), got {bg!r}")
+        elif len(tuple(bg)) != 3 or not all(0.0 <= float(c) <= 1.0 for c in bg):
+            raise ValueError(f"background must be (r, g, b) in [0, 1], got {bg!r}")
+
+    @property
+    def total_steps(self) -> int:
+        return sum(s.steps for s in self.stages)
+
+    # ---- presets --------------------------------------------------------------------------
+    @classmethod
+    def baseline(cls, **overrides) -> "MVGSConfig":
+        """Plain 3DGS: one view per step, full resolution, 30k steps."""
+        return cls(**{"stages": (Stage(1, 1, 30_000),), "preset": "baseline", **overrides})
+
+    @classmethod
+    def paper(cls, **overrides) -> "MVGSConfig":
+        """The released MVGS code's behaviour (MVGS_METHOD.md §1, §2)."""
+        stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
+        return cls(**{
+            "stages": stages, "stats_from": "last", "restart_per_stage": True,
+            "opacity_reset_at_handoff": True, "preset": "paper", **overrides,
+        })
+
+    @classmethod
+    def default(cls, **overrides) -> "MVGSConfig":
+        """The paper's method with our fixes: continuous schedule, statistics from all views."""
+        stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
+        return cls(**{"stages": stages, "preset": "default", **overrides})
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides) -> "MVGSConfig":
+        makers = {"baseline": cls.baseline, "paper": cls.paper, "default": cls.default}
+        if name not in makers:
+            raise ValueError(f"preset must be one of {sorted(makers)}, got {name!r}")
+        return makers[name](**overrides)
+
+    # ---- rescaling for short runs -----------------------------------------------------------
+    def with_total_steps(self, total: int) -> "MVGSConfig":
+        """The same recipe compressed (or stretched) to `total` steps.
+
+        Stage lengths keep their proportions (each at least 1 step) and every step-valued clock
+        (densification window and interval, opacity reset, size pruning) scales by the same
+        ratio, so a 3k-step run densifies and resets at the same relative times as a 39k one.
+        """
+        if isinstance(total, bool) or not isinstance(total, int) or total < len(self.stages):
+            raise ValueError(f"total steps must be an int >= the number of stages ({len(self.stages)}), got {total!r}")
+        # The clocks are relative to one stage when they restart per stage, else to the whole run.
+        ref = self.stages[-1].steps if self.restart_per_stage else self.total_steps
+        ratio = total / self.total_steps
+        steps = [max(1, round(s.steps * ratio)) for s in self.stages]
+        steps[-1] = max(1, total - sum(steps[:-1]))
+        stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
+        clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
+        scale = lambda v: max(1, round(v * clock_ratio))  # noqa: E731
+        return dataclasses.replace(
+            self, stages=stages, densify_from=scale(self.densify_from), densify_until=scale(self.densify_until),
+            densify_every=scale(self.densify_every), opacity_reset_every=scale(self.opacity_reset_every),
+            prune_large_after=scale(self.prune_large_after),
+        )
+
+    def with_views(self, views: int) -> "MVGSConfig":
+        """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""
+        last = self.stages[-1].views
+        stages = tuple(Stage(s.factor, max(1, round(s.views * views / last)), s.steps) for s in self.stages)
+        return dataclasses.replace(self, stages=stages)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["stages"] = [dataclasses.asdict(s) for s in self.stages]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MVGSConfig":
+        d = dict(d)
+        d["stages"] = tuple(Stage(**s) for s in d["stages"])
+        if isinstance(d.get("background"), list):
+            d["background"] = tuple(d["background"])
+        return cls(**d)

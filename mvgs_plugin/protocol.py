@@ -1,0 +1,136 @@
+"""The Adapter protocol: what the MVGS controller asks of a Gaussian model and its renderer.
+
+The controller knows cameras, images, losses and schedules; an adapter owns everything
+model-specific: its parameters and optimizer groups, how it renders, what statistics its
+densification needs, how it densifies and prunes, and how it is saved. Implement this protocol
+for your own model and renderer (gsplat, the original CUDA rasterizer, ...) without touching
+`mvgs_plugin`; run `mvgs_plugin.testing.check_adapter` on it.
+
+One step of the controller, for the M views the sampler picked (rendered in chunks of
+`config.chunk_size` views so memory does not grow with M):
+
+    adapter.set_step(step)                         # learning rates, SH degree, ...
+    for chunk in views:
+        result = adapter.render(chunk_cameras, backgrounds)
+        loss = sum of per-view photometric losses (+ adapter.regularization(step), once)
+        loss.backward()                            # gradients accumulate in .grad
+        adapter.accumulate_stats(result)           # all views, or only the last ("last")
+    (NaN/Inf guard on adapter.named_gradients())
+    if densification is due: adapter.densify(DensifyContext(...))
+    adapter.optimizer_step(); adapter.zero_grad()
+
+The controller never assumes one Gaussian per trainable row (Scaffold-GS decodes a different set
+of Gaussians per view) nor a static scene (cameras carry `time`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, Optional, Protocol, Sequence, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from .camera import Camera
+
+
+@dataclass
+class RenderResult:
+    """What an adapter returns for a chunk of C views (all of one size).
+
+    images: [C, H, W, 3] linear colour, differentiable w.r.t. the adapter's parameters.
+    alphas: [C, H, W, 1] accumulated opacity, or None.
+    aux: anything the adapter needs later in `accumulate_stats` (e.g. gsplat's meta dict with
+        means2d and radii). The controller never looks inside.
+    """
+
+    images: Tensor
+    alphas: Optional[Tensor] = None
+    aux: Any = None
+
+
+@dataclass
+class DensifyContext:
+    """Everything the controller decided for one densification call.
+
+    step: global step (1-based, as the original 3DGS counts).
+    grad_threshold: screen-space gradient threshold (NDC units, 2e-4 by default) after the
+        multi-view augmented rule (MVAD) has possibly lowered it for this step.
+    scene_extent: the scene scale used by size thresholds (Scene.extent).
+    boxes: [B, 2, 3] axis-aligned boxes (min corner, max corner) from cross-ray densification
+        (CRD): primitives strictly inside any box are densified once; None when CRD is off.
+    max_new_from_boxes: cap on how many primitives the boxes may add in this call (None = no cap).
+    prune_large: whether size-based pruning (screen radius / world size) is active now (the
+        original 3DGS turns it on after the first opacity reset).
+    cameras: the cameras of the step that triggered the call (stage resolution).
+    """
+
+    step: int
+    grad_threshold: float
+    scene_extent: float
+    boxes: Optional[Tensor] = None
+    max_new_from_boxes: Optional[int] = None
+    prune_large: bool = False
+    cameras: Sequence[Camera] = ()
+
+
+@dataclass
+class DensifyReport:
+    """What a densification call did (counts of primitives: Gaussians, or anchors)."""
+
+    before: int
+    after: int
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    from_boxes: int = 0
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Adapter(Protocol):
+    """A Gaussian model plus its renderer and optimizer, as the controller drives it."""
+
+    def render(self, cameras: Sequence[Camera], backgrounds: Tensor) -> RenderResult:
+        """Render C views of one size. backgrounds: [C, 3]. Returns images [C, H, W, 3]."""
+
+    def regularization(self, step: int) -> Optional[Tensor]:
+        """A scalar added once per step to the summed loss (e.g. Scaffold's volume term), or None."""
+
+    def accumulate_stats(self, result: RenderResult) -> None:
+        """Fold the densification statistics of a rendered chunk in, after its backward."""
+
+    def densify(self, ctx: DensifyContext) -> DensifyReport:
+        """Grow and prune using the accumulated statistics, then reset them. Optimizer state must
+        stay aligned with the parameters."""
+
+    def reset_opacity(self) -> None:
+        """The periodic opacity reset of 3DGS (a no-op for models without one)."""
+
+    def set_step(self, step: int) -> None:
+        """Called at the start of every step: learning-rate schedule, SH degree, stage switches."""
+
+    def named_gradients(self) -> Dict[str, Optional[Tensor]]:
+        """Current gradients of every trainable group by name (for the NaN/Inf guard)."""
+
+    def optimizer_step(self) -> None:
+        """Apply the accumulated gradients."""
+
+    def zero_grad(self) -> None:
+        """Clear the gradients (after the optimizer step)."""
+
+    def positions(self) -> Tensor:
+        """[P, 3] positions of the primitives (Gaussians or anchors) for region queries."""
+
+    def num_primitives(self) -> int:
+        """Number of primitives (Gaussians, or anchors for Scaffold-GS)."""
+
+    def state_dict(self) -> Dict[str, Any]:
+        """Parameters, optimizer state, statistics and schedule state (everything to resume)."""
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        """Restore what state_dict() returned (the primitive count may differ from now)."""
+
+    def export(self, path: str, camera: Optional[Camera] = None) -> None:
+        """Write the model in its standard interchange format (a 3DGS PLY for Gaussians); the
+        camera is for models that decode Gaussians per view."""

@@ -1,0 +1,115 @@
+"""View sampler, stage plan and config presets."""
+
+import collections
+
+import pytest
+
+from mvgs_plugin.config import MVGSConfig, Stage
+from mvgs_plugin.sampler import ViewSampler
+from mvgs_plugin.schedule import StagePlan
+
+
+@pytest.mark.parametrize("n,m", [(10, 3), (7, 7), (12, 5), (5, 1), (48, 48)])
+def test_no_repeats_in_a_step_and_every_view_once_per_epoch(n, m):
+    s = ViewSampler(n, seed=3)
+    steps = [s.sample(m) for _ in range(200)]
+    assert all(len(set(v)) == m for v in steps)
+    flat = [i for v in steps for i in v]
+    # Over any whole number of epochs drawn, each view appears the same number of times, up to
+    # the one epoch a straddling step shifts.
+    counts = collections.Counter(flat)
+    assert set(counts) == set(range(n))
+    assert max(counts.values()) - min(counts.values()) <= 1
+    # Within each window of n consecutive draws aligned to epochs, every view appears once when
+    # m divides n (no straddling steps).
+    if n % m == 0:
+        for e in range(len(flat) // n):
+            assert sorted(flat[e * n : (e + 1) * n]) == list(range(n))
+
+
+def test_sampler_is_seeded_and_resumable():
+    a, b = ViewSampler(9, seed=1), ViewSampler(9, seed=1)
+    assert [a.sample(4) for _ in range(5)] == [b.sample(4) for _ in range(5)]
+    state = a.state_dict()
+    rest = [a.sample(4) for _ in range(7)]
+    c = ViewSampler(9, seed=123)
+    c.load_state_dict(state)
+    assert [c.sample(4) for _ in range(7)] == rest
+    assert [ViewSampler(9, seed=2).sample(4) for _ in range(3)] != [ViewSampler(9, seed=1).sample(4) for _ in range(3)]
+
+
+def test_more_views_than_exist_is_capped():
+    s = ViewSampler(4, seed=0)
+    with pytest.warns(UserWarning, match="only 4 training views"):
+        v = s.sample(10)
+    assert sorted(v) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True])
+def test_bad_view_counts(bad):
+    with pytest.raises(ValueError, match="positive int"):
+        ViewSampler(3).sample(bad)
+    with pytest.raises(ValueError, match="positive int"):
+        ViewSampler(bad)
+
+
+def test_stage_plan_continuous_and_restarting():
+    stages = (Stage(8, 4, 3), Stage(2, 2, 2), Stage(1, 1, 5))
+    cont = StagePlan(stages, restart_per_stage=False)
+    rest = StagePlan(stages, restart_per_stage=True)
+    got = [(p.index, p.local_step, p.clock, p.first_in_stage) for p in map(cont.locate, range(1, 11))]
+    assert [g[0] for g in got] == [0, 0, 0, 1, 1, 2, 2, 2, 2, 2]
+    assert [g[2] for g in got] == list(range(1, 11))
+    assert [rest.locate(s).clock for s in range(1, 11)] == [1, 2, 3, 1, 2, 1, 2, 3, 4, 5]
+    assert [s for s in range(1, 11) if cont.locate(s).first_in_stage] == [1, 4, 6]
+    with pytest.raises(ValueError, match=r"step must be in \[1, 10\]"):
+        cont.locate(11)
+
+
+def test_presets_follow_the_method_notes():
+    base = MVGSConfig.baseline()
+    assert base.stages == (Stage(1, 1, 30_000),) and base.stats_from == "all"
+    paper = MVGSConfig.paper()
+    assert [(s.factor, s.views, s.steps) for s in paper.stages] == [(8, 48, 3000), (4, 24, 3000), (2, 12, 3000), (1, 8, 30000)]
+    assert paper.stats_from == "last" and paper.restart_per_stage and paper.opacity_reset_at_handoff
+    ours = MVGSConfig.default()
+    assert [s.factor for s in ours.stages] == [8, 4, 2, 1]
+    assert ours.stats_from == "all" and not ours.restart_per_stage and not ours.opacity_reset_at_handoff
+    assert MVGSConfig.from_dict(ours.to_dict()) == ours
+
+
+def test_with_total_steps_keeps_proportions():
+    c = MVGSConfig.default().with_total_steps(3900)
+    assert c.total_steps == 3900
+    assert [s.steps for s in c.stages] == [300, 300, 300, 3000]
+    # continuous clock: 39k -> 3.9k is a factor 10
+    assert (c.densify_from, c.densify_until, c.densify_every, c.opacity_reset_every) == (50, 1500, 10, 300)
+    p = MVGSConfig.paper().with_total_steps(3900)
+    # restarting clock: relative to the 30k final stage -> factor 0.1 as well
+    assert (p.densify_from, p.densify_until, p.opacity_reset_every) == (50, 1500, 300)
+    b = MVGSConfig.baseline().with_total_steps(3000)
+    assert b.stages == (Stage(1, 1, 3000),) and b.densify_every == 10
+
+
+def test_with_views():
+    c = MVGSConfig.default().with_views(4)
+    assert [s.views for s in c.stages] == [24, 12, 6, 4]
+
+
+@pytest.mark.parametrize("field,value,pattern", [
+    ("reduction", "max", "reduction must be one of"),
+    ("stats_from", "first", "stats_from must be one of"),
+    ("chunk_size", 0, "chunk_size must be a positive int"),
+    ("lambda_dssim", 1.5, "lambda_dssim must be in"),
+    ("background", "green", "background must be"),
+    ("background", (2.0, 0.0, 0.0), "background must be"),
+    ("stages", (), "stages must be a non-empty"),
+])
+def test_bad_config(field, value, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        MVGSConfig(**{field: value})
+
+
+def test_bad_stage():
+    with pytest.raises(ValueError, match="Stage.views must be a positive int, got 0"):
+        Stage(1, 0, 10)
