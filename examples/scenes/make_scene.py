@@ -1,0 +1,797 @@
+#!/usr/bin/env python3
+"""Render a small tabletop scene with Mitsuba 3 as ground truth for mvgs-plugin.
+
+The scene is rendered by an independent path tracer (Mitsuba 3), never by our own Gaussian
+renderer, so that fitting it proves something. One run writes the same cameras in two layouts:
+
+* NeRF-synthetic: ``transforms_{train,test}.json`` (OpenGL camera-to-world, ``camera_angle_x``
+  plus explicit ``fl_x, fl_y, cx, cy, w, h``), images ``train/r_000.png`` / ``test/r_000.png``
+  (8-bit sRGB, converted the way ``mitsuba.Bitmap.convert(srgb_gamma=True)`` does it) and
+  ``points3d.ply`` (x y z red green blue).
+* COLMAP: ``sparse/0/{cameras,images,points3D}.bin`` written by pycolmap (version 4 also
+  writes ``rigs.bin`` and ``frames.bin``; readers of the classic three files ignore them); one
+  PINHOLE camera; image names point at the same PNG files; poses are world-to-camera in OpenCV
+  axes; points are sampled on the analytic surfaces, with tracks in the train views that see
+  them.
+
+World frame: z up, the table top is the plane z = 0, the scene centre is ``TARGET``.
+
+Mitsuba's ``perspective`` sensor looks along its local +z with local +x pointing LEFT and +y
+pointing UP in the image; OpenCV looks along +z with x right and y down. So the Mitsuba
+``to_world`` is the OpenCV camera-to-world times diag(-1, -1, 1, 1). ``--check-projection``
+verifies this on rendered markers.
+
+Variants (``--variant``):
+
+* ``default``: diffuse red ball, rough gold sphere, tiled box, blue cylinder on a checker
+  ground; sky map plus a directional sun. 48 train + 12 test views on a hemisphere rig.
+* ``reflective``: the same shapes as a mirror ball, rough copper and aluminium, and glossy
+  plastic; sky light only (a delta sun would cause caustic fireflies through the mirrors).
+* ``sparse``: the default scene seen by 10 train views 36 degrees apart in azimuth, alternating
+  between 18 and 50 degrees elevation; test views lie between them.
+* ``moving``: D-NeRF layout. The objects translate and rotate with time; every frame has a
+  ``time`` in [0, 1] that runs along the rig, so test views are unseen (camera, time) pairs;
+  ``transforms_val.json`` equals test. Its sparse points lie on the static ground only.
+
+Examples::
+
+    python examples/scenes/make_scene.py --out examples/scenes/tabletop
+    python examples/scenes/make_scene.py --variant moving --out /tmp/moving
+    python examples/scenes/make_scene.py --out examples/scenes/tabletop --no-render \\
+        --check-projection --check-noise
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+VARIANTS = ("default", "reflective", "sparse", "moving")
+TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
+GROUND_RADIUS = 2.5
+FOV_X_DEG = 45.0
+TEXTURE_SEED = 1234  # textures are part of the scene, not of the Monte Carlo noise
+
+# Marker points for --check-projection: off-centre on purpose, so a flipped axis shows.
+MARKERS = np.array([[0.9, -0.7, 0.1], [-0.8, 0.6, 0.9], [0.3, 0.9, 0.5]])
+MARKER_RADIUS = 0.03
+
+
+# ----------------------------------------------------------------------------- cameras
+@dataclass
+class View:
+    """One camera: OpenCV world-to-camera, pinhole K, its split, index and time."""
+
+    split: str  # "train" or "test"
+    index: int  # index within the split (r_000 ...)
+    w2c: np.ndarray  # [4, 4] OpenCV world-to-camera
+    K: np.ndarray  # [3, 3]
+    width: int
+    height: int
+    time: float = 0.0
+
+    @property
+    def name(self) -> str:
+        return f"{self.split}/r_{self.index:03d}"
+
+    @property
+    def c2w(self) -> np.ndarray:
+        return np.linalg.inv(self.w2c)
+
+
+def intrinsics(size: int, fov_x_deg: float = FOV_X_DEG) -> np.ndarray:
+    """Square pixels, principal point at the image centre (pixel centres at +0.5)."""
+    fx = 0.5 * size / math.tan(0.5 * math.radians(fov_x_deg))
+    return np.array([[fx, 0.0, 0.5 * size], [0.0, fx, 0.5 * size], [0.0, 0.0, 1.0]])
+
+
+def look_at_w2c(centre: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV world-to-camera for a camera at ``centre`` looking at ``target`` (z up)."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, float))  # right in the image
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)  # down in the image
+    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ centre
+    return w2c
+
+
+def radical_inverse(k: int, base: int) -> float:
+    """Van der Corput sequence: a low-discrepancy value in [0, 1)."""
+    out, f = 0.0, 1.0 / base
+    while k > 0:
+        out += f * (k % base)
+        k //= base
+        f /= base
+    return out
+
+
+def pick_test_slots(n_total: int, n_test: int) -> set[int]:
+    """Rig slots given to test views: spread evenly, so test interleaves with train."""
+    if n_test == 0:
+        return set()
+    slots = {int(round((j + 0.5) * n_total / n_test - 0.5)) for j in range(n_test)}
+    if len(slots) != n_test:
+        raise ValueError(f"cannot interleave {n_test} test views among {n_total}")
+    return slots
+
+
+def rig_dense(n_total: int) -> list[np.ndarray]:
+    """Upper-hemisphere rig: golden-angle azimuth, low-discrepancy elevation and distance."""
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    lo, hi = math.sin(math.radians(12.0)), math.sin(math.radians(65.0))
+    centres = []
+    for k in range(n_total):
+        az = k * golden
+        frac = (radical_inverse(k, 3) + 0.5 / n_total) % 1.0
+        elev = math.asin(lo + (hi - lo) * frac)
+        dist = 4.0 + 0.6 * (radical_inverse(k, 5) - 0.5)
+        centres.append(TARGET + dist * np.array(
+            [math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az), math.sin(elev)]))
+    return centres
+
+
+def rig_sparse(n_train: int, n_test: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Few train views spread evenly in azimuth (alternating low/high), test views between."""
+    def at(az, elev_deg, dist):
+        e = math.radians(elev_deg)
+        return TARGET + dist * np.array([math.cos(e) * math.cos(az), math.cos(e) * math.sin(az),
+                                         math.sin(e)])
+    train = [at(2 * math.pi * i / n_train, 18.0 if i % 2 == 0 else 50.0, 3.6)
+             for i in range(n_train)]
+    test = [at(2 * math.pi * (j + 0.5) / max(n_test, 1) + 0.37, 33.0, 4.0)
+            for j in range(n_test)]
+    return train, test
+
+
+def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
+    K = intrinsics(size)
+    views: list[View] = []
+    if variant == "sparse":
+        train, test = rig_sparse(n_train, n_test)
+        for i, c in enumerate(train):
+            views.append(View("train", i, look_at_w2c(c, TARGET), K, size, size))
+        for j, c in enumerate(test):
+            views.append(View("test", j, look_at_w2c(c, TARGET), K, size, size))
+        return views
+    n_total = n_train + n_test
+    slots = pick_test_slots(n_total, n_test)
+    counts = {"train": 0, "test": 0}
+    for k, c in enumerate(rig_dense(n_total)):
+        split = "test" if k in slots else "train"
+        # Moving scene: time runs along the rig, so a test view gets a time between the times
+        # of its train neighbours, at a camera no train view has: an unseen (camera, time) pair.
+        t = k / max(n_total - 1, 1) if variant == "moving" else 0.0
+        views.append(View(split, counts[split], look_at_w2c(c, TARGET), K, size, size, t))
+        counts[split] += 1
+    return views
+
+
+# ----------------------------------------------------------------------------- textures
+def value_noise(res: int, cells: int, rng: np.random.Generator) -> np.ndarray:
+    """Smooth periodic value noise in [0, 1], [res, res]."""
+    grid = rng.random((cells, cells))
+    t = np.arange(res) * cells / res
+    i0 = np.floor(t).astype(int)
+    f = t - i0
+    f = f * f * (3 - 2 * f)
+    i1 = (i0 + 1) % cells
+    a = grid[i0][:, i0] * (1 - f)[None, :] + grid[i0][:, i1] * f[None, :]
+    b = grid[i1][:, i0] * (1 - f)[None, :] + grid[i1][:, i1] * f[None, :]
+    return a * (1 - f)[:, None] + b * f[:, None]
+
+
+def ground_texture(res: int = 512) -> np.ndarray:
+    """Checkerboard with mottled noise and fine grain, linear RGB albedo [res, res, 3]."""
+    rng = np.random.default_rng(TEXTURE_SEED)
+    u = (np.arange(res) + 0.5) / res
+    checks = 10  # cells across the ground's diameter
+    cu = np.floor(u * checks).astype(int)
+    board = (cu[:, None] + cu[None, :]) % 2
+    light = np.array([0.62, 0.56, 0.46])
+    dark = np.array([0.16, 0.20, 0.26])
+    tex = np.where(board[..., None] == 1, light, dark)
+    noise = 0.5 * value_noise(res, 8, rng) + 0.3 * value_noise(res, 32, rng) \
+        + 0.2 * value_noise(res, 128, rng)
+    tex = tex * (0.7 + 0.6 * noise)[..., None]
+    return np.clip(tex, 0.0, 0.95).astype(np.float32)
+
+
+def box_texture(res: int = 256) -> np.ndarray:
+    """Coloured tiles with dark grout: gives the box sharp, view-checkable detail."""
+    rng = np.random.default_rng(TEXTURE_SEED + 1)
+    tiles = 6
+    palette = np.array([[0.75, 0.55, 0.1], [0.1, 0.45, 0.6], [0.7, 0.7, 0.65], [0.5, 0.15, 0.35],
+                        [0.2, 0.55, 0.25]])
+    choice = rng.integers(0, len(palette), (tiles, tiles))
+    idx = (np.arange(res) * tiles // res)
+    tex = palette[choice[idx][:, idx]]
+    frac = (np.arange(res) * tiles / res) % 1.0
+    grout = (np.minimum(frac, 1 - frac) < 0.06)
+    tex[grout[:, None] | grout[None, :]] = 0.05
+    return tex.astype(np.float32)
+
+
+def sky_texture(height: int = 128) -> np.ndarray:
+    """Equirectangular sky in Mitsuba's envmap frame (row 0 = local +y, i.e. the zenith)."""
+    width = 2 * height
+    theta = (np.arange(height) + 0.5) / height * math.pi  # 0 at zenith
+    phi = (np.arange(width) + 0.5) / width * 2 * math.pi
+    cos_t = np.cos(theta)[:, None, None] * np.ones((1, width, 1))
+    zenith = np.array([0.18, 0.35, 0.80])
+    horizon = np.array([0.70, 0.72, 0.75])
+    ground = np.array([0.3, 0.27, 0.22])
+    up = np.clip(cos_t, 0, 1) ** 0.5
+    sky = horizon * (1 - up) + zenith * up
+    # a soft, broad brightening towards the sun's azimuth keeps the lighting asymmetric
+    dphi = (phi - 0.9 + math.pi) % (2 * math.pi) - math.pi
+    glow = 0.35 * np.exp(-dphi ** 2 / 0.8)[None, :, None]
+    sky = sky * (1.0 + glow * (cos_t > 0))
+    env = np.where(cos_t > 0, sky, ground)
+    return env.astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- scene
+@dataclass
+class Objects:
+    """Analytic geometry at one time; shared by the renderer and the point sampler."""
+
+    ball_centre: np.ndarray
+    ball_radius: float
+    metal_centre: np.ndarray
+    metal_radius: float
+    box_centre: np.ndarray
+    box_half: float
+    box_yaw_deg: float
+    cyl_base: np.ndarray
+    cyl_radius: float
+    cyl_height: float
+
+
+def objects_at(variant: str, t: float) -> Objects:
+    obj = Objects(
+        ball_centre=np.array([0.55, -0.40, 0.35]), ball_radius=0.35,
+        metal_centre=np.array([-0.60, -0.45, 0.30]), metal_radius=0.30,
+        box_centre=np.array([-0.25, 0.55, 0.28]), box_half=0.28, box_yaw_deg=30.0,
+        cyl_base=np.array([0.60, 0.55, 0.0]), cyl_radius=0.18, cyl_height=0.75)
+    if variant == "moving":
+        # translate and rotate over t in [0, 1]; everything stays on or above the table
+        obj.ball_centre = obj.ball_centre + np.array([-0.35 * t, 0.25 * math.sin(math.pi * t), 0.0])
+        obj.metal_centre = obj.metal_centre + np.array([0.0, 0.0, 0.45 * math.sin(math.pi * t)])
+        obj.box_centre = obj.box_centre + np.array([0.3 * t, 0.0, 0.0])
+        obj.box_yaw_deg = 30.0 + 120.0 * t
+    return obj
+
+
+def box_to_world(obj: Objects) -> np.ndarray:
+    """[4, 4] map from Mitsuba's cube [-1, 1]^3 to the world."""
+    a = math.radians(obj.box_yaw_deg)
+    R = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    M = np.eye(4)
+    M[:3, :3] = R * obj.box_half
+    M[:3, 3] = obj.box_centre
+    return M
+
+
+class SceneBuilder:
+    """Builds Mitsuba scenes (one per time for the moving variant) from the analytic objects."""
+
+    def __init__(self, mi, variant: str):
+        self.mi = mi
+        self.variant = variant
+        self.ground_tex = mi.Bitmap(ground_texture())
+        self.box_tex = mi.Bitmap(box_texture())
+        self.sky = mi.Bitmap(sky_texture())
+        self._cache: dict[float, object] = {}
+
+    def ground_mesh(self, bsdf):
+        """A flat disc as a triangle fan with planar uv (the texture spans the diameter)."""
+        mi = self.mi
+        seg = 128
+        ang = np.arange(seg) * 2 * math.pi / seg
+        xy = np.concatenate([[[0.0, 0.0]], GROUND_RADIUS * np.stack([np.cos(ang), np.sin(ang)], 1)])
+        pos = np.concatenate([xy, np.zeros((seg + 1, 1))], 1)
+        uv = xy / (2 * GROUND_RADIUS) + 0.5
+        faces = np.stack([np.zeros(seg), 1 + np.arange(seg), 1 + (np.arange(seg) + 1) % seg], 1)
+        mesh = mi.Mesh("ground", seg + 1, seg, has_vertex_normals=False,
+                       has_vertex_texcoords=True)
+        params = mi.traverse(mesh)
+        # buffer types differ between the JIT (llvm) and scalar variants: reuse the mesh's own
+        for key, arr in (("vertex_positions", pos.astype(np.float32)),
+                         ("vertex_texcoords", uv.astype(np.float32)),
+                         ("faces", faces.astype(np.uint32))):
+            params[key] = type(params[key])(arr.ravel())
+        params.update()
+        mesh.set_bsdf(mi.load_dict(bsdf))
+        return mesh
+
+    def materials(self) -> dict:
+        ground = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": self.ground_tex}}
+        if self.variant == "reflective":
+            return {
+                "ground": ground,
+                "ball": {"type": "conductor", "material": "Ag"},  # a mirror ball
+                "metal": {"type": "roughconductor", "material": "Cu", "alpha": 0.06},
+                "box": {"type": "roughconductor", "material": "Al", "alpha": 0.12},
+                "cyl": {"type": "plastic", "diffuse_reflectance": {"type": "rgb",
+                                                                   "value": [0.1, 0.2, 0.6]}},
+            }
+        return {
+            "ground": ground,
+            "ball": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.12, 0.1]}},
+            "metal": {"type": "roughconductor", "material": "Au", "alpha": 0.2},
+            "box": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": self.box_tex}},
+            "cyl": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.12, 0.3, 0.65]}},
+        }
+
+    def scene(self, t: float = 0.0):
+        key = t if self.variant == "moving" else 0.0
+        if key not in self._cache:
+            if self.variant == "moving":
+                self._cache.clear()  # one time at a time: keep memory flat
+            self._cache[key] = self.mi.load_dict(self.scene_dict(key))
+        return self._cache[key]
+
+    def scene_dict(self, t: float) -> dict:
+        mi = self.mi
+        T = mi.ScalarTransform4f
+        obj = objects_at(self.variant, t)
+        mat = self.materials()
+        top = obj.cyl_base + np.array([0, 0, obj.cyl_height])
+        sun_dir = np.array([-math.cos(0.9), -math.sin(0.9), -1.1])  # light travels this way
+        sun_dir = sun_dir / np.linalg.norm(sun_dir)
+        lights = {
+            # Mitsuba's envmap has +y up; rotate it so its zenith is the world's +z
+            "sky": {"type": "envmap", "bitmap": self.sky, "scale": 1.0,
+                    "to_world": T().rotate([1, 0, 0], 90)},
+            "sun": {"type": "directional", "direction": sun_dir.tolist(),
+                    "irradiance": {"type": "rgb", "value": [2.2, 2.0, 1.75]}},
+        }
+        if self.variant == "reflective":
+            # No delta sun here: a path tracer cannot find sun -> near-mirror -> diffuse paths
+            # except by luck, and those caustic fireflies would need far more samples.
+            lights = {"sky": {**lights["sky"], "scale": 1.3}}
+        return {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": 8 if self.variant == "reflective" else 6},
+            **lights,
+            "ground": self.ground_mesh(mat["ground"]),
+            "ball": {"type": "sphere", "center": obj.ball_centre.tolist(),
+                     "radius": obj.ball_radius, "bsdf": mat["ball"]},
+            "metal": {"type": "sphere", "center": obj.metal_centre.tolist(),
+                      "radius": obj.metal_radius, "bsdf": mat["metal"]},
+            "box": {"type": "cube", "to_world": T(box_to_world(obj).tolist()), "bsdf": mat["box"]},
+            "cyl": {"type": "cylinder", "p0": obj.cyl_base.tolist(), "p1": top.tolist(),
+                    "radius": obj.cyl_radius, "bsdf": mat["cyl"]},
+            "cyl_cap": {"type": "disk", "bsdf": mat["cyl"],
+                        "to_world": T().translate(top.tolist()).scale(
+                            [obj.cyl_radius, obj.cyl_radius, 1.0])},
+        }
+
+
+def sensor_dict(mi, view: View, spp: int) -> dict:
+    """Mitsuba perspective sensor that images exactly like (K, w2c) in OpenCV axes."""
+    K = view.K
+    if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
+        raise ValueError(f"Mitsuba's perspective sensor needs fx == fy, got {K[0, 0]}, {K[1, 1]}")
+    fov_x = math.degrees(2 * math.atan(0.5 * view.width / K[0, 0]))
+    # Mitsuba's principal point offsets are fractions of the film size from its centre, with
+    # the opposite sign to a pixel shift (measured: +0.1 moves the image point 0.1*W left)
+    off_x = -(K[0, 2] - 0.5 * view.width) / view.width
+    off_y = -(K[1, 2] - 0.5 * view.height) / view.height
+    to_world = view.c2w @ np.diag([-1.0, -1.0, 1.0, 1.0])  # Mitsuba: x left, y up, z forward
+    return {
+        "type": "perspective", "fov": fov_x, "fov_axis": "x",
+        "principal_point_offset_x": off_x, "principal_point_offset_y": off_y,
+        "near_clip": 0.01, "far_clip": 100.0,
+        "to_world": mi.ScalarTransform4f(to_world.tolist()),
+        "sampler": {"type": "independent", "sample_count": spp},
+        # box filter: each pixel is the plain average of the radiance over its square
+        "film": {"type": "hdrfilm", "width": view.width, "height": view.height,
+                 "pixel_format": "rgb", "rfilter": {"type": "box"}},
+    }
+
+
+def render_view(mi, scene, view: View, spp: int, seed: int, pass_spp: int = 256) -> np.ndarray:
+    """Linear radiance [H, W, 3] float32, the mean of passes of at most ``pass_spp`` samples."""
+    sensor = mi.load_dict(sensor_dict(mi, view, min(spp, pass_spp)))
+    acc, done, p = 0.0, 0, 0
+    while done < spp:
+        n = min(pass_spp, spp - done)
+        img = mi.render(scene, sensor=sensor, spp=n, seed=(seed * 1000 + p) % 2 ** 32)
+        acc = acc + np.array(img, dtype=np.float64) * n
+        done += n
+        p += 1
+    return (acc / spp).astype(np.float32)
+
+
+def to_srgb8(mi, linear: np.ndarray) -> np.ndarray:
+    """8-bit sRGB exactly as ``Bitmap.convert(..., UInt8, srgb_gamma=True)`` makes it."""
+    bmp = mi.Bitmap(np.ascontiguousarray(linear, dtype=np.float32))
+    out = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+    return np.array(out, copy=True)
+
+
+def write_png(mi, path: str, rgb8: np.ndarray) -> None:
+    bmp = mi.Bitmap(np.ascontiguousarray(rgb8), mi.Bitmap.PixelFormat.RGB)
+    bmp.set_srgb_gamma(True)
+    bmp.write(path, quality=9)  # quality = zlib level for PNG
+
+
+# ----------------------------------------------------------------------------- points
+def sample_sphere(n, centre, radius, rng):
+    d = rng.normal(size=(n, 3))
+    return centre + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def sample_box(n, to_world, rng):
+    """Uniform on the cube's six faces (all equal area), then mapped to the world."""
+    face = rng.integers(0, 6, n)
+    p = rng.uniform(-1, 1, (n, 3))
+    axis, sign = face // 2, np.where(face % 2 == 0, -1.0, 1.0)
+    p[np.arange(n), axis] = sign
+    return p @ to_world[:3, :3].T + to_world[:3, 3]
+
+
+def sample_cylinder(n, base, radius, height, rng):
+    """Side and top cap, area-weighted."""
+    side = 2 * math.pi * radius * height
+    cap = math.pi * radius ** 2
+    on_cap = rng.random(n) < cap / (side + cap)
+    a = rng.uniform(0, 2 * math.pi, n)
+    r = np.where(on_cap, radius * np.sqrt(rng.random(n)), radius)
+    z = np.where(on_cap, height, rng.uniform(0, height, n))
+    return base + np.stack([r * np.cos(a), r * np.sin(a), z], 1)
+
+
+def sample_ground(n, rng):
+    # stay inside the 128-gon that approximates the disc
+    r = GROUND_RADIUS * math.cos(math.pi / 128) * np.sqrt(rng.random(n))
+    a = rng.uniform(0, 2 * math.pi, n)
+    return np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], 1)
+
+
+def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Candidate surface points [n, 3]: 35% on the ground, the rest on objects by area.
+
+    The moving variant keeps only the static ground: a 3D point on a moving object has no
+    single position to put in a (static) COLMAP model.
+    """
+    if variant == "moving":
+        return sample_ground(n, rng)
+    obj = objects_at(variant, 0.0)
+    cyl_area = 2 * math.pi * obj.cyl_radius * obj.cyl_height + math.pi * obj.cyl_radius ** 2
+    areas = np.array([4 * math.pi * obj.ball_radius ** 2, 4 * math.pi * obj.metal_radius ** 2,
+                      24 * obj.box_half ** 2, cyl_area])
+    n_ground = int(0.35 * n)
+    counts = np.floor((n - n_ground) * areas / areas.sum()).astype(int)
+    parts = [sample_ground(n_ground, rng),
+             sample_sphere(counts[0], obj.ball_centre, obj.ball_radius, rng),
+             sample_sphere(counts[1], obj.metal_centre, obj.metal_radius, rng),
+             sample_box(counts[2], box_to_world(obj), rng),
+             sample_cylinder(counts[3], obj.cyl_base, obj.cyl_radius, obj.cyl_height, rng)]
+    return np.concatenate(parts)
+
+
+def project(view: View, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates [N, 2] (centres at +0.5) and camera depth [N]."""
+    cam = pts @ view.w2c[:3, :3].T + view.w2c[:3, 3]
+    z = cam[:, 2]
+    uv = (cam[:, :2] / np.maximum(z, 1e-9)[:, None]) @ view.K[:2, :2].T + view.K[:2, 2]
+    return uv, z
+
+
+def visible(mi, scene, view: View, pts: np.ndarray) -> np.ndarray:
+    """[N] bool: in the image, in front, and the first surface hit on the ray from the centre."""
+    uv, z = project(view, pts)
+    inside = (z > 0.01) & (uv[:, 0] >= 0) & (uv[:, 0] < view.width) \
+        & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
+    centre = view.c2w[:3, 3]
+    d = pts - centre
+    dist = np.linalg.norm(d, axis=1)
+    d = d / dist[:, None]
+    t_hit = first_hit(mi, scene, centre, d)
+    return inside & (np.abs(t_hit - dist) < 1e-3 * dist + 1e-4)
+
+
+def first_hit(mi, scene, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Distance [N] to the first surface along unit rays ``dirs`` [N, 3] from ``origin`` [3]."""
+    if mi.variant().startswith("scalar"):  # no vectorised rays: one call per ray
+        return np.array([scene.ray_intersect(mi.Ray3f(origin.tolist(), d.tolist())).t
+                         for d in dirs], dtype=np.float64)
+    o = np.broadcast_to(origin, dirs.shape)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, i].astype(np.float32)) for i in range(3)]),
+                   mi.Vector3f(*[mi.Float(dirs[:, i].astype(np.float32)) for i in range(3)]))
+    return np.array(scene.ray_intersect(ray).t, dtype=np.float64)
+
+
+def make_points(mi, builder, views, images, n_points, rng, max_track=0):
+    """Surface points seen by >= 2 train views; colour = median of their pixel colours.
+
+    Returns points [N, 3], colours [N, 3] uint8, the track mask [V_train, N] (at most
+    ``max_track`` views per point when > 0) and the train views.
+    """
+    pts = sample_surface(builder.variant, int(n_points * 1.6) + 100, rng)
+    train = [v for v in views if v.split == "train"]
+    vis = np.stack([visible(mi, builder.scene(v.time), v, pts) for v in train])  # [V, N]
+    keep = np.flatnonzero(vis.sum(0) >= 2)
+    if len(keep) > n_points:
+        keep = np.sort(rng.choice(keep, n_points, replace=False))
+    pts, vis = pts[keep], vis[:, keep]
+    samples = np.full((len(train), len(pts), 3), np.nan)
+    for i, v in enumerate(train):
+        uv, _ = project(v, pts[vis[i]])
+        px = np.clip(np.floor(uv).astype(int), 0, [v.width - 1, v.height - 1])
+        samples[i, vis[i]] = images[v.name][px[:, 1], px[:, 0]]
+    colours = np.round(np.nanmedian(samples, axis=0)).astype(np.uint8)
+    if max_track > 0:  # keep the model small: a spread-out subset of the views that see it
+        for p in np.flatnonzero(vis.sum(0) > max_track):
+            rows = np.flatnonzero(vis[:, p])
+            vis[:, p] = False
+            vis[rows[np.round(np.linspace(0, len(rows) - 1, max_track)).astype(int)], p] = True
+    return pts, colours, vis, train
+
+
+# ----------------------------------------------------------------------------- writers
+def opengl_c2w(view: View) -> np.ndarray:
+    """NeRF/Blender convention: camera x right, y up, z backward."""
+    return view.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def write_transforms(out: str, views: list[View], variant: str) -> None:
+    v0 = views[0]
+    K = v0.K
+    header = {
+        "camera_angle_x": 2 * math.atan(0.5 * v0.width / K[0, 0]),
+        "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+        "w": v0.width, "h": v0.height,
+    }
+    splits = {"train": "train", "test": "test"}
+    if variant == "moving":
+        splits["val"] = "test"  # D-NeRF layout ships a val split; ours equals test
+    for name, split in splits.items():
+        frames = []
+        for v in views:
+            if v.split != split:
+                continue
+            f = {"file_path": v.name, "transform_matrix": opengl_c2w(v).tolist()}
+            if variant == "moving":
+                f["time"] = v.time
+            frames.append(f)
+        with open(os.path.join(out, f"transforms_{name}.json"), "w") as fh:
+            json.dump({**header, "frames": frames}, fh, indent=2)
+
+
+def write_colmap(out: str, views: list[View], pts, colours, vis, train) -> None:
+    import pycolmap
+
+    v0 = views[0]
+    K = v0.K
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=v0.width, height=v0.height,
+                          params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    train_row = {v.name: i for i, v in enumerate(train)}
+    point_index = {}  # (image_id, point) -> point2D_idx
+    for image_id, v in enumerate(views, start=1):
+        if v.split == "train":
+            seen = np.flatnonzero(vis[train_row[v.name]])
+            uv, _ = project(v, pts[seen])
+            point_index.update({(image_id, int(p)): k for k, p in enumerate(seen)})
+        else:
+            uv = np.zeros((0, 2))
+        image = pycolmap.Image(name=v.name + ".png", keypoints=uv.astype(np.float64),
+                               camera_id=1, image_id=image_id)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(v.w2c[:3, :3]), v.w2c[:3, 3])
+        rec.add_image_with_trivial_frame(image, pose)
+    id_of = {v.name: i for i, v in enumerate(views, start=1)}
+    for p in range(len(pts)):
+        track = pycolmap.Track()
+        for row, v in enumerate(train):
+            if vis[row, p]:
+                track.add_element(id_of[v.name], point_index[(id_of[v.name], p)])
+        rec.add_point3D(pts[p].astype(np.float64), track, colours[p])
+    sparse = os.path.join(out, "sparse", "0")
+    os.makedirs(sparse, exist_ok=True)
+    rec.write_binary(sparse)
+
+
+def write_ply(path: str, pts: np.ndarray, colours: np.ndarray) -> None:
+    from plyfile import PlyData, PlyElement
+
+    rows = np.empty(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"),
+                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, k in enumerate("xyz"):
+        rows[k] = pts[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        rows[k] = colours[:, i]
+    PlyData([PlyElement.describe(rows, "vertex")]).write(path)
+
+
+# ----------------------------------------------------------------------------- checks
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10 * math.log10(1.0 / mse)
+
+
+def check_noise(mi, builder, views, spp, seed, n_views=3) -> float:
+    """Render a few train views with two seeds; PSNR between the 8-bit sRGB results."""
+    chosen = [v for v in views if v.split == "train"][:: max(1, len(views) // (n_views * 2))]
+    chosen = chosen[:n_views]
+    errs = []
+    for v in chosen:
+        a = to_srgb8(mi, render_view(mi, builder.scene(v.time), v, spp, seed)) / 255.0
+        b = to_srgb8(mi, render_view(mi, builder.scene(v.time), v, spp, seed + 7919)) / 255.0
+        errs.append(np.mean((a - b) ** 2))
+        print(f"  noise {v.name}: PSNR {psnr(a, b):.2f} dB")
+    total = 10 * math.log10(1.0 / float(np.mean(errs)))
+    print(f"noise check: {len(chosen)} views at {spp} spp, seeds {seed} vs {seed + 7919}: "
+          f"PSNR {total:.2f} dB (8-bit sRGB)")
+    return total
+
+
+def views_from_json(folder: str) -> list[View]:
+    """Cameras as the NeRF-synthetic files state them (OpenGL c2w -> OpenCV w2c)."""
+    views = []
+    for split in ("train", "test"):
+        with open(os.path.join(folder, f"transforms_{split}.json")) as fh:
+            meta = json.load(fh)
+        K = np.array([[meta["fl_x"], 0, meta["cx"]], [0, meta["fl_y"], meta["cy"]], [0, 0, 1]])
+        for i, f in enumerate(meta["frames"]):
+            c2w_cv = np.array(f["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])
+            views.append(View(split, i, np.linalg.inv(c2w_cv), K, int(meta["w"]),
+                              int(meta["h"]), float(f.get("time", 0.0))))
+    return views
+
+
+def check_projection(mi, folder: str, n_views: int = 8) -> float:
+    """Render three coloured emissive markers through the written cameras and compare each
+    marker's pixel centroid with its projection by the json's K, c2w and by COLMAP's model."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(os.path.join(folder, "sparse", "0"))
+    by_name = {img.name: img for img in rec.images.values()}
+    colours = np.eye(3) * 20.0
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 1}, **{
+        f"m{i}": {"type": "sphere", "center": MARKERS[i].tolist(), "radius": MARKER_RADIUS,
+                  "emitter": {"type": "area", "radiance": {"type": "rgb",
+                                                           "value": colours[i].tolist()}}}
+        for i in range(3)}})
+    views = views_from_json(folder)
+    chosen = []
+    for split in ("train", "test"):  # half from each split, spread over the rig
+        in_split = [v for v in views if v.split == split]
+        chosen += in_split[:: max(1, len(in_split) // (n_views // 2))][: n_views // 2]
+    worst = 0.0
+    for v in chosen:
+        img = render_view(mi, scene, v, 64, seed=0)
+        uv, _ = project(v, MARKERS)
+        col = by_name[v.name + ".png"]
+        for i in range(3):
+            w = img[..., i] * (img[..., i] > 0.5 * img[..., [j for j in range(3) if j != i]]
+                               .max(-1))
+            if w.sum() <= 0:
+                print(f"  {v.name}: marker {i} not visible (expected at {uv[i].round(2)})")
+                continue
+            ys, xs = np.mgrid[0:v.height, 0:v.width]
+            seen = np.array([(w * (xs + 0.5)).sum(), (w * (ys + 0.5)).sum()]) / w.sum()
+            col_uv = np.asarray(col.project_point(MARKERS[i]))
+            err = max(np.abs(seen - uv[i]).max(), np.abs(seen - col_uv).max())
+            worst = max(worst, err)
+            print(f"  {v.name} marker {i}: rendered ({seen[0]:.2f}, {seen[1]:.2f})  json "
+                  f"({uv[i][0]:.2f}, {uv[i][1]:.2f})  colmap ({col_uv[0]:.2f}, {col_uv[1]:.2f})")
+    print(f"projection check: {len(chosen)} views x 3 markers, worst error {worst:.3f} px "
+          f"({'PASS' if worst < 1.0 else 'FAIL'}, tolerance 1 px)")
+    return worst
+
+
+# ----------------------------------------------------------------------------- main
+def pick_variant(mi, wanted: str | None) -> str:
+    if wanted:
+        mi.set_variant(wanted)
+        return wanted
+    import drjit as dr
+
+    for name in ("llvm_ad_rgb", "scalar_rgb"):
+        if name.startswith("llvm") and not dr.has_backend(dr.JitBackend.LLVM):
+            print("libLLVM not found: falling back to scalar_rgb (slow); "
+                  "install it, e.g. apt-get install -y libllvm19", file=sys.stderr)
+            continue
+        if name in mi.variants():
+            try:
+                mi.set_variant(name)
+                return name
+            except Exception as exc:  # e.g. libLLVM missing for the llvm variants
+                print(f"mitsuba variant {name} unavailable: {exc}", file=sys.stderr)
+    raise RuntimeError(f"no usable Mitsuba variant among {mi.variants()}")
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--out", required=True, help="output scene folder")
+    ap.add_argument("--variant", choices=VARIANTS, default="default",
+                    help="scene variant (see the module docstring)")
+    ap.add_argument("--n-train", type=int, default=None,
+                    help="train views; None means 48, or 10 for --variant sparse")
+    ap.add_argument("--n-test", type=int, default=12, help="test views, interleaved with train")
+    ap.add_argument("--size", type=int, default=128, help="image width = height in pixels")
+    ap.add_argument("--spp", type=int, default=1024, help="samples per pixel")
+    ap.add_argument("--seed", type=int, default=0, help="Monte Carlo and point-sampling seed")
+    ap.add_argument("--n-points", type=int, default=4000, help="sparse surface points (max)")
+    ap.add_argument("--max-track", type=int, default=8,
+                    help="observations kept per COLMAP track (0 = every train view that sees "
+                         "the point); bounds the size of images.bin")
+    ap.add_argument("--mitsuba-variant", default=None,
+                    help="force a Mitsuba variant (default: llvm_ad_rgb, else scalar_rgb)")
+    ap.add_argument("--no-render", action="store_true",
+                    help="write nothing; only run the requested checks (on --out for "
+                         "--check-projection)")
+    ap.add_argument("--check-noise", action="store_true",
+                    help="render a few views twice with different seeds and print the PSNR")
+    ap.add_argument("--check-projection", action="store_true",
+                    help="render markers through the written cameras; print pixel errors")
+    args = ap.parse_args(argv)
+    if args.n_train is None:
+        args.n_train = 10 if args.variant == "sparse" else 48
+    if args.max_track == 1 or args.max_track < 0:
+        ap.error(f"--max-track must be 0 (unlimited) or >= 2, got {args.max_track}")
+    if args.n_train < 2 or args.n_test < 0 or args.size < 8 or args.spp < 1:
+        ap.error(f"bad sizes: n_train={args.n_train} n_test={args.n_test} size={args.size} "
+                 f"spp={args.spp}")
+    return args
+
+
+def generate(mi, args, builder, views) -> None:
+    out = args.out
+    for split in ("train", "test"):
+        os.makedirs(os.path.join(out, split), exist_ok=True)
+    images = {}
+    t0 = time.time()
+    for k, v in enumerate(views):
+        lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k)
+        images[v.name] = to_srgb8(mi, lin)
+        write_png(mi, os.path.join(out, v.name + ".png"), images[v.name])
+        print(f"  [{k + 1}/{len(views)}] {v.name}  {time.time() - t0:.1f}s", flush=True)
+    rng = np.random.default_rng(args.seed)
+    pts, colours, vis, train = make_points(mi, builder, views, images, args.n_points, rng,
+                                           args.max_track)
+    write_transforms(out, views, args.variant)
+    write_colmap(out, views, pts, colours, vis, train)
+    write_ply(os.path.join(out, "points3d.ply"), pts, colours)
+    print(f"wrote {len(views)} views and {len(pts)} points to {out} "
+          f"(render {time.time() - t0:.1f}s)")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import mitsuba as mi
+
+    variant = pick_variant(mi, args.mitsuba_variant)
+    print(f"mitsuba {mi.__version__}, variant {variant}")
+    builder = SceneBuilder(mi, args.variant)
+    views = make_views(args.variant, args.n_train, args.n_test, args.size)
+    start = time.time()
+    if not args.no_render:
+        generate(mi, args, builder, views)
+    if args.check_noise:
+        check_noise(mi, builder, views, args.spp, args.seed)
+    if args.check_projection:
+        worst = check_projection(mi, args.out)
+        if worst >= 1.0:
+            return 1
+    print(f"total {time.time() - start:.1f}s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
