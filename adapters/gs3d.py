@@ -1,0 +1,844 @@
+"""The original 3D Gaussian Splatting model (Kerbl et al. 2023) as an MVGS adapter.
+
+Parameters are stored raw and activated on use, as the original code does:
+
+    means      [N, 3]        world positions
+    sh0        [N, 1, 3]     SH DC coefficient (colour = SH + 0.5)
+    shN        [N, K', 3]    higher SH bands, K' = (d+1)^2 - 1 for the maximum degree d
+    scales     [N, 3]        log scales        (scale = exp)
+    quats      [N, 4]        w-x-y-z rotations (normalised by the renderer)
+    opacities  [N]           logit opacities   (opacity = sigmoid)
+
+One ``torch.optim.Adam`` holds one parameter group per attribute, named as above. Rendering
+goes through ``config.rasterize`` (the reference CPU rasterizer by default; ``gsplat.rasterization``
+has the same call shape). Densification follows the original ``densify_and_prune`` (clone small,
+split large, prune transparent / oversized) with MVGS's cross-ray boxes in front of it.
+
+Differences from the original 3DGS code are listed in :class:`GS3DConfig` and in the docstrings
+of the methods concerned; each is a config field.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
+from reference_renderer import rasterization
+from reference_renderer.projection import quat_to_rotmat
+
+from .ply import read_gaussian_ply, write_gaussian_ply
+
+__all__ = ["GS3DConfig", "GS3DAdapter", "knn_mean_sq_dist", "SH_C0", "PARAM_NAMES"]
+
+SH_C0 = 0.28209479177387814  # the degree-0 real SH basis constant, 1 / (2 sqrt(pi))
+PARAM_NAMES = ("means", "sh0", "shN", "scales", "quats", "opacities")
+_STATE_FORMAT = "mvgs-gs3d/1"
+# Config fields tied to the running process (a function, backend options): never saved or loaded.
+_RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
+# Elements per temporary distance matrix in kNN and box tests (2^24 float64 = 128 MB).
+_CHUNK_ELEMS = 1 << 24
+
+
+@dataclass
+class GS3DConfig:
+    """Hyper-parameters of the 3DGS model (defaults: the original 3DGS, see MVGS_METHOD.md §5).
+
+    Initialisation:
+        sh_degree: maximum SH degree (0..3).
+        sh_degree_interval: the active degree is min(sh_degree, step // interval).
+        init_opacity: opacity of every initial Gaussian.
+        random_init: number of points drawn when the scene has no point cloud: uniform in the
+            cube scene.center ± half size, colours uniform in [0, 1]. The original 3DGS draws
+            100k points in [-1.3, 1.3]^3 for NeRF-synthetic (with near-grey colours); 10k suits
+            the CPU renderer.
+        random_init_half_size: half size of that cube; None = scene.extent.
+        seed: seeds the adapter's own generator (random init, split samples); its state is part
+            of state_dict(), so a resumed run draws the same samples.
+    Learning rates (Adam, eps = adam_eps):
+        lr_means_init, lr_means_final: times the scene extent; log-linear decay over
+            position_lr_max_steps steps, then constant (the original's delay multiplier is
+            inactive with its default lr_delay_steps = 0 and is not implemented).
+        lr_sh0, lr_shN, lr_opacities, lr_scales, lr_quats: constant.
+    Densification (original constants):
+        percent_dense: clone if max scale <= percent_dense * extent, else split.
+        split_samples: children per split Gaussian; their scale is divided by 0.8 * split_samples.
+        min_opacity: prune below this opacity.
+        max_world_size: with ctx.prune_large, prune max scale > max_world_size * extent.
+        max_screen_size: with ctx.prune_large, prune max screen radius (pixels) above this.
+            Default None: the released 3DGS code zeroes its radius statistic before testing it,
+            so this rule never fires there (the authors kept it so to preserve their results,
+            graphdeco-inria/gaussian-splatting#123); 20.0 turns on the rule the paper describes.
+        opacity_reset_value: reset_opacity() caps opacities at this value.
+        max_gaussians: cap on the number of Gaussians growth may reach (None = no cap).
+    Rendering:
+        rasterize: a function with gsplat's ``rasterization`` call shape.
+        rasterize_kwargs: extra keyword arguments for it (e.g. ``{"backend": "torch"}``).
+        knn_chunk: query points per block of the initial kNN search (see knn_mean_sq_dist).
+    """
+
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    init_opacity: float = 0.1
+    random_init: int = 10_000
+    random_init_half_size: Optional[float] = None
+    seed: int = 0
+    lr_means_init: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    position_lr_max_steps: int = 30_000
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    lr_opacities: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    adam_eps: float = 1e-15
+    percent_dense: float = 0.01
+    split_samples: int = 2
+    min_opacity: float = 0.005
+    max_world_size: float = 0.1
+    max_screen_size: Optional[float] = None
+    opacity_reset_value: float = 0.01
+    max_gaussians: Optional[int] = None
+    rasterize: Callable[..., Any] = rasterization
+    rasterize_kwargs: Dict[str, Any] = field(default_factory=dict)
+    knn_chunk: int = 256
+
+    def __post_init__(self) -> None:
+        _check_int("sh_degree", self.sh_degree, 0, 3)
+        for name in ("sh_degree_interval", "position_lr_max_steps", "knn_chunk", "split_samples"):
+            _check_int(name, getattr(self, name), 1)
+        _check_int("random_init", self.random_init, 1)
+        _check_int("seed", self.seed, 0)
+        if self.max_gaussians is not None:
+            _check_int("max_gaussians", self.max_gaussians, 0)
+        for name in ("lr_means_init", "lr_means_final", "adam_eps", "percent_dense", "max_world_size"):
+            _check_float(name, getattr(self, name), positive=True)
+        for name in ("lr_sh0", "lr_shN", "lr_opacities", "lr_scales", "lr_quats", "min_opacity"):
+            _check_float(name, getattr(self, name))
+        for name in ("init_opacity", "opacity_reset_value"):
+            v = _check_float(name, getattr(self, name), positive=True)
+            if v >= 1:
+                raise ValueError(f"{name} must be in (0, 1), got {v}")
+        for name in ("random_init_half_size", "max_screen_size"):
+            if getattr(self, name) is not None:
+                _check_float(name, getattr(self, name), positive=True)
+        if not callable(self.rasterize):
+            raise ValueError(f"rasterize must be callable, got {self.rasterize!r}")
+        if not isinstance(self.rasterize_kwargs, dict):
+            raise ValueError(f"rasterize_kwargs must be a dict, got {self.rasterize_kwargs!r}")
+
+    def saved_values(self) -> Dict[str, Any]:
+        """The fields a checkpoint carries (everything but the runtime ones)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if f.name not in _RUNTIME_FIELDS}
+
+
+def _check_int(name: str, value, lo: int, hi: Optional[int] = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{name} must be an int, got {value!r}")
+    if value < lo or (hi is not None and value > hi):
+        rng = f">= {lo}" if hi is None else f"in {lo}..{hi}"
+        raise ValueError(f"{name} must be {rng}, got {value}")
+    return value
+
+
+def _check_float(name: str, value, positive: bool = False) -> float:
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v < 0 or (positive and v == 0):
+        raise ValueError(f"{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}")
+    return v
+
+
+def _n_rest(degree: int) -> int:
+    return (degree + 1) ** 2 - 1
+
+
+def knn_mean_sq_dist(points: Tensor, k: int = 3, chunk: int = 256, window: int = 8) -> Tensor:
+    """Mean squared distance of every point to its k nearest *other* points (exact).
+
+    Args:
+        points: [P, 3].
+        chunk: queries per block; window: curve neighbours per side for the first bound (>= k).
+    Returns:
+        [P] float64. With P <= k the mean is over the P - 1 others; a lone point gets 0.
+
+    Brute force is O(P^2) (minutes for the 100k-300k points of a COLMAP scene), so:
+    1. sort the points along a Z-order curve; the distances to the ``window`` curve neighbours
+       on each side bound every point's k-th neighbour distance from above;
+    2. for each block of ``chunk`` consecutive points, the true neighbours of its points lie in
+       the block's bounding box grown by its largest bound: search only the points in that box.
+    The result is exact whatever the distribution; only the speed depends on it.
+    """
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be [P,3], got {list(points.shape)}")
+    _check_int("window", window, max(k, 1))
+    P = points.shape[0]
+    out = torch.zeros(P, dtype=torch.float64, device=points.device)
+    kk = min(k, P - 1)
+    if kk <= 0:
+        return out
+    x = points.detach().to(torch.float64)
+    x = x - x.mean(dim=0)  # ranks below use |a|^2 + |b|^2 - 2ab: keep magnitudes small
+    order = _morton_order(x)
+    xs = x[order]
+    bound = _curve_bound(xs, kk, window).sqrt() * (1 + 1e-9) + 1e-12  # [P], margin for rounding
+    positions = torch.arange(P, device=x.device)
+    sorted_out = torch.empty(P, dtype=torch.float64, device=x.device)
+    for s in range(0, P, chunk):
+        q = xs[s:s + chunk]
+        r = bound[s:s + chunk].max()
+        lo, hi = q.min(dim=0).values - r, q.max(dim=0).values + r
+        cand = ((xs >= lo) & (xs <= hi)).all(dim=1).nonzero().squeeze(1)
+        sorted_out[s:s + chunk] = _block_knn(q, positions[s:s + chunk], xs[cand], cand, kk)
+    out[order] = sorted_out
+    return out
+
+
+def _morton_order(x: Tensor) -> Tensor:
+    """[P] permutation sorting points [P, 3] along a Z-order curve (10 bits per axis)."""
+    lo = x.min(dim=0).values
+    span = float((x.max(dim=0).values - lo).max())
+    q = ((x - lo) * (1023.0 / max(span, 1e-300))).long().clamp(0, 1023)
+    code = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return torch.argsort(code, stable=True)
+
+
+def _curve_bound(xs: Tensor, k: int, window: int) -> Tensor:
+    """[P] k-th smallest squared distance from each point of xs [P, 3] to its ``window``
+    predecessors and successors in the array: an upper bound of its k-th neighbour distance."""
+    P = xs.shape[0]
+    d = torch.full((P, 2 * window), math.inf, dtype=xs.dtype, device=xs.device)
+    for o in range(1, min(window, P - 1) + 1):
+        pair = ((xs[o:] - xs[:-o]) ** 2).sum(dim=1)  # between i and i + o
+        d[:-o, 2 * o - 2] = pair
+        d[o:, 2 * o - 1] = pair
+    return d.topk(k, dim=1, largest=False).values[:, -1]
+
+
+def _block_knn(q: Tensor, q_idx: Tensor, c: Tensor, c_idx: Tensor, k: int) -> Tensor:
+    """[Q] mean squared distance of queries q [Q, 3] to their k nearest candidates c [M, 3],
+    skipping the candidate with the query's own index (q_idx [Q], c_idx [M])."""
+    out = torch.empty(q.shape[0], dtype=q.dtype, device=q.device)
+    rows = max(1, _CHUNK_ELEMS // (4 * max(1, c.shape[0])))
+    centre = q.mean(dim=0)
+    cc = c - centre
+    csq = (cc * cc).sum(dim=1)
+    for s in range(0, q.shape[0], rows):
+        qc = q[s:s + rows] - centre
+        d2 = torch.addmm(csq[None, :], qc, cc.T, alpha=-2.0) + (qc * qc).sum(dim=1, keepdim=True)
+        d2[q_idx[s:s + rows, None] == c_idx[None, :]] = math.inf  # not its own neighbour
+        idx = d2.topk(k, dim=1, largest=False).indices  # ranked by the expansion ...
+        exact = ((q[s:s + rows, None, :] - c[idx]) ** 2).sum(dim=-1)  # ... measured exactly
+        out[s:s + rows] = exact.mean(dim=1)
+    return out
+
+
+def _inside_any_box(points: Tensor, boxes: Tensor) -> Tensor:
+    """[N] bool: points [N, 3] strictly inside at least one of boxes [B, 2, 3] (min, max)."""
+    N, B = points.shape[0], boxes.shape[0]
+    inside = torch.zeros(N, dtype=torch.bool, device=points.device)
+    if N == 0 or B == 0:
+        return inside
+    p = points.detach().to(torch.float64)
+    lo, hi = boxes[:, 0].to(p), boxes[:, 1].to(p)  # [B, 3]
+    rows = max(1, _CHUNK_ELEMS // (3 * B))
+    for s in range(0, N, rows):
+        q = p[s:s + rows, None, :]  # [c, 1, 3]
+        inside[s:s + rows] = ((q > lo) & (q < hi)).all(dim=-1).any(dim=-1)
+    return inside
+
+
+def _top_by_score(mask: Tensor, score: Tensor, k: int) -> Tensor:
+    """Keep at most k of the True entries of mask [N]: those with the largest score [N]
+    (ties: lower index first)."""
+    idx = mask.nonzero().squeeze(1)
+    if idx.numel() <= k:
+        return mask
+    order = torch.sort(score[idx], descending=True, stable=True).indices[:k]
+    out = torch.zeros_like(mask)
+    out[idx[order]] = True
+    return out
+
+
+class GS3DAdapter:
+    """3DGS parameters + Adam + densification, driven by the MVGS controller.
+
+    Construct with :meth:`from_scene`, :meth:`from_tensors` or :meth:`from_ply`; the
+    constructor itself takes the raw (pre-activation) tensors listed in the module docstring.
+
+    Attributes:
+        params: dict name -> nn.Parameter (replaced, not resized, when N changes).
+        optimizer: the Adam optimizer, one group per name in PARAM_NAMES.
+        grad_accum, denom, max_radii2D: [N] densification statistics (see accumulate_stats).
+        scene_extent: the scene scale of the learning rate of the means.
+        active_sh_degree: SH degree rendered now.
+    """
+
+    def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
+                 opacities: Tensor, scene_extent: float, config: Optional[GS3DConfig] = None,
+                 active_sh_degree: int = 0) -> None:
+        self.config = GS3DConfig() if config is None else config
+        if not isinstance(self.config, GS3DConfig):
+            raise ValueError(f"config must be a GS3DConfig, got {type(self.config).__name__}")
+        self.scene_extent = _check_float("scene_extent", scene_extent, positive=True)
+        raw = dict(means=means, sh0=sh0, shN=shN, scales=scales, quats=quats, opacities=opacities)
+        self._check_raw(raw)
+        self._generator = torch.Generator().manual_seed(self.config.seed)
+        self._step = 0
+        self.active_sh_degree = _check_int("active_sh_degree", active_sh_degree, 0,
+                                           self.config.sh_degree)
+        self._build(raw)
+
+    # ---- construction ----------------------------------------------------------------------
+    def _check_raw(self, raw: Dict[str, Tensor]) -> None:
+        means = raw["means"]
+        if not isinstance(means, Tensor) or means.ndim != 2 or means.shape[1] != 3:
+            raise ValueError(f"means must be a [N,3] tensor, got {getattr(means, 'shape', means)!r}")
+        if not means.is_floating_point():
+            raise ValueError(f"means must be floating point, got {means.dtype}")
+        n, k = means.shape[0], _n_rest(self.config.sh_degree)
+        shapes = {"sh0": (n, 1, 3), "shN": (n, k, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,)}
+        for name, shape in shapes.items():
+            t = raw[name]
+            if not isinstance(t, Tensor) or tuple(t.shape) != shape:
+                got = list(t.shape) if isinstance(t, Tensor) else repr(t)
+                hint = f" (sh_degree={self.config.sh_degree})" if name == "shN" else ""
+                raise ValueError(f"{name} must be {list(shape)}{hint} with N={n} from means, got {got}")
+        for name, t in raw.items():
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"{name} has non-finite values")
+
+    def _build(self, raw: Dict[str, Tensor]) -> None:
+        """(Re)create parameters, a fresh optimizer and zero statistics from raw tensors."""
+        ref = raw["means"]
+        self.params: Dict[str, torch.nn.Parameter] = {
+            name: torch.nn.Parameter(raw[name].detach().to(ref).clone().contiguous())
+            for name in PARAM_NAMES
+        }
+        lrs = self._base_lrs()
+        groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=self.config.adam_eps)
+        self._reset_stats()
+
+    def _base_lrs(self) -> Dict[str, float]:
+        c = self.config
+        return {"means": self.means_lr(self._step), "sh0": c.lr_sh0, "shN": c.lr_shN,
+                "scales": c.lr_scales, "quats": c.lr_quats, "opacities": c.lr_opacities}
+
+    def _reset_stats(self) -> None:
+        n, ref = self.num_primitives(), self.params["means"]
+        self.grad_accum = torch.zeros(n, dtype=ref.dtype, device=ref.device)
+        self.denom = torch.zeros(n, dtype=ref.dtype, device=ref.device)
+        self.max_radii2D = torch.zeros(n, dtype=ref.dtype, device=ref.device)
+
+    @classmethod
+    def from_tensors(cls, means: Tensor, *, scales: Tensor, opacities: Tensor, scene_extent: float,
+                     rgb: Optional[Tensor] = None, sh: Optional[Tensor] = None,
+                     quats: Optional[Tensor] = None, config: Optional[GS3DConfig] = None,
+                     dtype: Optional[torch.dtype] = None) -> "GS3DAdapter":
+        """Build from activated values (the DESIGN.md conventions).
+
+        Args:
+            means: [N, 3]. scales: [N, 3] > 0. opacities: [N] in (0, 1).
+            rgb: [N, 3] colours (SH DC = (rgb - 0.5) / SH_C0, higher bands 0), or
+            sh: [N, (d+1)^2, 3] SH coefficients, d <= config.sh_degree (missing bands are 0).
+            quats: [N, 4] w-x-y-z (default identity).
+            dtype: of the parameters (default: that of means).
+        """
+        config = GS3DConfig() if config is None else config
+        means = torch.as_tensor(means).detach()
+        if means.ndim != 2 or means.shape[1] != 3:
+            raise ValueError(f"means must be [N,3], got {list(means.shape)}")
+        dtype = (means.dtype if means.is_floating_point() else torch.float32) if dtype is None else dtype
+        means = means.to(dtype)
+        n = means.shape[0]
+        t = lambda x: torch.as_tensor(x).detach().to(device=means.device, dtype=dtype)  # noqa: E731
+        if (rgb is None) == (sh is None):
+            raise ValueError("give exactly one of rgb [N,3] or sh [N,K,3]")
+        if rgb is not None:
+            rgb = t(rgb)
+            if tuple(rgb.shape) != (n, 3):
+                raise ValueError(f"rgb must be [N,3] with N={n}, got {list(rgb.shape)}")
+            sh = torch.cat([((rgb - 0.5) / SH_C0)[:, None, :],
+                            torch.zeros(n, _n_rest(config.sh_degree), 3, dtype=dtype, device=means.device)], 1)
+        sh0, shN = cls._split_sh(t(sh), n, config.sh_degree)
+        scales, opacities = t(scales), t(opacities)
+        if scales.numel() and not bool((scales > 0).all()):
+            raise ValueError(f"scales must be > 0 (activated), got min {float(scales.min())}")
+        if opacities.numel() and not bool(((opacities > 0) & (opacities < 1)).all()):
+            raise ValueError(f"opacities must be in (0, 1) (activated), got range "
+                             f"[{float(opacities.min())}, {float(opacities.max())}]")
+        if quats is None:
+            quats = torch.zeros(n, 4, dtype=dtype, device=means.device)
+            quats[:, 0] = 1.0
+        return cls(means, sh0, shN, torch.log(scales), t(quats), torch.logit(opacities),
+                   scene_extent, config)
+
+    @staticmethod
+    def _split_sh(sh: Tensor, n: int, degree: int) -> Tuple[Tensor, Tensor]:
+        """[N, K, 3] SH -> sh0 [N, 1, 3] and shN [N, (degree+1)^2 - 1, 3], zero-padding bands."""
+        k_max = (degree + 1) ** 2
+        if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
+            raise ValueError(f"sh must be [N,(d+1)^2,3] with N={n}, got {list(sh.shape)}")
+        if sh.shape[1] > k_max:
+            raise ValueError(f"sh has {sh.shape[1]} coefficients per channel, more than "
+                             f"config.sh_degree={degree} holds ({k_max})")
+        pad = torch.zeros(n, k_max - sh.shape[1], 3, dtype=sh.dtype, device=sh.device)
+        full = torch.cat([sh, pad], dim=1)
+        return full[:, :1].clone(), full[:, 1:].clone()
+
+    @classmethod
+    def from_scene(cls, scene, config: Optional[GS3DConfig] = None, dtype: torch.dtype = torch.float32,
+                   device: Optional[torch.device | str] = None) -> "GS3DAdapter":
+        """Initialise from ``scene.points`` as the original 3DGS, or randomly without points.
+
+        SH DC from the point colours, higher bands 0; isotropic scales sqrt(mean squared distance
+        to the 3 nearest other points), floored at 1e-7 before the square root; identity
+        rotations; opacity config.init_opacity. Without points: config.random_init points
+        uniform in the cube scene.center ± (random_init_half_size or scene.extent), colours
+        uniform in [0, 1] (drawn from a generator seeded with config.seed).
+        """
+        config = GS3DConfig() if config is None else config
+        points = getattr(scene, "points", None)
+        if points is None or len(points) == 0:
+            xyz, rgb = cls._random_points(scene, config)
+        else:
+            xyz, rgb = points.xyz.to(torch.float64), points.rgb.to(torch.float64)
+        xyz, rgb = xyz.to(device), rgb.to(device)
+        dist2 = knn_mean_sq_dist(xyz, k=3, chunk=config.knn_chunk).clamp_min(1e-7)
+        log_scale = torch.log(torch.sqrt(dist2))[:, None].repeat(1, 3)
+        n = xyz.shape[0]
+        quats = torch.zeros(n, 4, dtype=torch.float64, device=xyz.device)
+        quats[:, 0] = 1.0
+        sh0 = ((rgb - 0.5) / SH_C0)[:, None, :]
+        shN = torch.zeros(n, _n_rest(config.sh_degree), 3, dtype=torch.float64, device=xyz.device)
+        opac = torch.full((n,), math.log(config.init_opacity / (1 - config.init_opacity)),
+                          dtype=torch.float64, device=xyz.device)
+        t = lambda x: x.to(dtype)  # noqa: E731
+        return cls(t(xyz), t(sh0), t(shN), t(log_scale), t(quats), t(opac), scene.extent, config)
+
+    @staticmethod
+    def _random_points(scene, config: GS3DConfig) -> Tuple[Tensor, Tensor]:
+        gen = torch.Generator().manual_seed(config.seed)
+        half = config.random_init_half_size or float(scene.extent)
+        center = torch.as_tensor(scene.center, dtype=torch.float64)
+        u = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
+        xyz = center + (2.0 * u - 1.0) * half
+        rgb = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
+        return xyz, rgb
+
+    @classmethod
+    def from_ply(cls, path, scene_extent: float, config: Optional[GS3DConfig] = None,
+                 dtype: torch.dtype = torch.float32, device: Optional[torch.device | str] = None
+                 ) -> "GS3DAdapter":
+        """Load a 3DGS PLY (ours or another tool's). Without a config the file's SH degree is the
+        maximum; a config with a higher degree gets zero higher bands, a lower one is an error.
+        The active SH degree starts at the file's degree (the model is trained); set_step()
+        recomputes it from the step."""
+        g = read_gaussian_ply(path)
+        d = g.sh_degree
+        config = GS3DConfig(sh_degree=d) if config is None else config
+        if config.sh_degree < d:
+            raise ValueError(f"{path} holds SH degree {d} but config.sh_degree={config.sh_degree}; "
+                             f"raise config.sh_degree (bands would be dropped)")
+        sh0, shN = cls._split_sh(torch.cat([g.sh0, g.shN], 1), g.means.shape[0], config.sh_degree)
+        t = lambda x: x.to(device=device, dtype=dtype)  # noqa: E731
+        return cls(t(g.means), t(sh0), t(shN), t(g.scales), t(g.quats), t(g.opacities), scene_extent,
+                   config, active_sh_degree=d)
+
+    # ---- activated views -----------------------------------------------------------------
+    def get_scales(self) -> Tensor:
+        """[N, 3] activated scales."""
+        return torch.exp(self.params["scales"])
+
+    def get_opacities(self) -> Tensor:
+        """[N] activated opacities."""
+        return torch.sigmoid(self.params["opacities"])
+
+    def positions(self) -> Tensor:
+        """[N, 3] Gaussian centres (detached)."""
+        return self.params["means"].detach()
+
+    def num_primitives(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    # ---- schedule -----------------------------------------------------------------------
+    def means_lr(self, step: int) -> float:
+        """Learning rate of the means at ``step``: log-linear from lr_means_init * extent at
+        step 0 to lr_means_final * extent at position_lr_max_steps, constant after."""
+        c = self.config
+        t = min(max(step / c.position_lr_max_steps, 0.0), 1.0)
+        lo, hi = math.log(c.lr_means_init * self.scene_extent), math.log(c.lr_means_final * self.scene_extent)
+        return math.exp((1.0 - t) * lo + t * hi)
+
+    def _set_means_lr(self, step: int) -> None:
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = self.means_lr(step)
+
+    def set_step(self, step: int) -> None:
+        """Learning rate of the means and the active SH degree for ``step``: both pure functions
+        of the step, so a resumed run continues exactly."""
+        self._step = _check_int("step", step, 0)
+        self._set_means_lr(step)
+        self.active_sh_degree = min(self.config.sh_degree, step // self.config.sh_degree_interval)
+
+    def learning_rates(self) -> Dict[str, float]:
+        """Current learning rate of every group, by name."""
+        return {g["name"]: g["lr"] for g in self.optimizer.param_groups}
+
+    # ---- rendering and statistics -------------------------------------------------------
+    def render(self, cameras: Sequence[Camera], backgrounds: Tensor) -> RenderResult:
+        """Render C cameras of one size.
+
+        Args:
+            cameras: C >= 1 cameras, all of one width and height.
+            backgrounds: [C, 3].
+        Returns:
+            RenderResult with images [C, H, W, 3], alphas [C, H, W, 1] and the rasterizer's meta
+            dict as aux (its means2d retains its gradient for accumulate_stats).
+        """
+        cams = list(cameras)
+        if not cams:
+            raise ValueError("render needs at least one camera, got 0")
+        sizes = sorted({(c.width, c.height) for c in cams})
+        if len(sizes) != 1:
+            raise ValueError(f"all cameras of a chunk must have one size, got (width, height) "
+                             f"{sizes} for uids {[c.uid for c in cams]}")
+        width, height = sizes[0]
+        p = self.params
+        ref = p["means"]
+        viewmats, Ks = stack_cameras(cams, dtype=ref.dtype, device=ref.device)
+        bg = torch.as_tensor(backgrounds).to(device=ref.device, dtype=ref.dtype)
+        if tuple(bg.shape) != (len(cams), 3):
+            raise ValueError(f"backgrounds must be [C,3] with C={len(cams)}, got {list(bg.shape)}")
+        colors = torch.cat([p["sh0"], p["shN"]], dim=1)  # [N, K, 3]
+        images, alphas, meta = self.config.rasterize(
+            p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
+            viewmats, Ks, width, height, sh_degree=self.active_sh_degree, packed=False,
+            backgrounds=bg, **self.config.rasterize_kwargs,
+        )
+        if meta["means2d"].requires_grad:  # not under torch.no_grad()
+            meta["means2d"].retain_grad()
+        return RenderResult(images=images, alphas=alphas, aux=meta)
+
+    def regularization(self, step: int) -> Optional[Tensor]:
+        return None
+
+    def accumulate_stats(self, result: RenderResult) -> None:
+        """Fold a rendered chunk's screen-space statistics in (call after its backward).
+
+        For every camera c of the chunk and every Gaussian visible in it (radius > 0):
+        grad_accum += |d loss / d means2d[c]| measured in NDC, i.e. the pixel-space gradient
+        scaled by (W/2, H/2) as the original CUDA code reports it (so 2e-4 keeps its meaning);
+        denom += 1 (each view is one visit, so a chunk of C views adds up to C);
+        max_radii2D = max(max_radii2D, radius in pixels).
+
+        gsplat's DefaultStrategy additionally multiplies the gradient by the number of cameras
+        of the render call, because its loss averages over them; here the controller's loss is
+        a sum of per-view losses, so no such factor applies.
+        """
+        meta = result.aux
+        if not isinstance(meta, dict) or "means2d" not in meta or "radii" not in meta:
+            raise ValueError("accumulate_stats needs the RenderResult returned by this adapter's render()")
+        means2d = meta["means2d"]
+        grad = means2d.grad
+        if grad is None:
+            raise RuntimeError("means2d has no gradient: call backward on a loss of this render "
+                               "before accumulate_stats")
+        n = self.num_primitives()
+        if grad.shape[-2] != n:
+            raise ValueError(f"the render has {grad.shape[-2]} Gaussians but the model now has {n} "
+                             f"(densified in between?)")
+        radii = meta["radii"]  # [C, N, 2] (gsplat >= 1.5, ours) or [C, N] (older gsplat)
+        if radii.dim() == 3:
+            visible, radius = (radii > 0).all(dim=-1), radii.max(dim=-1).values
+        else:
+            visible, radius = radii > 0, radii
+        ndc = grad.detach() * grad.new_tensor([meta["width"] / 2.0, meta["height"] / 2.0])
+        norms = ndc.norm(dim=-1).to(self.grad_accum.dtype)  # [C, N]
+        vis = visible.to(self.grad_accum.dtype)
+        self.grad_accum += (norms * vis).sum(dim=0)
+        self.denom += vis.sum(dim=0)
+        radius = torch.where(visible, radius.to(self.max_radii2D.dtype), torch.zeros_like(self.max_radii2D))
+        self.max_radii2D = torch.maximum(self.max_radii2D, radius.max(dim=0).values)
+
+    def mean_grads(self) -> Tensor:
+        """[N] accumulated NDC gradient norm per visit (0 where never visible)."""
+        return torch.where(self.denom > 0, self.grad_accum / self.denom.clamp_min(1),
+                           torch.zeros_like(self.grad_accum))
+
+    # ---- densification -------------------------------------------------------------------
+    def densify(self, ctx: DensifyContext) -> DensifyReport:
+        """The original 3DGS densify_and_prune, with MVGS cross-ray boxes before it.
+
+        With g = mean NDC gradient per visit, β = ctx.grad_threshold, E = ctx.scene_extent,
+        all selections made on the Gaussians present before the call:
+          1. boxes: every Gaussian strictly inside any of ctx.boxes is cloned once (no gradient
+             or size test); with ctx.max_new_from_boxes, the ones with the largest g;
+          2. clone: g >= β and max scale <= percent_dense * E -> an exact copy;
+          3. split: g >= β and max scale > percent_dense * E -> split_samples children at
+             mean + R (s ⊙ n), n ~ N(0, I), scale s / (0.8 * split_samples), other attributes
+             copied; the parent is removed;
+          with config.max_gaussians, growth stops at the cap: the candidates of 1-3 are ranked by
+          g together and the best that fit are kept (each adds 1, a split adds samples - 1);
+          4. prune (all rows, new ones included): opacity < min_opacity and, with
+             ctx.prune_large, max scale > max_world_size * E or (when config.max_screen_size is
+             set) max screen radius > max_screen_size.
+        New rows start with zero statistics, a zero radius and zero Adam moments; surviving rows
+        keep theirs. As in the original, the parameters are new tensors without gradients, so an
+        optimizer step right after densify leaves them unchanged for that step. The statistics
+        are reset to zero.
+
+        Report: cloned / split / from_boxes count the selected Gaussians (a split adds
+        split_samples - 1 net); pruned counts every row the prune rules removed, new rows
+        included (split parents count as split only); so after = before + from_boxes + cloned
+        + split * (split_samples - 1) - pruned.
+        """
+        try:
+            beta = float(ctx.grad_threshold)
+        except (TypeError, ValueError):
+            beta = math.nan
+        if isinstance(ctx.grad_threshold, bool) or not beta >= 0:
+            # +inf is allowed: no gradient-driven growth (boxes and pruning still run)
+            raise ValueError(f"ctx.grad_threshold must be a number >= 0 (inf allowed), "
+                             f"got {ctx.grad_threshold!r}")
+        extent = _check_float("scene_extent", ctx.scene_extent, positive=True)
+        n0 = self.num_primitives()
+        g = self.mean_grads()
+        max_scale = self.get_scales().detach().max(dim=1).values
+        small = max_scale <= self.config.percent_dense * extent
+        box_sel, dropped_box_cap = self._box_selection(ctx, g)
+        clone_sel = (g >= beta) & small
+        split_sel = (g >= beta) & ~small
+        box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, g)
+
+        new_rows = self._new_rows(box_sel, clone_sel, split_sel)
+        n_new = new_rows["means"].shape[0]
+        all_rows = {k: torch.cat([self.params[k].detach(), new_rows[k]]) for k in PARAM_NAMES}
+        radii = torch.cat([self.max_radii2D, self.max_radii2D.new_zeros(n_new)])
+        prune = self._prune_mask(all_rows, radii, extent, ctx.prune_large)
+        parents = torch.cat([split_sel, split_sel.new_zeros(n_new)])
+        keep = ~(prune | parents)
+        src = torch.cat([torch.arange(n0, device=keep.device),
+                         torch.full((n_new,), -1, dtype=torch.long, device=keep.device)])
+        self._replace({k: v[keep] for k, v in all_rows.items()}, src[keep])
+        self._reset_stats()
+        return DensifyReport(
+            before=n0, after=self.num_primitives(), cloned=int(clone_sel.sum()),
+            split=int(split_sel.sum()), pruned=int((prune & ~parents).sum()),
+            from_boxes=int(box_sel.sum()),
+            extra={"grad_threshold": beta, "split_children": int(split_sel.sum()) * self.config.split_samples,
+                   "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap},
+        )
+
+    def _box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
+        """[N] bool: Gaussians strictly inside a CRD box, capped by ctx.max_new_from_boxes (the
+        largest mean gradients kept); and how many the cap dropped."""
+        n = self.num_primitives()
+        none = torch.zeros(n, dtype=torch.bool, device=g.device)
+        if ctx.boxes is None:
+            return none, 0
+        boxes = torch.as_tensor(ctx.boxes)
+        if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3):
+            raise ValueError(f"ctx.boxes must be [B,2,3] (min, max corners), got {list(boxes.shape)}")
+        if not bool(torch.isfinite(boxes).all()):
+            raise ValueError("ctx.boxes must be finite")
+        bad = (boxes[:, 0] > boxes[:, 1]).any(dim=-1)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0, 0])
+            raise ValueError(f"ctx.boxes[{i}] has min > max: {boxes[i].tolist()} (corners swapped?)")
+        sel = _inside_any_box(self.params["means"], boxes.to(g.device))
+        total = int(sel.sum())
+        if ctx.max_new_from_boxes is not None:
+            sel = _top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+        return sel, total - int(sel.sum())
+
+    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor):
+        """Apply config.max_gaussians: rank all growth candidates by mean gradient and keep the
+        longest prefix whose net growth fits (measured against the count before pruning, so the
+        result never exceeds the cap). Returns the three masks and how many candidates fell."""
+        cap = self.config.max_gaussians
+        if cap is None:
+            return box_sel, clone_sel, split_sel, 0
+        masks = [box_sel, clone_sel, split_sel]
+        costs = [1, 1, self.config.split_samples - 1]
+        idx = [m.nonzero().squeeze(1) for m in masks]
+        score = torch.cat([g[i] for i in idx])
+        cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=g.device)
+                          for i, c in zip(idx, costs)])
+        budget = max(0, cap - self.num_primitives())
+        order = torch.sort(score, descending=True, stable=True).indices
+        fits = torch.zeros_like(score, dtype=torch.bool)
+        fits[order] = torch.cumsum(cost[order], 0) <= budget
+        out, start = [], 0
+        for m, i in zip(masks, idx):
+            kept = torch.zeros_like(m)
+            kept[i[fits[start:start + len(i)]]] = True
+            out.append(kept)
+            start += len(i)
+        return out[0], out[1], out[2], int((~fits).sum())
+
+    def _new_rows(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor) -> Dict[str, Tensor]:
+        """Raw attributes of the rows to append: box clones, clones, then split children."""
+        p = {k: v.detach() for k, v in self.params.items()}
+        parts = [{k: v[box_sel] for k, v in p.items()}, {k: v[clone_sel] for k, v in p.items()},
+                 self._split_children(split_sel)]
+        return {k: torch.cat([part[k] for part in parts]) for k in PARAM_NAMES}
+
+    def _split_children(self, sel: Tensor) -> Dict[str, Tensor]:
+        """split_samples children per selected Gaussian: positions mean + R (s ⊙ n), n ~ N(0, I);
+        scales s / (0.8 * split_samples); other attributes copied. Rows ordered sample-major."""
+        k = self.config.split_samples
+        p = {name: v.detach()[sel] for name, v in self.params.items()}
+        s = torch.exp(p["scales"]).repeat(k, 1)  # [k*M, 3]
+        n = torch.randn(s.shape, generator=self._generator, dtype=torch.float64).to(s)
+        R = quat_to_rotmat(p["quats"]).repeat(k, 1, 1)  # [k*M, 3, 3]
+        out = {name: v.repeat(k, *([1] * (v.ndim - 1))) for name, v in p.items()}
+        out["means"] = out["means"] + (R @ (s * n).unsqueeze(-1)).squeeze(-1)
+        out["scales"] = torch.log(s / (0.8 * k))
+        return out
+
+    def _prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+        c = self.config
+        prune = torch.sigmoid(rows["opacities"]) < c.min_opacity
+        if prune_large:
+            prune |= torch.exp(rows["scales"]).max(dim=1).values > c.max_world_size * extent
+            if c.max_screen_size is not None:
+                prune |= radii > c.max_screen_size
+        return prune
+
+    def _replace(self, values: Dict[str, Tensor], src: Tensor) -> None:
+        """Swap in new tensors for every group; src [N_new] long gives the old row each new row
+        continues (-1 = new row)."""
+        for name in PARAM_NAMES:
+            self._swap_group(name, values[name], src, zero_moments=False)
+
+    def _swap_group(self, name: str, value: Tensor, src: Optional[Tensor], zero_moments: bool) -> None:
+        """Replace one group's parameter by a new tensor, carrying its Adam state along.
+
+        src: [N_new] long, the old row each new row continues (-1 = new row: zero moments), or
+        None when the rows are the same. Adam's ``step`` (a 0-dim tensor shared by all rows) is
+        kept as it is. zero_moments: zero every row's moments (opacity reset).
+        """
+        group = next(g for g in self.optimizer.param_groups if g["name"] == name)
+        old = group["params"][0]
+        new = torch.nn.Parameter(value.detach().clone().contiguous())
+        state = self.optimizer.state.pop(old, None)
+        if state is not None:
+            self.optimizer.state[new] = {key: self._remap(v, old, src, zero_moments)
+                                         for key, v in state.items()}
+        group["params"][0] = new
+        self.params[name] = new
+
+    @staticmethod
+    def _remap(v: Any, old: Tensor, src: Optional[Tensor], zero: bool) -> Any:
+        if not (isinstance(v, Tensor) and v.shape == old.shape):
+            return v  # Adam's step counter, shared by all rows
+        rows = v.shape[0] if src is None else len(src)
+        out = v.new_zeros((rows,) + v.shape[1:])
+        if zero:
+            return out
+        if src is None:
+            return v.clone()
+        cont = src >= 0
+        out[cont] = v[src[cont]]
+        return out
+
+    def reset_opacity(self) -> None:
+        """Cap every opacity at config.opacity_reset_value (0.01) and zero the opacity group's
+        Adam moments, as the original. Like the original, the opacity tensor is replaced, so its
+        current gradient is dropped (the other groups keep theirs)."""
+        v = self.config.opacity_reset_value
+        capped = torch.clamp_max(self.params["opacities"].detach(), math.log(v / (1.0 - v)))
+        self._swap_group("opacities", capped, None, zero_moments=True)
+
+    # ---- optimisation ---------------------------------------------------------------------
+    def named_gradients(self) -> Dict[str, Optional[Tensor]]:
+        return {name: p.grad for name, p in self.params.items()}
+
+    def optimizer_step(self) -> None:
+        self.optimizer.step()
+
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    # ---- persistence -----------------------------------------------------------------------
+    def state_dict(self) -> Dict[str, Any]:
+        """A self-contained copy: parameters, Adam state, statistics, step, SH degree, scene
+        extent, config values (not the rasterize function) and the generator state."""
+        return {
+            "format": _STATE_FORMAT,
+            "params": {k: p.detach().clone() for k, p in self.params.items()},
+            "optimizer": copy.deepcopy(self.optimizer.state_dict()),
+            "stats": {"grad_accum": self.grad_accum.clone(), "denom": self.denom.clone(),
+                      "max_radii2D": self.max_radii2D.clone()},
+            "step": self._step,
+            "active_sh_degree": self.active_sh_degree,
+            "scene_extent": self.scene_extent,
+            "config": self.config.saved_values(),
+            "generator": self._generator.get_state(),
+        }
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        """Restore a state_dict(), whatever the current number of Gaussians. Parameters keep
+        this adapter's dtype and device; the saved config values replace the current ones except
+        rasterize and rasterize_kwargs."""
+        for key in ("format", "params", "optimizer", "stats", "step", "active_sh_degree",
+                    "scene_extent", "config", "generator"):
+            if key not in state:
+                raise ValueError(f"state has no {key!r} entry; not a GS3DAdapter state_dict")
+        if state["format"] != _STATE_FORMAT:
+            raise ValueError(f"state format {state['format']!r} is not {_STATE_FORMAT!r}")
+        unknown = set(state["config"]) - set(GS3DConfig().saved_values())
+        if unknown:
+            raise ValueError(f"state config has unknown fields {sorted(unknown)}")
+        ref = self.params["means"]
+        config = dataclasses.replace(self.config, **state["config"])
+        raw = {k: state["params"][k].to(device=ref.device, dtype=ref.dtype) for k in PARAM_NAMES}
+        old_config, self.config = self.config, config
+        try:
+            self._check_raw(raw)
+        except ValueError:
+            self.config = old_config
+            raise
+        n = raw["means"].shape[0]
+        for key in ("grad_accum", "denom", "max_radii2D"):
+            if tuple(state["stats"][key].shape) != (n,):
+                self.config = old_config
+                raise ValueError(f"stats[{key!r}] must be [{n}], got {list(state['stats'][key].shape)}")
+        self.scene_extent = float(state["scene_extent"])
+        self._step = int(state["step"])
+        self.active_sh_degree = int(state["active_sh_degree"])
+        self._build(raw)
+        self.optimizer.load_state_dict(state["optimizer"])
+        for key in ("grad_accum", "denom", "max_radii2D"):
+            setattr(self, key, state["stats"][key].to(device=ref.device, dtype=ref.dtype).clone())
+        self._generator.set_state(state["generator"])
+
+    def export(self, path: str, camera: Optional[Camera] = None) -> None:
+        """Write the standard 3DGS PLY (raw values; see adapters/ply.py), atomically. ``camera``
+        is unused: 3DGS Gaussians do not depend on the view."""
+        p = {k: v.detach() for k, v in self.params.items()}
+        write_gaussian_ply(Path(path), p["means"], p["sh0"], p["shN"], p["opacities"], p["scales"],
+                           p["quats"])
+
+    def __repr__(self) -> str:
+        return (f"GS3DAdapter(N={self.num_primitives()}, sh_degree={self.active_sh_degree}/"
+                f"{self.config.sh_degree}, extent={self.scene_extent:.4g}, step={self._step})")
