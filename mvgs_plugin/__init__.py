@@ -1,1 +1,21 @@
-"""MVGS controller: backend-agnostic multi-view regulated training for Gaussian splatting."""
+"""MVGS controller: backend-agnostic multi-view regulated training for Gaussian splatting.
+
+    from mvgs_plugin import MVGS, MVGSConfig
+    trainer = MVGS(adapter, scene, MVGSConfig.default())
+    trainer.fit()
+
+The controller talks to models through the Adapter protocol (mvgs_plugin.protocol) and never
+imports a renderer or a model family.
+"""
+
+from .camera import Camera, stack_cameras
+from .config import MVGSConfig, Stage
+from .controller import MVGS, EvalResult, StepInfo
+from .protocol import Adapter, DensifyContext, DensifyReport, RenderResult
+from .sampler import ViewSampler
+from .schedule import StagePlan, StepPlan, ViewSchedule
+
+__all__ = [
+    "MVGS", "MVGSConfig", "Stage", "StepInfo", "EvalResult", "Adapter", "RenderResult", "DensifyContext",
+    "DensifyReport", "Camera", "stack_cameras", "ViewSampler", "StagePlan", "StepPlan", "ViewSchedule",
+]

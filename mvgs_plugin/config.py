@@ -139,7 +139,9 @@ class MVGSConfig:
 
         Stage lengths keep their proportions (each at least 1 step) and every step-valued clock
         (densification window and interval, opacity reset, size pruning) scales by the same
-        ratio, so a 3k-step run densifies and resets at the same relative times as a 39k one.
+        ratio, so a 3.9k-step run densifies and resets at the same relative times as a 39k one;
+        but densification never runs more often than every 10 steps and opacity resets never
+        come sooner than 10 densification intervals apart.
         """
         if isinstance(total, bool) or not isinstance(total, int) or total < len(self.stages):
             raise ValueError(f"total steps must be an int >= the number of stages ({len(self.stages)}), got {total!r}")
@@ -151,10 +153,14 @@ class MVGSConfig:
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
         clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
         scale = lambda v: max(1, round(v * clock_ratio))  # noqa: E731
+        # Floors keep short runs sane: statistics need some views between densifications, and
+        # opacities need time to recover between resets (the original has 30 densifications per
+        # reset interval).
+        every = max(min(10, self.densify_every), scale(self.densify_every))
+        reset = max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every))
         return dataclasses.replace(
             self, stages=stages, densify_from=scale(self.densify_from), densify_until=scale(self.densify_until),
-            densify_every=scale(self.densify_every), opacity_reset_every=scale(self.opacity_reset_every),
-            prune_large_after=scale(self.prune_large_after),
+            densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
         )
 
     def with_views(self, views: int) -> "MVGSConfig":

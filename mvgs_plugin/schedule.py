@@ -1,12 +1,20 @@
-"""The stage plan of cross-intrinsic guidance: which stage a global step is in, and which step
-the learning-rate and densification clocks see (restarted per stage, or continuous)."""
+"""What each step trains on: the stage plan of cross-intrinsic guidance (which stage a global
+step is in, and which step the learning-rate and densification clocks see: restarted per stage,
+or continuous) and the ViewSchedule that turns it, with the view sampler, into one StepPlan per
+step."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Dict, Iterator, List, Sequence, Tuple
 
-from .config import Stage
+import torch
+from torch import Tensor
+
+from .camera import Camera
+from .config import MVGSConfig, Stage
+from .protocol import DensifyContext
+from .sampler import ViewSampler
 
 
 @dataclass(frozen=True)
@@ -40,3 +48,131 @@ class StagePlan:
                 return StagePosition(i, stage, local, clock, local == 1)
             start += stage.steps
         raise AssertionError("unreachable")
+
+
+@dataclass
+class StepPlan:
+    """Everything one training step needs, decided before rendering.
+
+    views: training view indices; cameras: their cameras at this stage's pyramid level;
+    images: the matching targets [H', W', 3]; backgrounds: [M, 3]; weight: multiplies every
+    per-view loss (1 for "sum", 1/M for "mean"); chunks: positions in `views` rendered and
+    backpropagated together; stats: per chunk, whether its densification statistics are
+    collected; densify / reset_opacity / handoff_reset: what runs after the backward passes.
+    """
+
+    step: int
+    clock: int
+    stage: int
+    factor: int
+    views: List[int]
+    cameras: List[Camera]
+    images: List[Tensor]
+    backgrounds: Tensor
+    weight: float
+    chunks: List[List[int]]
+    stats: List[bool]
+    densify: bool
+    reset_opacity: bool
+    handoff_reset: bool
+
+    def __iter__(self) -> Iterator[Tuple[List[Camera], List[Tensor], Tensor, bool]]:
+        """Per chunk: (cameras, target images, backgrounds [C, 3], collect statistics?)."""
+        for chunk, collect in zip(self.chunks, self.stats):
+            yield [self.cameras[i] for i in chunk], [self.images[i] for i in chunk], self.backgrounds[chunk], collect
+
+
+class ViewSchedule:
+    """The sequence of StepPlans of a run: sampler + stage plan + densification clock.
+
+    This is the part of the controller a hand-written training loop can use directly (see
+    examples/three_line_wrap): the same loop trains plain 3DGS with MVGSConfig.baseline() and
+    MVGS with MVGSConfig.default().
+    """
+
+    def __init__(self, scene, config: MVGSConfig):
+        if not scene.train_cameras:
+            raise ValueError("scene has no training cameras")
+        self.scene = scene
+        self.config = config
+        self.plan = StagePlan(config.stages, config.restart_per_stage)
+        self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed)
+        self._bg_gen = torch.Generator().manual_seed(config.seed + 1)
+        self._scaled: Dict[Tuple[int, int], Camera] = {}
+        self.step_count = 0
+
+    @property
+    def total_steps(self) -> int:
+        return self.plan.total_steps
+
+    def __iter__(self) -> Iterator[StepPlan]:
+        while self.step_count < self.plan.total_steps:
+            yield self.next()
+
+    def next(self) -> StepPlan:
+        """The plan of the next step (advances the sampler and the step counter)."""
+        if self.step_count >= self.plan.total_steps:
+            raise RuntimeError(f"training is complete ({self.plan.total_steps} steps); nothing left to run")
+        cfg = self.config
+        s = self.step_count + 1
+        pos = self.plan.locate(s)
+        ids = self.sampler.sample(min(pos.stage.views, len(self.scene.train_cameras)))
+        cams = [self._camera(i, pos.stage.factor) for i in ids]
+        images = [self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
+        chunks = self._chunks(len(ids))
+        collect = pos.clock < cfg.densify_until
+        stats = [collect and (cfg.stats_from == "all" or c[-1] == len(ids) - 1) for c in chunks]
+        self.step_count = s
+        return StepPlan(
+            step=s, clock=pos.clock, stage=pos.index, factor=pos.stage.factor, views=ids, cameras=cams,
+            images=images, backgrounds=self._backgrounds(len(ids)),
+            weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
+            densify=collect and pos.clock > cfg.densify_from and pos.clock % cfg.densify_every == 0,
+            reset_opacity=collect and pos.clock % cfg.opacity_reset_every == 0,
+            handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
+        )
+
+    def densify_context(self, plan: StepPlan) -> DensifyContext:
+        """The densification context of a step (threshold, scene scale, size pruning)."""
+        return DensifyContext(
+            step=plan.clock,
+            grad_threshold=self.config.grad_threshold,
+            scene_extent=float(self.scene.extent),
+            prune_large=plan.clock > self.config.prune_large_after,
+            cameras=tuple(plan.cameras),
+        )
+
+    def _chunks(self, m: int) -> List[List[int]]:
+        """View positions grouped for rendering. With stats_from="last" the last view renders
+        alone, so its statistics can be taken without the others'."""
+        size = self.config.chunk_size
+        head = m - 1 if self.config.stats_from == "last" else m
+        chunks = [list(range(i, min(i + size, head))) for i in range(0, head, size)]
+        return chunks + ([[m - 1]] if self.config.stats_from == "last" else [])
+
+    def _camera(self, index: int, factor: int) -> Camera:
+        key = (index, factor)
+        if key not in self._scaled:
+            cam = self.scene.train_cameras[index]
+            self._scaled[key] = cam if factor == 1 else cam.scaled(factor)
+        return self._scaled[key]
+
+    def background_value(self) -> Tuple[float, float, float]:
+        """The fixed background colour (black for "random", which has no single value)."""
+        bg = self.config.background
+        if bg == "auto":
+            return (0.0, 0.0, 0.0) if self.scene.background is None else tuple(float(c) for c in self.scene.background)
+        return {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": (0.0, 0.0, 0.0)}.get(bg, bg)
+
+    def _backgrounds(self, n: int) -> Tensor:
+        if self.config.background == "random":
+            return torch.rand(n, 3, generator=self._bg_gen)
+        return torch.tensor(self.background_value(), dtype=torch.float32).expand(n, 3).clone()
+
+    def state_dict(self) -> Dict:
+        return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state()}
+
+    def load_state_dict(self, state: Dict) -> None:
+        self.step_count = int(state["step"])
+        self.sampler.load_state_dict(state["sampler"])
+        self._bg_gen.set_state(state["background_rng"])

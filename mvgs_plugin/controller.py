@@ -1,0 +1,202 @@
+"""MVGS: the training controller.
+
+One step = sample M views -> render and backward them a chunk at a time (gradients accumulate,
+so memory does not grow with M) -> guard against NaN/Inf -> densification triggers -> optimizer
+step. It drives any model through the Adapter protocol (protocol.py) and never imports a
+renderer or a model family.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence
+
+import torch
+
+from .camera import Camera
+from .config import MVGSConfig
+from .losses import photometric_loss
+from .metrics import lpips, lpips_available, psnr, ssim
+from .protocol import Adapter, DensifyReport
+from .schedule import ViewSchedule
+
+
+@dataclass
+class StepInfo:
+    """What one step did."""
+
+    step: int
+    stage: int
+    factor: int
+    views: List[int]
+    loss: float
+    num_primitives: int
+    densify: Optional[DensifyReport] = None
+    opacity_reset: bool = False
+
+
+@dataclass
+class EvalResult:
+    psnr: float
+    ssim: float
+    lpips: Optional[float]
+    per_view: List[Dict] = field(default_factory=list)
+
+
+class MVGS:
+    """Multi-view regulated training of an adapter's model on a scene.
+
+    Args:
+        adapter: the model, its renderer and optimizer (see protocol.Adapter).
+        scene: a mvgs_plugin.data.Scene (train/test cameras, images, extent).
+        config: MVGSConfig (presets: baseline(), paper(), default()).
+    """
+
+    def __init__(self, adapter: Adapter, scene, config: Optional[MVGSConfig] = None):
+        self.adapter = adapter
+        self.scene = scene
+        self.config = config or MVGSConfig.default()
+        self.schedule = ViewSchedule(scene, self.config)
+
+    @property
+    def step_count(self) -> int:
+        return self.schedule.step_count
+
+    @property
+    def total_steps(self) -> int:
+        return self.schedule.total_steps
+
+    # ---- one step ---------------------------------------------------------------------------
+    def step(self) -> StepInfo:
+        """Runs the next training step and returns what it did."""
+        plan = self.schedule.next()
+        adapter = self.adapter
+        if plan.handoff_reset:
+            adapter.reset_opacity()
+        adapter.set_step(plan.clock)
+        total = 0.0
+        for k, (cams, gts, bgs, collect) in enumerate(plan):
+            result = adapter.render(cams, bgs)
+            loss = plan.weight * sum(
+                photometric_loss(img, gt.to(img), self.config.lambda_dssim) for img, gt in zip(result.images, gts)
+            )
+            if k == 0:  # the regulariser counts once per step, not once per view
+                reg = adapter.regularization(plan.clock)
+                if reg is not None:
+                    loss = loss + reg
+            if not bool(torch.isfinite(loss)):
+                raise FloatingPointError(
+                    f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
+                    "stopping before the optimizer step"
+                )
+            loss.backward()  # gradients accumulate; this chunk's graph is freed here
+            total += loss.item()
+            if collect:
+                adapter.accumulate_stats(result)
+            del result, loss
+        self._check_gradients(plan)
+        report = None
+        with torch.no_grad():
+            if plan.densify:
+                report = adapter.densify(self.schedule.densify_context(plan))
+            if plan.reset_opacity:
+                adapter.reset_opacity()
+        adapter.optimizer_step()
+        adapter.zero_grad()
+        return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
+                        report, plan.reset_opacity)
+
+    def _check_gradients(self, plan) -> None:
+        for name, g in self.adapter.named_gradients().items():
+            if g is not None and not bool(torch.isfinite(g).all()):
+                bad = int((~torch.isfinite(g)).sum())
+                raise FloatingPointError(
+                    f"step {plan.step}: {bad} non-finite gradient entries in group {name!r} after views "
+                    f"{[c.name for c in plan.cameras]}; stopping before the optimizer step"
+                )
+
+    # ---- the whole run --------------------------------------------------------------------
+    def fit(self, steps: Optional[int] = None, callback: Optional[Callable[[StepInfo], None]] = None,
+            progress: bool = True) -> "MVGS":
+        """Runs the remaining steps (or `steps` more) with a progress bar."""
+        remaining = self.total_steps - self.step_count
+        n = remaining if steps is None else min(steps, remaining)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n, desc="MVGS", unit="step", dynamic_ncols=True)
+        for _ in range(n):
+            info = self.step()
+            if callback is not None:
+                callback(info)
+            if bar is not None:
+                bar.update(1)
+                if info.step % 10 == 0 or info.step == self.total_steps:
+                    bar.set_postfix(loss=f"{info.loss:.4f}", n=info.num_primitives, s=info.factor)
+        if bar is not None:
+            bar.close()
+        return self
+
+    # ---- evaluation -------------------------------------------------------------------------
+    @torch.no_grad()
+    def evaluate(self, cameras: Optional[Sequence[Camera]] = None, factor: int = 1) -> EvalResult:
+        """PSNR / SSIM (/ LPIPS when available) on the test views at pyramid factor `factor`."""
+        cameras = list(self.scene.test_cameras if cameras is None else cameras)
+        if not cameras:
+            raise ValueError("no cameras to evaluate (the scene has no test split)")
+        bg = torch.tensor([self.schedule.background_value()])
+        rows = []
+        for cam in cameras:
+            view = cam if factor == 1 else cam.scaled(factor)
+            img = self.adapter.render([view], bg).images[0].clamp(0, 1).float()
+            gt = self.scene.image(cam, factor).float()
+            rows.append({"name": cam.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt),
+                         "lpips": lpips(img, gt) if lpips_available() else None, "image": img})
+        finite = [r["psnr"] for r in rows if math.isfinite(r["psnr"])]
+        lp = [r["lpips"] for r in rows if r["lpips"] is not None]
+        return EvalResult(
+            psnr=sum(finite) / len(finite) if finite else math.inf,
+            ssim=sum(r["ssim"] for r in rows) / len(rows),
+            lpips=sum(lp) / len(lp) if lp else None,
+            per_view=rows,
+        )
+
+    # ---- checkpoints ------------------------------------------------------------------------
+    def state_dict(self) -> Dict:
+        return {
+            "config": self.config.to_dict(),
+            "schedule": self.schedule.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "adapter": self.adapter.state_dict(),
+        }
+
+    def load_state_dict(self, state: Dict) -> None:
+        saved = MVGSConfig.from_dict(state["config"])
+        if saved.stages != self.config.stages:
+            raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages}")
+        self.schedule.load_state_dict(state["schedule"])
+        torch.set_rng_state(state["torch_rng"])
+        self.adapter.load_state_dict(state["adapter"])
+
+    def save_checkpoint(self, path: str) -> None:
+        """Controller, adapter, optimizer and sampler state in one file, written atomically: a
+        crash mid-write leaves the previous checkpoint intact."""
+        folder = os.path.dirname(os.path.abspath(path))
+        os.makedirs(folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".ckpt-", dir=folder)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                torch.save(self.state_dict(), f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    def load_checkpoint(self, path: str) -> None:
+        self.load_state_dict(torch.load(path, weights_only=False))

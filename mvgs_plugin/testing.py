@@ -1,0 +1,241 @@
+"""Adapter conformance checks anyone can run on their own adapter.
+
+    from mvgs_plugin.testing import check_adapter
+    check_adapter(lambda scene: MyAdapter.from_scene(scene))       # raises AssertionError on failure
+
+`make_adapter(scene)` must return a fresh adapter for the scene (same seed -> same model). The
+scene defaults to `synthetic_scene()`: a few coloured points seen by a ring of small cameras,
+with smooth synthetic target images (no renderer needed to make them). Each check is also a
+function of its own, so a test suite can run them one by one.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Callable, Dict, List, Optional
+
+import torch
+
+from .camera import Camera
+from .data.scene import PointCloud, Scene
+from .losses import photometric_loss
+from .protocol import Adapter, DensifyContext, RenderResult
+
+MakeAdapter = Callable[[Scene], Adapter]
+
+
+def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> torch.Tensor:
+    """World-to-camera [4, 4] (OpenCV axes) of a camera at `eye` looking at `target`."""
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    fwd = torch.nn.functional.normalize(target - eye, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, up), dim=0)
+    down = torch.linalg.cross(fwd, right)
+    R = torch.stack([right, down, fwd])
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
+    return w2c
+
+
+def synthetic_scene(n_train: int = 6, n_test: int = 2, size: int = 24, n_points: int = 300,
+                    seed: int = 0, time: bool = False) -> Scene:
+    """A small scene: points on a sphere of radius 0.6, cameras on a ring at distance 3 looking
+    at the origin, target images with a smooth colour gradient per view. With time=True every
+    camera carries a time in [0, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.nn.functional.normalize(torch.randn(n_points, 3, generator=g, dtype=torch.float64), dim=-1) * 0.6
+    rgb = torch.rand(n_points, 3, generator=g)
+    K = [[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]]
+    cams, images = [], {}
+    n = n_train + n_test
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, size), torch.linspace(0, 1, size), indexing="ij")
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        eye = (3 * math.cos(a), 3 * math.sin(a), 0.8 + 0.3 * math.sin(3 * a))
+        cam = Camera(uid=i, name=f"view_{i:03d}", K=K, world_to_camera=look_at(eye), width=size, height=size,
+                     time=(i / max(1, n - 1)) if time else None)
+        cams.append(cam)
+        c = torch.rand(3, generator=g)
+        images[i] = torch.stack([c[0] * xx, c[1] * yy, c[2] * (1 - xx) * yy], -1).clamp(0, 1)
+    test_ids = set(range(0, n, max(1, n // max(1, n_test)))[:n_test])
+    train = [c for c in cams if c.uid not in test_ids]
+    test = [c for c in cams if c.uid in test_ids]
+    return Scene(train, test, images, points=PointCloud(pts.float(), rgb))
+
+
+def _loss(adapter: Adapter, scene: Scene, cams: List[Camera]) -> torch.Tensor:
+    result = adapter.render(cams, torch.zeros(len(cams), 3))
+    gts = [scene.image(c) for c in cams]
+    return sum(photometric_loss(result.images[i], gts[i].to(result.images)) for i in range(len(cams))), result
+
+
+def check_render(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """Render shapes, dtype and ranges; a chunk of views of one size renders as a batch."""
+    adapter = make_adapter(scene)
+    adapter.set_step(1)
+    cams = scene.train_cameras[:2]
+    result = adapter.render(cams, torch.zeros(2, 3))
+    assert isinstance(result, RenderResult), f"render must return RenderResult, got {type(result).__name__}"
+    H, W = cams[0].height, cams[0].width
+    assert tuple(result.images.shape) == (2, H, W, 3), f"images must be [2,{H},{W},3], got {list(result.images.shape)}"
+    assert torch.isfinite(result.images).all(), "render produced non-finite pixels"
+    if result.alphas is not None:
+        assert tuple(result.alphas.shape) == (2, H, W, 1), f"alphas must be [2,{H},{W},1], got {list(result.alphas.shape)}"
+        assert result.alphas.min() >= 0 and result.alphas.max() <= 1, "alphas must be in [0, 1]"
+    assert result.images.requires_grad, "render output must be differentiable w.r.t. the model"
+    small = cams[0].scaled(4)
+    img = adapter.render([small], torch.ones(1, 3)).images
+    assert tuple(img.shape) == (1, small.height, small.width, 3), "pyramid cameras must render at their own size"
+
+
+def check_gradients_reach_every_group(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """After one backward, every trainable group named by named_gradients() has a finite,
+    non-zero gradient (late-activated parts are switched on by a large set_step first)."""
+    adapter = make_adapter(scene)
+    adapter.set_step(100_000)
+    # Two optimizer steps first: a fresh model can be symmetric (isotropic Gaussians have no
+    # gradient w.r.t. their rotation) in ways training immediately breaks.
+    for i in range(3):
+        adapter.zero_grad()
+        loss, _ = _loss(adapter, scene, scene.train_cameras[:3])
+        loss.backward()
+        if i < 2:
+            adapter.optimizer_step()
+    grads = adapter.named_gradients()
+    assert grads, "named_gradients() must name at least one group"
+    for name, g in grads.items():
+        assert g is not None, f"group {name!r} received no gradient"
+        assert torch.isfinite(g).all(), f"group {name!r} has non-finite gradients"
+        assert g.abs().sum() > 0, f"group {name!r} has an all-zero gradient"
+    adapter.zero_grad()
+
+
+def check_summed_equals_accumulated(make_adapter: MakeAdapter, scene: Scene, rtol: float = 1e-5) -> None:
+    """Backward of views one at a time accumulates exactly the gradient of their summed loss."""
+    cams = scene.train_cameras[:3]
+    a = make_adapter(scene)
+    a.set_step(100_000)
+    loss, _ = _loss(a, scene, cams)
+    loss.backward()
+    joint = {k: v.clone() for k, v in a.named_gradients().items() if v is not None}
+    b = make_adapter(scene)
+    b.set_step(100_000)
+    for cam in cams:
+        loss, _ = _loss(b, scene, [cam])
+        loss.backward()
+    acc = b.named_gradients()
+    for name, g in joint.items():
+        h = acc[name]
+        scale = g.abs().max().clamp_min(1e-30)
+        err = float((g - h).abs().max() / scale)
+        assert err <= rtol, f"group {name!r}: accumulated gradient differs from the summed one by {err:.3g} (relative)"
+
+
+def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """Statistics accumulate (a zero threshold grows the model, an infinite one does not) and
+    densification keeps parameters and optimizer state aligned (a step after it works)."""
+    for threshold, grows in ((math.inf, False), (0.0, True)):
+        adapter = make_adapter(scene)
+        adapter.set_step(1)
+        n0 = adapter.num_primitives()
+        for cam in scene.train_cameras[:3]:
+            loss, result = _loss(adapter, scene, [cam])
+            loss.backward()
+            adapter.accumulate_stats(result)
+        ctx = DensifyContext(step=1, grad_threshold=threshold, scene_extent=float(scene.extent),
+                             cameras=tuple(scene.train_cameras[:3]))
+        with torch.no_grad():
+            report = adapter.densify(ctx)
+        n1 = adapter.num_primitives()
+        assert report.before == n0 and report.after == n1, f"DensifyReport says {report.before}->{report.after}, model has {n0}->{n1}"
+        if grows:
+            assert n1 > n0, f"threshold 0 must densify the visible primitives, got {n0} -> {n1}"
+        else:
+            assert n1 <= n0, f"an infinite threshold must not grow the model, got {n0} -> {n1}"
+        assert adapter.positions().shape == (n1, 3), f"positions() must be [{n1},3], got {list(adapter.positions().shape)}"
+        adapter.optimizer_step()
+        adapter.zero_grad()
+        loss, _ = _loss(adapter, scene, scene.train_cameras[:1])
+        loss.backward()
+        adapter.optimizer_step()  # shapes of optimizer state and parameters must agree
+        adapter.zero_grad()
+
+
+def check_state_dict_round_trip(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """state_dict -> load_state_dict into a fresh adapter (even of another size) renders the same
+    and continues training identically."""
+    a = make_adapter(scene)
+    a.set_step(1)
+    for cam in scene.train_cameras[:2]:
+        loss, result = _loss(a, scene, [cam])
+        loss.backward()
+        a.accumulate_stats(result)
+    with torch.no_grad():
+        a.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=float(scene.extent)))
+    loss, _ = _loss(a, scene, scene.train_cameras[:1])
+    loss.backward()
+    a.optimizer_step()
+    a.zero_grad()
+    state = copy.deepcopy(a.state_dict())
+    b = make_adapter(scene)
+    b.load_state_dict(state)
+    assert b.num_primitives() == a.num_primitives()
+    cam = scene.train_cameras[-1:]
+    for m in (a, b):
+        m.set_step(2)
+    ia = a.render(cam, torch.zeros(1, 3)).images
+    ib = b.render(cam, torch.zeros(1, 3)).images
+    assert torch.equal(ia, ib), "a loaded adapter must render exactly like the saved one"
+    for m in (a, b):
+        loss, _ = _loss(m, scene, cam)
+        loss.backward()
+        m.optimizer_step()
+        m.zero_grad()
+    assert torch.equal(a.positions(), b.positions()), "after one more step the two adapters must still agree"
+
+
+def check_hard_cameras(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """No NaN/Inf in images or gradients for cameras inside the model, far away, looking away,
+    tiny and non-square."""
+    base = scene.train_cameras[0]
+    K = base.K.clone()
+    hard = [
+        Camera(900, "inside", K, look_at((0.05, 0.02, 0.01), (1.0, 0.0, 0.0)), base.width, base.height, base.time),
+        Camera(901, "far", K, look_at((300.0, 0.0, 0.0)), base.width, base.height, base.time),
+        Camera(902, "away", K, look_at((3.0, 0.0, 0.0), (6.0, 0.0, 0.0)), base.width, base.height, base.time),
+        base.scaled(base.width),  # 1x1
+        Camera(903, "wide", [[10.0, 0, 20], [0, 10.0, 3], [0, 0, 1]], base.world_to_camera, 40, 6, base.time),
+    ]
+    adapter = make_adapter(scene)
+    adapter.set_step(100_000)
+    for cam in hard:
+        out = adapter.render([cam], torch.rand(1, 3))
+        assert torch.isfinite(out.images).all(), f"non-finite pixels for the {cam.name!r} camera"
+        (out.images.sum() + (0 if out.alphas is None else out.alphas.sum())).backward()
+        for name, g in adapter.named_gradients().items():
+            assert g is None or torch.isfinite(g).all(), f"non-finite gradient in {name!r} for the {cam.name!r} camera"
+        adapter.zero_grad()
+
+
+CHECKS = [
+    check_render,
+    check_gradients_reach_every_group,
+    check_summed_equals_accumulated,
+    check_stats_and_densify,
+    check_state_dict_round_trip,
+    check_hard_cameras,
+]
+
+
+def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> Dict[str, str]:
+    """Runs every conformance check; raises AssertionError naming the first that fails.
+    Returns {check name: "ok"}."""
+    scene = synthetic_scene() if scene is None else scene
+    done = {}
+    for check in CHECKS:
+        try:
+            check(make_adapter, scene)
+        except AssertionError as exc:
+            raise AssertionError(f"{check.__name__}: {exc}") from exc
+        done[check.__name__] = "ok"
+    return done

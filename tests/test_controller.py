@@ -1,0 +1,219 @@
+"""The MVGS controller driving the 3DGS adapter: summed-gradient step, statistics, stages,
+checkpoints, guards, the three-line wrap and the conformance suite."""
+
+import difflib
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin import MVGS, MVGSConfig, Stage
+from mvgs_plugin.losses import photometric_loss
+from mvgs_plugin.testing import check_adapter, synthetic_scene
+
+F64 = torch.float64
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_scene(n_train=6, n_test=2, size=16, n_points=80)
+
+
+def make(scene, dtype=torch.float32, **cfg):
+    torch.manual_seed(0)
+    return GS3DAdapter.from_scene(scene, GS3DConfig(**cfg), dtype=dtype)
+
+
+def grads_at_optimizer_step(trainer):
+    """Runs one controller step and returns the gradients the optimizer saw."""
+    seen = {}
+    original = trainer.adapter.optimizer_step
+
+    def spy():
+        seen.update({k: v.clone() for k, v in trainer.adapter.named_gradients().items() if v is not None})
+        original()
+
+    trainer.adapter.optimizer_step = spy
+    info = trainer.step()
+    trainer.adapter.optimizer_step = original
+    return seen, info
+
+
+@pytest.mark.parametrize("reduction", ["sum", "mean"])
+def test_accumulated_gradient_equals_summed_loss_in_one_graph(scene, reduction):
+    config = MVGSConfig(stages=(Stage(1, 4, 10),), reduction=reduction, chunk_size=1, densify_from=100)
+    trainer = MVGS(make(scene, F64), scene, config)
+    grads, info = grads_at_optimizer_step(trainer)
+    assert len(info.views) == 4
+
+    ref = make(scene, F64)
+    ref.set_step(1)
+    cams = [scene.train_cameras[i] for i in info.views]
+    out = ref.render(cams, torch.zeros(4, 3, dtype=F64))
+    loss = sum(photometric_loss(img, scene.image(c).to(img)) for img, c in zip(out.images, cams))
+    (loss if reduction == "sum" else loss / 4).backward()
+    for name, g in ref.named_gradients().items():
+        if g is None:
+            continue
+        err = float((grads[name] - g).abs().max() / g.abs().max().clamp_min(1e-300))
+        assert err <= 1e-10, f"{name}: relative difference {err}"
+
+
+def test_chunks_do_not_change_the_step(scene):
+    results = []
+    for chunk in (1, 3):
+        config = MVGSConfig(stages=(Stage(1, 5, 10),), chunk_size=chunk, densify_from=100)
+        trainer = MVGS(make(scene, F64), scene, config)
+        trainer.step()
+        results.append(trainer.adapter.positions().clone())
+    assert torch.allclose(results[0], results[1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("stats_from,expected", [("all", 4), ("last", 1)])
+def test_statistics_from_all_or_last_view(scene, stats_from, expected):
+    trainer = MVGS(make(scene), scene, MVGSConfig(stages=(Stage(1, 4, 10),), stats_from=stats_from, chunk_size=2))
+    counted = []
+    original = trainer.adapter.accumulate_stats
+    trainer.adapter.accumulate_stats = lambda result: (counted.append(result.images.shape[0]), original(result))
+    info = trainer.step()
+    assert sum(counted) == expected
+    if stats_from == "last":
+        # The last view rendered alone: its statistics are its own.
+        assert counted == [1]
+    assert len(info.views) == 4
+
+
+def test_stages_render_at_their_pyramid_level_and_carry_the_model(scene):
+    config = MVGSConfig(stages=(Stage(4, 3, 2), Stage(2, 2, 2), Stage(1, 1, 2)), densify_from=100)
+    trainer = MVGS(make(scene), scene, config)
+    sizes = []
+    original = trainer.adapter.render
+    trainer.adapter.render = lambda cams, bgs: (sizes.append((len(cams), cams[0].width)), original(cams, bgs))[1]
+    infos = [trainer.step() for _ in range(6)]
+    assert [i.factor for i in infos] == [4, 4, 2, 2, 1, 1]
+    assert sizes[:3] == [(1, 4)] * 3 and sizes[6:8] == [(1, 8)] * 2 and sizes[-1] == (1, 16)
+    assert [len(i.views) for i in infos] == [3, 3, 2, 2, 1, 1]
+
+
+def test_baseline_preset_is_plain_single_view_training(scene):
+    """M = 1 and every MVGS feature off: the controller does exactly what the hand-written
+    single-view loop of examples/three_line_wrap does."""
+    steps = 20
+    config = MVGSConfig.baseline().with_total_steps(steps)
+    trainer = MVGS(make(scene), scene, config)  # make() seeds 0 as the example's train() does
+    trainer.fit(progress=False)
+    single = _load_example("single_view")
+    model = single.train(scene, steps)
+    assert model.num_primitives() == trainer.adapter.num_primitives()
+    assert torch.allclose(model.positions(), trainer.adapter.positions(), atol=1e-6)
+
+
+def _load_example(name):
+    spec = importlib.util.spec_from_file_location(f"wrap_{name}", EXAMPLES / "three_line_wrap" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_three_line_wrap(scene):
+    a = (EXAMPLES / "three_line_wrap" / "single_view.py").read_text().splitlines()
+    b = (EXAMPLES / "three_line_wrap" / "mvgs.py").read_text().splitlines()
+    changed = [ln for ln in difflib.unified_diff(a, b, lineterm="", n=0) if ln[:1] in "+-" and ln[:3] not in ("+++", "---")]
+    removed = sum(ln.startswith("-") for ln in changed)
+    added = sum(ln.startswith("+") for ln in changed)
+    assert max(removed, added) <= 3, changed
+    assert max(removed, added) >= 1
+    mvgs = _load_example("mvgs").train(scene, 12)
+    single = _load_example("single_view").train(scene, 12)
+    assert mvgs.num_primitives() > 0 and single.num_primitives() > 0
+    assert not torch.equal(mvgs.positions()[: single.num_primitives()], single.positions()[: mvgs.num_primitives()])
+
+
+def test_checkpoint_resume_matches_uninterrupted_training(scene, tmp_path):
+    config = MVGSConfig.default(background="random").with_total_steps(30).with_views(2)
+    cut = 6
+    assert config.densify_from < cut < config.densify_until  # densification happens on both sides of the cut
+    full = MVGS(make(scene), scene, config)
+    torch.manual_seed(7)
+    full.fit(progress=False)
+
+    first = MVGS(make(scene), scene, config)
+    torch.manual_seed(7)
+    first.fit(steps=cut, progress=False)
+    path = tmp_path / "ckpt.pt"
+    first.save_checkpoint(str(path))
+    torch.manual_seed(12345)  # the checkpoint must restore the random state, whatever it is now
+    resumed = MVGS(make(scene), scene, config)
+    resumed.load_checkpoint(str(path))
+    assert resumed.step_count == cut
+    resumed.fit(progress=False)
+    assert resumed.adapter.num_primitives() == full.adapter.num_primitives()
+    assert torch.allclose(resumed.adapter.positions(), full.adapter.positions(), atol=1e-6)
+
+
+def test_nan_gradient_stops_before_the_optimizer_step(scene, tmp_path):
+    trainer = MVGS(make(scene), scene, MVGSConfig(stages=(Stage(1, 2, 10),), densify_from=100))
+    trainer.step()
+    path = tmp_path / "ckpt.pt"
+    trainer.save_checkpoint(str(path))
+    before = path.read_bytes()
+    positions = trainer.adapter.positions().clone()
+    original = trainer.adapter.render
+
+    def poisoned(cams, bgs):
+        out = original(cams, bgs)
+        out.images = out.images * torch.where(torch.rand(()) >= 0, torch.tensor(float("nan")), torch.tensor(1.0))
+        return out
+
+    trainer.adapter.render = poisoned
+    with pytest.raises(FloatingPointError, match=r"step 2: the loss is nan for views \['view_"):
+        trainer.step()
+    assert torch.equal(trainer.adapter.positions(), positions)
+    assert path.read_bytes() == before
+
+
+def test_nan_in_a_gradient_group_is_named(scene):
+    trainer = MVGS(make(scene), scene, MVGSConfig(stages=(Stage(1, 2, 10),), densify_from=100))
+    name = next(iter(trainer.adapter.named_gradients()))
+    original = trainer.adapter.named_gradients
+
+    def poisoned():
+        grads = original()
+        grads[name] = grads[name] * math.nan
+        return grads
+
+    trainer.adapter.named_gradients = poisoned
+    with pytest.raises(FloatingPointError, match=rf"step 1: .* non-finite gradient entries in group '{name}'"):
+        trainer.step()
+
+
+def test_fit_evaluate_and_steps_exhausted(scene):
+    trainer = MVGS(make(scene), scene, MVGSConfig.default().with_total_steps(8))
+    trainer.fit(progress=False)
+    result = trainer.evaluate()
+    assert 0 < result.psnr < 100 and 0 < result.ssim <= 1 and len(result.per_view) == len(scene.test_cameras)
+    with pytest.raises(RuntimeError, match="training is complete"):
+        trainer.step()
+
+
+def test_gs3d_adapter_passes_the_conformance_suite(scene):
+    report = check_adapter(lambda s: make(s), scene)
+    assert set(report.values()) == {"ok"} and len(report) >= 6
+
+
+def test_conformance_suite_catches_a_broken_adapter(scene):
+    class Misaligned(GS3DAdapter):
+        """Names a gradient group that never receives a gradient."""
+
+        def named_gradients(self):
+            grads = super().named_gradients()
+            grads.pop(next(iter(grads)))  # claims one group less ...
+            grads["bogus"] = None  # ... and one that never gets a gradient
+            return grads
+
+    with pytest.raises(AssertionError, match="check_gradients_reach_every_group: group 'bogus' received no gradient"):
+        check_adapter(lambda s: Misaligned.from_scene(s, GS3DConfig()), scene)
