@@ -19,6 +19,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <thread>
 #include <vector>
 
@@ -50,23 +51,52 @@ struct Grid {
     int64_t n_tiles() const { return tiles_x * tiles_y; }
 };
 
+// Smallest sigma = 0.5 d^T conic d over the box of pixel centres [x0, x1] x [y0, y1], with
+// d = (u - x, v - y), plus a bound on how far a per-pixel evaluation in T may round below it.
+// The quadratic is convex, so its minimum over the box is 0 when (u, v) lies inside, else on one
+// of the four edges, where it is a 1D quadratic minimised in closed form.
+template <typename T>
+inline bool splat_misses_box(const T* q, double x0, double x1, double y0, double y1) {
+    const double a = q[2], b = q[3], c = q[4], u = q[0], v = q[1];
+    const double dxl = u - x1, dxh = u - x0, dyl = v - y1, dyh = v - y0;
+    if (dxl <= 0 && dxh >= 0 && dyl <= 0 && dyh >= 0) return false;
+    auto f = [&](double dx, double dy) { return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy; };
+    auto clampd = [](double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); };
+    double best = f(dxl, clampd(-b * dxl / c, dyl, dyh));
+    best = std::min(best, f(dxh, clampd(-b * dxh / c, dyl, dyh)));
+    best = std::min(best, f(clampd(-b * dyl / a, dxl, dxh), dyl));
+    best = std::min(best, f(clampd(-b * dyh / a, dxl, dxh), dyh));
+    // Rounding of the per-pixel sigma in T: its terms are at most `terms`, and d itself carries
+    // an error of about eps * |position|, moved by the gradient of sigma.
+    const double mx = std::max(std::abs(dxl), std::abs(dxh)), my = std::max(std::abs(dyl), std::abs(dyh));
+    const double terms = 0.5 * (std::abs(a) * mx * mx + std::abs(c) * my * my) + std::abs(b) * mx * my;
+    const double slope = (std::abs(a) + std::abs(b)) * mx + (std::abs(b) + std::abs(c)) * my;
+    const double scale = std::max({std::abs(u), std::abs(v), x1, y1, 1.0});
+    const double eps = std::numeric_limits<T>::epsilon();
+    return best - 32.0 * eps * (terms + slope * scale) > double(q[6]);
+}
+
 // Per-Gaussian data of one tile, packed contiguously in depth order: the inner loops read it
-// sequentially instead of gathering from [C, N, ...] arrays.
+// sequentially instead of gathering from [C, N, ...] arrays. Gaussians that reach no pixel
+// centre of the tile with alpha >= 1/255 are dropped here (their square touches the tile but
+// their ellipse does not): the image is unchanged and the per-pixel loops get shorter.
 template <typename T>
 struct TileSplats {
     int64_t count = 0, channels = 0;
-    std::vector<T> geo;     // [count, 7]: u, v, conic a, b, c, opacity, sigma beyond which alpha < 1/255
-    std::vector<T> color;   // [count, channels]
+    std::vector<T> geo;        // [count, 7]: u, v, conic a, b, c, opacity, sigma beyond which alpha < 1/255
+    std::vector<T> color;      // [count, channels]
+    std::vector<int64_t> slot; // [count]: position in the tile's full list (gradient slot)
 
     void load(const int32_t* ids, int64_t n, int64_t cam, int64_t N, int64_t D, const T* means2d,
-              const T* conics, const T* opacities, const T* colors) {
-        count = n;
+              const T* conics, const T* opacities, const T* colors, const double box[4]) {
         channels = D;
         geo.resize(n * 7);
         color.resize(n * D);
+        slot.resize(n);
+        count = 0;
         for (int64_t k = 0; k < n; ++k) {
             const int64_t g = cam * N + ids[k];
-            T* q = &geo[k * 7];
+            T* q = &geo[count * 7];
             q[0] = means2d[g * 2 + 0];
             q[1] = means2d[g * 2 + 1];
             q[2] = conics[g * 3 + 0];
@@ -76,7 +106,9 @@ struct TileSplats {
             // o * exp(-sigma) < 1/255 exactly when sigma > log(255 o). The margin keeps this a
             // pure shortcut: near the boundary the exact test below decides, as in the rules.
             q[6] = q[5] > T(0) ? std::log(T(255) * q[5]) + T(1e-3) : T(-1);
-            std::memcpy(&color[k * D], &colors[g * D], sizeof(T) * D);
+            if (splat_misses_box(q, box[0], box[1], box[2], box[3])) continue;
+            std::memcpy(&color[count * D], &colors[g * D], sizeof(T) * D);
+            slot[count++] = k;
         }
     }
 };
@@ -110,12 +142,13 @@ void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d
         const int64_t cam = item / n_tiles, t = item % n_tiles;
         const int64_t tx = t % grid.tiles_x, ty = t / grid.tiles_x;
         const int64_t begin = offsets[item], end = offsets[item + 1];
-        thread_local TileSplats<T> splats;
-        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors);
-        std::vector<T> acc(D);
-        const T* bg = backgrounds + cam * D;
         const int64_t y_end = std::min(grid.height, (ty + 1) * grid.tile);
         const int64_t x_end = std::min(grid.width, (tx + 1) * grid.tile);
+        const double box[4] = {tx * grid.tile + 0.5, x_end - 0.5, ty * grid.tile + 0.5, y_end - 0.5};
+        thread_local TileSplats<T> splats;
+        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors, box);
+        std::vector<T> acc(D);
+        const T* bg = backgrounds + cam * D;
         for (int64_t y = ty * grid.tile; y < y_end; ++y) {
             for (int64_t x = tx * grid.tile; x < x_end; ++x) {
                 const T px = T(x) + T(0.5), py = T(y) + T(0.5);
@@ -159,8 +192,11 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
         const int64_t tx = t % grid.tiles_x, ty = t / grid.tiles_x;
         const int64_t begin = offsets[item], end = offsets[item + 1];
         if (end == begin) return;
+        const int64_t y_end = std::min(grid.height, (ty + 1) * grid.tile);
+        const int64_t x_end = std::min(grid.width, (tx + 1) * grid.tile);
+        const double box[4] = {tx * grid.tile + 0.5, x_end - 0.5, ty * grid.tile + 0.5, y_end - 0.5};
         thread_local TileSplats<T> splats;
-        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors);
+        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors, box);
         T* g_tile = isect_grads + begin * slots;
         std::fill(g_tile, g_tile + (end - begin) * slots, T(0));
         // Contributors of one pixel, front to back: index in the tile, alpha, transmittance
@@ -170,8 +206,6 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
         thread_local std::vector<Hit> hits;
         std::vector<T> behind(D);
         const T* bg = backgrounds + cam * D;
-        const int64_t y_end = std::min(grid.height, (ty + 1) * grid.tile);
-        const int64_t x_end = std::min(grid.width, (tx + 1) * grid.tile);
         for (int64_t y = ty * grid.tile; y < y_end; ++y) {
             for (int64_t x = tx * grid.tile; x < x_end; ++x) {
                 const int64_t pix = (cam * grid.height + y) * grid.width + x;
@@ -194,7 +228,7 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
                 for (auto h = hits.rbegin(); h != hits.rend(); ++h) {
                     const T* q = &splats.geo[h->k * 7];
                     const T* c = &splats.color[h->k * D];
-                    T* g = g_tile + h->k * slots;
+                    T* g = g_tile + splats.slot[h->k] * slots;
                     const T w = h->alpha * h->trans;
                     const T inv_keep = T(1) / (T(1) - h->alpha);
                     // dL/dalpha: own colour seen through T, minus what it hides behind it (the
