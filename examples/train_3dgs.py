@@ -3,6 +3,7 @@
     python examples/train_3dgs.py                                   # bundled scene, default preset
     python examples/train_3dgs.py --preset baseline --steps 2000 --out out/baseline
     python examples/train_3dgs.py --data path/to/colmap_or_nerf --preset paper --views 8
+    python examples/train_3dgs.py --preset default --no-crd --no-mvad     # MVRL + CIG only
 
 Writes OUT/metrics.json (psnr, ssim, lpips or null, train_seconds, steps, num_gaussians,
 peak_memory_mb, preset, config), OUT/test/*.png (test renders) and OUT/point_cloud.ply.
@@ -61,6 +62,10 @@ def parse_args(argv=None):
     ap.add_argument("--views", type=int, default=None, help="views per step M at full resolution (coarser stages scale)")
     ap.add_argument("--steps", type=int, default=3000, help="total steps (the preset's schedule is rescaled to it)")
     ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--mvad", action=argparse.BooleanOptionalAction, default=None,
+                    help="multi-view augmented densification on/off (default: as the preset)")
+    ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
+                    help="cross-ray densification on/off (default: as the preset)")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path("out/train_3dgs"))
     ap.add_argument("--seed", type=int, default=0)
@@ -78,10 +83,18 @@ def main(argv=None) -> dict:
     config = MVGSConfig.from_preset(args.preset, seed=args.seed).with_total_steps(args.steps)
     if args.views is not None:
         config = config.with_views(args.views)
+    for rule in ("mvad", "crd"):
+        if getattr(args, rule) is not None:
+            config = dataclasses.replace(config, **{rule: getattr(args, rule)})
     if args.resolution_scale != 1:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
-    adapter = GS3DAdapter.from_scene(scene, GS3DConfig(max_gaussians=args.max_gaussians))
+    # The model's own schedules (means learning-rate decay over 30k steps, SH degree +1 every
+    # 1000) are compressed with the run, as the controller's densification clock is.
+    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
+    gs_config = GS3DConfig(max_gaussians=args.max_gaussians, seed=args.seed, position_lr_max_steps=clock,
+                           sh_degree_interval=max(1, round(1000 * clock / 30_000)))
+    adapter = GS3DAdapter.from_scene(scene, gs_config)
     trainer = MVGS(adapter, scene, config)
 
     t0 = time.perf_counter()

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Tuple, Union
+from typing import Optional, Tuple, Union
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,25 @@ class MVGSConfig:
         "black", "white", "random" (per view and step) or an (r, g, b) tuple.
     max_views_rule: what happens when a stage asks for more views than there are training views:
         "cap" (use them all; the only rule: repeats within a step are never allowed).
-    seed: seeds the view sampler, random backgrounds and the adapter's own randomness.
+    seed: seeds the view sampler and random backgrounds.
+
+    Multi-view augmented densification (MVAD, densify/mvad.py):
+    mvad: halve the gradient threshold when the step's cameras are far apart.
+    mvad_tau: the discrepancy (chord on the unit sphere, 0..2) a pair needs.
+    mvad_rule: "any" pair (released code) or a fraction of the pairs.
+    mvad_rotation_weight: weight of the optical-axis angle / pi added to the chord (paper: 0).
+    mvad_center: "origin" (the released code normalises about the world origin) or "scene"
+        (the mean training camera centre, Scene.center).
+
+    Cross-ray densification (CRD, densify/crd.py):
+    crd: clone what lies inside boxes where high-loss rays of different views cross.
+    crd_window: (rows, columns) of the loss window at full resolution (paper: 20 x 40).
+    crd_window_per_level: divide the window by the pyramid factor (ours) or keep it (paper).
+    crd_forward_only: drop pairs whose closest points lie behind a camera.
+    crd_max_miss: drop pairs whose rays pass further apart than this times the scene extent.
+    crd_min_angle_deg: drop pairs whose rays are closer to parallel than this.
+    crd_clip: clip boxes to the bounding box of the model's primitives.
+    crd_max_new: cap on primitives one call may add, as a fraction of the current count.
     """
 
     stages: Tuple[Stage, ...] = (Stage(1, 1, 30_000),)
@@ -76,13 +94,27 @@ class MVGSConfig:
     background: Union[str, Tuple[float, float, float]] = "auto"
     max_views_rule: str = "cap"
     seed: int = 0
+    mvad: bool = False
+    mvad_tau: float = 1.0
+    mvad_rule: Union[str, float] = "any"
+    mvad_rotation_weight: float = 0.0
+    mvad_center: str = "scene"
+    crd: bool = False
+    crd_window: Tuple[int, int] = (20, 40)
+    crd_window_per_level: bool = True
+    crd_forward_only: bool = True
+    crd_max_miss: Optional[float] = 0.05
+    crd_min_angle_deg: float = 1.0
+    crd_clip: bool = True
+    crd_max_new: Optional[float] = 0.05
     preset: str = field(default="custom", compare=False)
 
     def __post_init__(self):
         self.stages = tuple(self.stages)
         if not self.stages or not all(isinstance(s, Stage) for s in self.stages):
             raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
-        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",)}
+        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",),
+                   "mvad_center": ("origin", "scene")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -94,6 +126,14 @@ class MVGSConfig:
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
         if not self.grad_threshold > 0:
             raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold!r}")
+        if not (isinstance(self.mvad_rule, str) and self.mvad_rule == "any") and not (
+                not isinstance(self.mvad_rule, (str, bool)) and 0.0 < float(self.mvad_rule) <= 1.0):
+            raise ValueError(f"mvad_rule must be 'any' or a fraction in (0, 1], got {self.mvad_rule!r}")
+        self.crd_window = tuple(self.crd_window)
+        if len(self.crd_window) != 2 or not all(isinstance(v, int) and v >= 1 for v in self.crd_window):
+            raise ValueError(f"crd_window must be (rows, columns) of positive ints, got {self.crd_window!r}")
+        if self.crd_max_new is not None and not 0.0 < self.crd_max_new:
+            raise ValueError(f"crd_max_new must be None or > 0, got {self.crd_max_new!r}")
         bg = self.background
         if isinstance(bg, str):
             if bg not in ("auto", "black", "white", "random"):
@@ -117,14 +157,18 @@ class MVGSConfig:
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
         return cls(**{
             "stages": stages, "stats_from": "last", "restart_per_stage": True,
-            "opacity_reset_at_handoff": True, "preset": "paper", **overrides,
+            "opacity_reset_at_handoff": True, "preset": "paper",
+            "mvad": True, "mvad_center": "origin", "crd": True, "crd_window_per_level": False,
+            "crd_forward_only": False, "crd_max_miss": None, "crd_min_angle_deg": 0.0, "crd_clip": False,
+            "crd_max_new": None, **overrides,
         })
 
     @classmethod
     def default(cls, **overrides) -> "MVGSConfig":
-        """The paper's method with our fixes: continuous schedule, statistics from all views."""
+        """The paper's method with our fixes: continuous schedule, statistics from all views,
+        MVAD about the scene centre, CRD with its guards and a cap."""
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
-        return cls(**{"stages": stages, "preset": "default", **overrides})
+        return cls(**{"stages": stages, "preset": "default", "mvad": True, "crd": True, **overrides})
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "MVGSConfig":
@@ -172,6 +216,7 @@ class MVGSConfig:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["stages"] = [dataclasses.asdict(s) for s in self.stages]
+        d["crd_window"] = list(self.crd_window)
         return d
 
     @classmethod

@@ -18,6 +18,7 @@ import torch
 
 from .camera import Camera
 from .config import MVGSConfig
+from .densify import loss_map
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
 from .protocol import Adapter, DensifyReport
@@ -26,7 +27,8 @@ from .schedule import ViewSchedule
 
 @dataclass
 class StepInfo:
-    """What one step did."""
+    """What one step did (threshold and boxes: the MVAD threshold and the number of CRD boxes
+    of its densification call, when it made one)."""
 
     step: int
     stage: int
@@ -36,6 +38,8 @@ class StepInfo:
     num_primitives: int
     densify: Optional[DensifyReport] = None
     opacity_reset: bool = False
+    threshold: Optional[float] = None
+    boxes: int = 0
 
 
 @dataclass
@@ -78,8 +82,11 @@ class MVGS:
             adapter.reset_opacity()
         adapter.set_step(plan.clock)
         total = 0.0
+        maps = [] if plan.densify and self.schedule.needs_loss_maps else None
         for k, (cams, gts, bgs, collect) in enumerate(plan):
             result = adapter.render(cams, bgs)
+            if maps is not None:
+                maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
             loss = plan.weight * sum(
                 photometric_loss(img, gt.to(img), self.config.lambda_dssim) for img, gt in zip(result.images, gts)
             )
@@ -98,16 +105,20 @@ class MVGS:
                 adapter.accumulate_stats(result)
             del result, loss
         self._check_gradients(plan)
-        report = None
+        report, ctx = None, None
         with torch.no_grad():
             if plan.densify:
-                report = adapter.densify(self.schedule.densify_context(plan))
+                positions = adapter.positions()
+                bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
+                ctx = self.schedule.densify_context(plan, maps, adapter.num_primitives(), bounds)
+                report = adapter.densify(ctx)
             if plan.reset_opacity:
                 adapter.reset_opacity()
         adapter.optimizer_step()
         adapter.zero_grad()
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
-                        report, plan.reset_opacity)
+                        report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
+                        0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]))
 
     def _check_gradients(self, plan) -> None:
         for name, g in self.adapter.named_gradients().items():

@@ -5,14 +5,16 @@ step."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Dict, Iterator, List, Sequence, Tuple
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
 from .camera import Camera
 from .config import MVGSConfig, Stage
+from .densify import best_windows, camera_axes, cross_ray_boxes, mvad_threshold
 from .protocol import DensifyContext
 from .sampler import ViewSampler
 
@@ -132,13 +134,45 @@ class ViewSchedule:
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
         )
 
-    def densify_context(self, plan: StepPlan) -> DensifyContext:
-        """The densification context of a step (threshold, scene scale, size pruning)."""
+    @property
+    def needs_loss_maps(self) -> bool:
+        """Whether densification steps need per-view loss maps (cross-ray densification)."""
+        return self.config.crd
+
+    def densify_context(self, plan: StepPlan, loss_maps: Optional[Sequence[Tensor]] = None,
+                        primitive_count: int = 0, bounds: Optional[Tensor] = None) -> DensifyContext:
+        """The densification context of a step: the threshold (lowered by MVAD when the step's
+        cameras are far apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
+        from the step's per-view loss maps [H', W'] (same order as plan.cameras)."""
+        cfg = self.config
+        threshold = cfg.grad_threshold
+        if cfg.mvad:
+            cams = [self.scene.train_cameras[i] for i in plan.views]
+            centers = torch.stack([c.center for c in cams])
+            origin = torch.zeros(3, dtype=torch.float64) if cfg.mvad_center == "origin" else self.scene.center
+            axes = camera_axes(cams) if cfg.mvad_rotation_weight else None
+            threshold = mvad_threshold(centers, threshold, origin, cfg.mvad_tau, cfg.mvad_rule, axes,
+                                       cfg.mvad_rotation_weight)
+        boxes, cap = None, None
+        if cfg.crd:
+            if loss_maps is None:
+                raise ValueError("cross-ray densification needs the step's loss maps")
+            h, w = cfg.crd_window
+            if cfg.crd_window_per_level:
+                h, w = max(1, round(h / plan.factor)), max(1, round(w / plan.factor))
+            windows = best_windows(torch.stack(list(loss_maps)), (h, w))
+            max_miss = None if cfg.crd_max_miss is None else cfg.crd_max_miss * float(self.scene.extent)
+            boxes, _ = cross_ray_boxes(plan.cameras, windows, cfg.crd_forward_only, max_miss,
+                                       cfg.crd_min_angle_deg, bounds if cfg.crd_clip else None)
+            if cfg.crd_max_new is not None:
+                cap = int(math.ceil(cfg.crd_max_new * primitive_count))
         return DensifyContext(
             step=plan.clock,
-            grad_threshold=self.config.grad_threshold,
+            grad_threshold=threshold,
             scene_extent=float(self.scene.extent),
-            prune_large=plan.clock > self.config.prune_large_after,
+            boxes=boxes,
+            max_new_from_boxes=cap,
+            prune_large=plan.clock > cfg.prune_large_after,
             cameras=tuple(plan.cameras),
         )
 

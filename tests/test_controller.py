@@ -217,3 +217,40 @@ def test_conformance_suite_catches_a_broken_adapter(scene):
 
     with pytest.raises(AssertionError, match="check_gradients_reach_every_group: group 'bogus' received no gradient"):
         check_adapter(lambda s: Misaligned.from_scene(s, GS3DConfig()), scene)
+
+
+@pytest.mark.parametrize("preset", ["default", "paper"])
+def test_mvad_and_crd_reach_the_adapter(scene, preset):
+    config = MVGSConfig.from_preset(preset, stages=(Stage(1, 6, 4),), densify_from=1, densify_every=2,
+                                    restart_per_stage=False, opacity_reset_at_handoff=False)
+    trainer = MVGS(make(scene), scene, config)
+    seen = []
+    original = trainer.adapter.densify
+    trainer.adapter.densify = lambda ctx: (seen.append(ctx), original(ctx))[1]
+    n_before = trainer.adapter.num_primitives()
+    trainer.step()
+    info = trainer.step()
+    assert len(seen) == 1 and info.densify is not None
+    ctx = seen[0]
+    # Six views on a ring around the scene: some pair is far apart, so the threshold halves.
+    assert ctx.grad_threshold == pytest.approx(config.grad_threshold / 2) == info.threshold
+    assert ctx.boxes is not None and ctx.boxes.dim() == 3 and ctx.boxes.shape[1:] == (2, 3)
+    assert info.boxes == ctx.boxes.shape[0]
+    if preset == "default":
+        assert ctx.max_new_from_boxes == math.ceil(0.05 * n_before)
+        pos = trainer.adapter.positions()
+        assert (ctx.boxes[:, 0] >= pos.min(0).values.double() - 1e-3).all()  # clipped to the model's bounds
+    else:
+        assert ctx.max_new_from_boxes is None
+    assert info.densify.from_boxes <= (ctx.max_new_from_boxes or 10**9)
+
+
+def test_mvad_and_crd_off_in_the_baseline(scene):
+    config = MVGSConfig.baseline(stages=(Stage(1, 1, 4),), densify_from=1, densify_every=2)
+    trainer = MVGS(make(scene), scene, config)
+    seen = []
+    original = trainer.adapter.densify
+    trainer.adapter.densify = lambda ctx: (seen.append(ctx), original(ctx))[1]
+    trainer.step()
+    trainer.step()
+    assert seen[0].grad_threshold == config.grad_threshold and seen[0].boxes is None
