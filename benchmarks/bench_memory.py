@@ -7,7 +7,7 @@ controller (render and backward one view at a time); "chunk = M" keeps all M gra
 one backward, as the released MVGS code does.
 
     python benchmarks/bench_memory.py
-    python benchmarks/bench_memory.py --views 1 4 8 16 --steps 5
+    python benchmarks/bench_memory.py --views 1 4 8 16 --steps 5 --gaussians 100000
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def run_one(views: int, chunk: int, steps: int, threads: int) -> dict:
+def run_one(views: int, chunk: int, steps: int, threads: int, gaussians: int) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT / "examples"))
@@ -42,6 +42,14 @@ def run_one(views: int, chunk: int, steps: int, threads: int) -> dict:
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     scene = load_scene(BUNDLED)
+    if gaussians:
+        # Jittered copies of the scene's points: a model of the size training reaches.
+        from mvgs_plugin.data import PointCloud
+
+        g = torch.Generator().manual_seed(0)
+        idx = torch.randint(len(scene.points), (gaussians,), generator=g)
+        xyz = scene.points.xyz[idx] + 0.01 * scene.extent * torch.randn(gaussians, 3, generator=g)
+        scene.points = PointCloud(xyz, scene.points.rgb[idx])
     adapter = GS3DAdapter.from_scene(scene)
     config = MVGSConfig(stages=(Stage(1, views, steps + 2),), chunk_size=chunk, densify_from=10**6)
     trainer = MVGS(adapter, scene, config)
@@ -62,17 +70,18 @@ def main() -> None:
     ap.add_argument("--views", type=int, nargs="*", default=[1, 8])
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--gaussians", type=int, default=0, help="model size (0: the scene's 4000 points)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         views, chunk = (int(v) for v in args.one.split(","))
-        print(json.dumps(run_one(views, chunk, args.steps, args.threads)))
+        print(json.dumps(run_one(views, chunk, args.steps, args.threads, args.gaussians)))
         return
     rows = []
     for views in args.views:
         for chunk in sorted({1, views}):
             cmd = [sys.executable, __file__, "--one", f"{views},{chunk}", "--steps", str(args.steps),
-                   "--threads", str(args.threads)]
+                   "--threads", str(args.threads), "--gaussians", str(args.gaussians)]
             out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
             if out.returncode != 0:
                 raise SystemExit(out.stderr)
