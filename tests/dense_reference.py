@@ -419,3 +419,15 @@ def _rotmat_to_quat(m: Tensor):
     w = math.sqrt(max(0.0, 1.0 + float(m[0, 0] + m[1, 1] + m[2, 2]))) / 2.0
     return [w, float(m[2, 1] - m[1, 2]) / (4 * w), float(m[0, 2] - m[2, 0]) / (4 * w),
             float(m[1, 0] - m[0, 1]) / (4 * w)]
+
+
+def renderer_backends() -> list:
+    """Backends of reference_renderer to parametrize the comparison tests over; an unusable
+    renderer yields one entry whose test then fails (never a silent skip)."""
+    try:
+        import reference_renderer
+
+        names = list(reference_renderer.available_backends())
+    except Exception as exc:  # noqa: BLE001 - reported through the failing entry
+        return [f"renderer-unavailable: {type(exc).__name__}: {exc}"]
+    return names or ["renderer-unavailable: available_backends() is empty"]

@@ -27,16 +27,7 @@ def _renderer():
     return reference_renderer
 
 
-def _backends():
-    """Backends to parametrize over; an unusable renderer yields one failing entry."""
-    try:
-        names = list(_renderer().available_backends())
-    except Exception as exc:  # noqa: BLE001 - reported through the failing entry
-        return [f"renderer-unavailable: {type(exc).__name__}: {exc}"]
-    return names or ["renderer-unavailable: available_backends() is empty"]
-
-
-BACKENDS = _backends()
+BACKENDS = dr.renderer_backends()
 GRAD_KEYS = ("means", "quats", "scales", "opacities", "colors", "backgrounds")
 
 

@@ -25,15 +25,7 @@ def _renderer():
     return reference_renderer
 
 
-def _backends():
-    try:
-        names = list(_renderer().available_backends())
-    except Exception as exc:  # noqa: BLE001 - reported through the failing entry
-        return [f"renderer-unavailable: {type(exc).__name__}: {exc}"]
-    return names or ["renderer-unavailable: available_backends() is empty"]
-
-
-BACKENDS = _backends()
+BACKENDS = dr.renderer_backends()
 # Every pair; with a single backend, the backend against itself (a determinism check).
 BACKEND_PAIRS = list(itertools.combinations(BACKENDS, 2)) or [(BACKENDS[0], BACKENDS[0])]
 
