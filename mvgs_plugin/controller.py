@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence
 
@@ -28,7 +29,8 @@ from .schedule import ViewSchedule
 @dataclass
 class StepInfo:
     """What one step did (threshold and boxes: the MVAD threshold and the number of CRD boxes
-    of its densification call, when it made one)."""
+    of its densification call, when it made one; seconds: the whole step, of which
+    render_seconds and backward_seconds were spent in the adapter's render and in backward)."""
 
     step: int
     stage: int
@@ -40,6 +42,9 @@ class StepInfo:
     opacity_reset: bool = False
     threshold: Optional[float] = None
     boxes: int = 0
+    seconds: float = 0.0
+    render_seconds: float = 0.0
+    backward_seconds: float = 0.0
 
 
 @dataclass
@@ -76,15 +81,19 @@ class MVGS:
     # ---- one step ---------------------------------------------------------------------------
     def step(self) -> StepInfo:
         """Runs the next training step and returns what it did."""
+        t_step = time.perf_counter()
         plan = self.schedule.next()
         adapter = self.adapter
+        t_render = t_backward = 0.0
         if plan.handoff_reset:
             adapter.reset_opacity()
         adapter.set_step(plan.clock)
         total = 0.0
         maps = [] if plan.densify and self.schedule.needs_loss_maps else None
         for k, (cams, gts, bgs, collect) in enumerate(plan):
+            t0 = time.perf_counter()
             result = adapter.render(cams, bgs)
+            t_render += time.perf_counter() - t0
             if maps is not None:
                 maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
             loss = plan.weight * sum(
@@ -99,7 +108,9 @@ class MVGS:
                     f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
                     "stopping before the optimizer step"
                 )
+            t0 = time.perf_counter()
             loss.backward()  # gradients accumulate; this chunk's graph is freed here
+            t_backward += time.perf_counter() - t0
             total += loss.item()
             if collect:
                 adapter.accumulate_stats(result)
@@ -118,7 +129,8 @@ class MVGS:
         adapter.zero_grad()
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
                         report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
-                        0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]))
+                        0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
+                        time.perf_counter() - t_step, t_render, t_backward)
 
     def _check_gradients(self, plan) -> None:
         for name, g in self.adapter.named_gradients().items():

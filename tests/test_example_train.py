@@ -48,3 +48,17 @@ def test_bad_data_folder_is_named(tmp_path):
     example = load_example()
     with pytest.raises(ValueError, match="neither a COLMAP scene"):
         example.main(["--data", str(tmp_path), "--steps", "2", "--out", str(tmp_path / "o"), "--no-progress"])
+
+
+def test_ablation_smoke(tmp_path):
+    """examples/ablation.py runs every variant and writes its table and plots (a few steps)."""
+    spec = importlib.util.spec_from_file_location("ablation", EXAMPLE.parent / "ablation.py")
+    ablation = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ablation)
+    rows = ablation.main(["--steps", "6", "--views", "2", "--curve-points", "2", "--out", str(tmp_path)])
+    assert list(rows) == ["baseline", "+MVRL", "+CRD", "+MVAD", "+CIG (= default)", "paper"]
+    table = (tmp_path / "ablation.md").read_text()
+    assert all(f"| {name} |" in table for name in rows)
+    assert (tmp_path / "ablation.png").stat().st_size > 0 and (tmp_path / "psnr_vs_time.png").stat().st_size > 0
+    assert all(0 <= r["overhead"] <= 1 and r["steps"] == 6 for r in rows.values())
+    assert len(rows["baseline"]["curve"]) >= 2 and rows["+MVRL"]["curve"] == []
