@@ -24,15 +24,14 @@ import os
 import resource
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_3dgs import BUNDLED, load_scene  # noqa: E402
+from train_3dgs import BUNDLED, load_scene, model_config  # noqa: E402
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig  # noqa: E402
+from adapters.gs3d import GS3DAdapter  # noqa: E402
 from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
 
 
@@ -49,9 +48,7 @@ def variants(steps: int, views: int, seed: int) -> dict:
 
 def run(scene, config: MVGSConfig, seed: int, curve_every: int = 0, max_seconds: float = float("inf")) -> dict:
     torch.manual_seed(seed)
-    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
-    adapter = GS3DAdapter.from_scene(scene, GS3DConfig(seed=seed, position_lr_max_steps=clock,
-                                                       sh_degree_interval=max(1, round(1000 * clock / 30_000))))
+    adapter = GS3DAdapter.from_scene(scene, model_config(config, seed))
     trainer = MVGS(adapter, scene, config)
     train_time, inner_time, curve, finished = 0.0, 0.0, [], True
     while trainer.step_count < trainer.total_steps:

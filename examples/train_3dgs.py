@@ -47,6 +47,14 @@ def load_scene(path: Path):
     raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
 
 
+def model_config(config: MVGSConfig, seed: int, max_gaussians=None) -> GS3DConfig:
+    """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
+    every 1000) compressed with the run, as the controller's densification clock is."""
+    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
+    return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
+                      sh_degree_interval=max(1, round(1000 * clock / 30_000)))
+
+
 def write_json(path: Path, data: dict) -> None:
     """Atomic JSON write: a crash never leaves a half-written metrics file."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
@@ -89,12 +97,7 @@ def main(argv=None) -> dict:
     if args.resolution_scale != 1:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
-    # The model's own schedules (means learning-rate decay over 30k steps, SH degree +1 every
-    # 1000) are compressed with the run, as the controller's densification clock is.
-    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
-    gs_config = GS3DConfig(max_gaussians=args.max_gaussians, seed=args.seed, position_lr_max_steps=clock,
-                           sh_degree_interval=max(1, round(1000 * clock / 30_000)))
-    adapter = GS3DAdapter.from_scene(scene, gs_config)
+    adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
     trainer = MVGS(adapter, scene, config)
 
     t0 = time.perf_counter()

@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Protocol, Sequence, runtime_checkable
 
-import torch
 from torch import Tensor
 
 from .camera import Camera
