@@ -514,6 +514,13 @@ class GS3DAdapter:
             RenderResult with images [C, H, W, 3], alphas [C, H, W, 1] and the rasterizer's meta
             dict as aux (its means2d retains its gradient for accumulate_stats).
         """
+        return self.render_raw(self.params, cameras, backgrounds)
+
+    def render_raw(self, raw: Dict[str, Tensor], cameras: Sequence[Camera], backgrounds: Tensor) -> RenderResult:
+        """Render C cameras of one size from the given raw (pre-activation) attributes instead of
+        self.params: same names and shapes as self.params (e.g. deformed copies of them, as the
+        4DGS adapter renders). Activation, rasterizer call and the returned record are those of
+        :meth:`render`, which is ``render_raw(self.params, ...)``."""
         cams = list(cameras)
         if not cams:
             raise ValueError("render needs at least one camera, got 0")
@@ -522,7 +529,7 @@ class GS3DAdapter:
             raise ValueError(f"all cameras of a chunk must have one size, got (width, height) "
                              f"{sizes} for uids {[c.uid for c in cams]}")
         width, height = sizes[0]
-        p = self.params
+        p = raw
         ref = p["means"]
         viewmats, Ks = stack_cameras(cams, dtype=ref.dtype, device=ref.device)
         bg = torch.as_tensor(backgrounds).to(device=ref.device, dtype=ref.dtype)
@@ -578,6 +585,30 @@ class GS3DAdapter:
         self.denom += vis.sum(dim=0)
         radius = torch.where(visible, radius.to(self.max_radii2D.dtype), torch.zeros_like(self.max_radii2D))
         self.max_radii2D = torch.maximum(self.max_radii2D, radius.max(dim=0).values)
+
+    # ---- distributed training (mvgs_plugin.protocol.DistributedAdapter) -------------------
+    def gradient_parameters(self) -> Dict[str, Tensor]:
+        """The parameters by group name (the names of named_gradients())."""
+        return dict(self.params)
+
+    def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
+        """grad_accum and denom [N] add up over disjoint sets of views; max_radii2D [N] is a
+        maximum."""
+        return {"grad_accum": (self.grad_accum, "sum"), "denom": (self.denom, "sum"),
+                "max_radii2D": (self.max_radii2D, "max")}
+
+    def load_statistics(self, stats: Dict[str, Tensor]) -> None:
+        """Replace grad_accum, denom and max_radii2D by [N] tensors (cast to the model's dtype)."""
+        names = ("grad_accum", "denom", "max_radii2D")
+        if set(stats) != set(names):
+            raise ValueError(f"statistics must be exactly {list(names)}, got {sorted(stats)}")
+        n, ref = self.num_primitives(), self.params["means"]
+        for name in names:
+            t = torch.as_tensor(stats[name])
+            if tuple(t.shape) != (n,):
+                raise ValueError(f"statistics[{name!r}] must be [{n}], got {list(t.shape)}")
+        for name in names:
+            setattr(self, name, torch.as_tensor(stats[name]).to(device=ref.device, dtype=ref.dtype).clone())
 
     def mean_grads(self) -> Tensor:
         """[N] accumulated NDC gradient norm per visit (0 where never visible)."""

@@ -4,9 +4,14 @@
     python examples/train_3dgs.py --preset baseline --steps 2000 --out out/baseline
     python examples/train_3dgs.py --data path/to/colmap_or_nerf --preset paper --views 8
     python examples/train_3dgs.py --preset default --no-crd --no-mvad     # MVRL + CIG only
+    torchrun --nproc-per-node 2 examples/train_3dgs.py --views 8 --threads 1   # views sharded over 2 processes
+
+Under torchrun every rank trains the same model on its share of each step's views
+(mvgs_plugin.distributed; gloo on CPU, NCCL on GPU); only rank 0 writes outputs.
 
 Writes OUT/metrics.json (psnr, ssim, lpips or null, train_seconds, steps, num_gaussians,
-peak_memory_mb, preset, config), OUT/test/*.png (test renders) and OUT/point_cloud.ply.
+peak_memory_mb, preset, config, world_size), OUT/test/*.png (test renders), OUT/point_cloud.ply
+and, with --checkpoint, OUT/checkpoint.pt (loadable by a single process).
 
 The three lines that make MVGS out of a model: build the adapter, the config, and let the
 controller drive (or see examples/three_line_wrap for a hand-written loop):
@@ -33,6 +38,7 @@ import torch
 from adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.data import load_colmap, load_dnerf, load_nerf_synthetic
+from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 
 BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
 
@@ -63,9 +69,8 @@ def write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def parse_args(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
+    """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=["baseline", "paper", "default"], default="default")
     ap.add_argument("--views", type=int, default=None, help="views per step M at full resolution (coarser stages scale)")
     ap.add_argument("--steps", type=int, default=3000, help="total steps (the preset's schedule is rescaled to it)")
@@ -75,10 +80,20 @@ def parse_args(argv=None):
     ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
                     help="cross-ray densification on/off (default: as the preset)")
     ap.add_argument("--max-gaussians", type=int, default=None)
-    ap.add_argument("--out", type=Path, default=Path("out/train_3dgs"))
+    ap.add_argument("--out", type=Path, default=Path(out))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+    common_args(ap, "out/train_3dgs")
+    ap.add_argument("--checkpoint", action="store_true", help="also write OUT/checkpoint.pt after training")
+    ap.add_argument("--dist-timeout", type=float, default=DEFAULT_TIMEOUT,
+                    help="under torchrun: seconds a rank waits for the others before stopping with an error")
     return ap.parse_args(argv)
 
 
@@ -87,6 +102,16 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+    dist = init_from_env(device="cpu", timeout=args.dist_timeout)  # None unless torchrun started > 1 process
+    if dist is None:
+        return run(args, None)
+    with abort_on_error():  # an error ends this rank at once; the others' next collective then fails
+        metrics = run(args, dist)
+    torch.distributed.destroy_process_group()
+    return metrics
+
+
+def run(args, dist) -> dict:
     scene = load_scene(args.data)
     config = MVGSConfig.from_preset(args.preset, seed=args.seed).with_total_steps(args.steps)
     if args.views is not None:
@@ -98,11 +123,15 @@ def main(argv=None) -> dict:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
-    trainer = MVGS(adapter, scene, config)
+    trainer = MVGS(adapter, scene, config, distributed=dist)
 
     t0 = time.perf_counter()
     trainer.fit(progress=not args.no_progress)
     train_seconds = time.perf_counter() - t0
+    if args.checkpoint:
+        trainer.save_checkpoint(str(args.out / "checkpoint.pt"))  # every rank takes part; rank 0 writes
+    if not trainer.is_main:  # identical model on every rank: rank 0 evaluates and writes
+        return {}
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
@@ -123,6 +152,7 @@ def main(argv=None) -> dict:
         "preset": args.preset,
         "data": str(args.data),
         "threads": torch.get_num_threads(),
+        "world_size": 1 if dist is None else dist.world_size,
         "config": config.to_dict(),
         "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
     }

@@ -11,11 +11,13 @@ imports a renderer or a model family.
 from .camera import Camera, stack_cameras
 from .config import MVGSConfig, Stage
 from .controller import MVGS, EvalResult, StepInfo
-from .protocol import Adapter, DensifyContext, DensifyReport, RenderResult
+from .distributed import Collective, DistributedError
+from .protocol import Adapter, DensifyContext, DensifyReport, DistributedAdapter, RenderResult
 from .sampler import ViewSampler
 from .schedule import StagePlan, StepPlan, ViewSchedule
 
 __all__ = [
     "MVGS", "MVGSConfig", "Stage", "StepInfo", "EvalResult", "Adapter", "RenderResult", "DensifyContext",
     "DensifyReport", "Camera", "stack_cameras", "ViewSampler", "StagePlan", "StepPlan", "ViewSchedule",
+    "DistributedAdapter", "Collective", "DistributedError",
 ]

@@ -4,6 +4,11 @@ One step = sample M views -> render and backward them a chunk at a time (gradien
 so memory does not grow with M) -> guard against NaN/Inf -> densification triggers -> optimizer
 step. It drives any model through the Adapter protocol (protocol.py) and never imports a
 renderer or a model family.
+
+With a distributed.Collective (torch.distributed, launched by torchrun) every rank holds the
+full model and renders its share of each step's views; gradients, densification statistics and
+the loss maps cross-ray densification needs are combined over ranks so the step is the
+single-process step (see distributed.py).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import torch
 from .camera import Camera
 from .config import MVGSConfig
 from .densify import loss_map
+from .distributed import Collective, require_support
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
 from .protocol import Adapter, DensifyReport
@@ -30,7 +36,9 @@ from .schedule import ViewSchedule
 class StepInfo:
     """What one step did (threshold and boxes: the MVAD threshold and the number of CRD boxes
     of its densification call, when it made one; seconds: the whole step, of which
-    render_seconds and backward_seconds were spent in the adapter's render and in backward)."""
+    render_seconds and backward_seconds were spent in the adapter's render and in backward,
+    and comm_seconds in collectives across ranks, waiting for the slowest rank included).
+    In a distributed run, loss is the sum over every rank's views."""
 
     step: int
     stage: int
@@ -45,6 +53,7 @@ class StepInfo:
     seconds: float = 0.0
     render_seconds: float = 0.0
     backward_seconds: float = 0.0
+    comm_seconds: float = 0.0
 
 
 @dataclass
@@ -62,13 +71,28 @@ class MVGS:
         adapter: the model, its renderer and optimizer (see protocol.Adapter).
         scene: a mvgs_plugin.data.Scene (train/test cameras, images, extent).
         config: MVGSConfig (presets: baseline(), paper(), default()).
+        distributed: a distributed.Collective to shard each step's views over the ranks of a
+            process group (every rank builds the same MVGS with the same config and seed);
+            None: one process. The adapter must implement protocol.DistributedAdapter.
     """
 
-    def __init__(self, adapter: Adapter, scene, config: Optional[MVGSConfig] = None):
+    def __init__(self, adapter: Adapter, scene, config: Optional[MVGSConfig] = None,
+                 distributed: Optional[Collective] = None):
         self.adapter = adapter
         self.scene = scene
         self.config = config or MVGSConfig.default()
         self.schedule = ViewSchedule(scene, self.config)
+        if distributed is not None:
+            if not isinstance(distributed, Collective):
+                raise TypeError(f"distributed must be a mvgs_plugin.distributed.Collective or None, "
+                                f"got {type(distributed).__name__}")
+            require_support(adapter)
+        self.distributed = distributed
+
+    @property
+    def is_main(self) -> bool:
+        """Whether this process writes outputs (rank 0, or the only process)."""
+        return self.distributed is None or self.distributed.is_main
 
     @property
     def step_count(self) -> int:
@@ -84,37 +108,24 @@ class MVGS:
         t_step = time.perf_counter()
         plan = self.schedule.next()
         adapter = self.adapter
-        t_render = t_backward = 0.0
         if plan.handoff_reset:
             adapter.reset_opacity()
         adapter.set_step(plan.clock)
-        total = 0.0
         maps = [] if plan.densify and self.schedule.needs_loss_maps else None
-        for k, (cams, gts, bgs, collect) in enumerate(plan):
+        dist = self.distributed
+        mine = list(range(len(plan.views))) if dist is None else dist.positions(len(plan.views))
+        times = {"render": 0.0, "backward": 0.0, "comm": 0.0}
+        error: Optional[BaseException] = None
+        try:
+            total = self._render_and_backward(plan, mine, maps, times)
+        except Exception as exc:
+            if dist is None:
+                raise
+            total, error = 0.0, exc  # reported to every rank below, then raised here
+        if dist is not None:
             t0 = time.perf_counter()
-            result = adapter.render(cams, bgs)
-            t_render += time.perf_counter() - t0
-            if maps is not None:
-                maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
-            loss = plan.weight * sum(
-                photometric_loss(img, gt.to(img), self.config.lambda_dssim) for img, gt in zip(result.images, gts)
-            )
-            if k == 0:  # the regulariser counts once per step, not once per view
-                reg = adapter.regularization(plan.clock)
-                if reg is not None:
-                    loss = loss + reg
-            if not bool(torch.isfinite(loss)):
-                raise FloatingPointError(
-                    f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
-                    "stopping before the optimizer step"
-                )
-            t0 = time.perf_counter()
-            loss.backward()  # gradients accumulate; this chunk's graph is freed here
-            t_backward += time.perf_counter() - t0
-            total += loss.item()
-            if collect:
-                adapter.accumulate_stats(result)
-            del result, loss
+            total, maps = self._combine_ranks(plan, error, total, maps)
+            times["comm"] = time.perf_counter() - t0
         self._check_gradients(plan)
         report, ctx = None, None
         with torch.no_grad():
@@ -130,7 +141,67 @@ class MVGS:
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
                         report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
                         0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
-                        time.perf_counter() - t_step, t_render, t_backward)
+                        time.perf_counter() - t_step, times["render"], times["backward"], times["comm"])
+
+    def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], times: Dict[str, float]) -> float:
+        """Renders and backpropagates the step's views at positions `mine`, chunk by chunk (the
+        gradients accumulate), folds in their statistics and appends their loss maps to `maps`.
+        Returns the sum of their losses."""
+        adapter, total = self.adapter, 0.0
+        for positions, collect in self._chunks(plan, mine):
+            cams = [plan.cameras[i] for i in positions]
+            gts = [plan.images[i] for i in positions]
+            t0 = time.perf_counter()
+            result = adapter.render(cams, plan.backgrounds[positions])
+            times["render"] += time.perf_counter() - t0
+            if maps is not None:
+                maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
+            loss = plan.weight * sum(
+                photometric_loss(img, gt.to(img), self.config.lambda_dssim) for img, gt in zip(result.images, gts)
+            )
+            if positions[0] == 0:  # the regulariser counts once per step (on one rank), not once per view
+                reg = adapter.regularization(plan.clock)
+                if reg is not None:
+                    loss = loss + reg
+            if not bool(torch.isfinite(loss)):
+                raise FloatingPointError(
+                    f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
+                    "stopping before the optimizer step"
+                )
+            t0 = time.perf_counter()
+            loss.backward()  # gradients accumulate; this chunk's graph is freed here
+            times["backward"] += time.perf_counter() - t0
+            total += loss.item()
+            if collect:
+                adapter.accumulate_stats(result)
+            del result, loss
+        return total
+
+    def _combine_ranks(self, plan, error: Optional[BaseException], total: float, maps: Optional[List]):
+        """The collectives of a distributed step: status (raises on every rank if one failed),
+        gradient sum, and on densification steps the loss maps of all views and the statistics
+        of all ranks. Returns the global loss and the step's loss maps (all views, or None)."""
+        dist, adapter = self.distributed, self.adapter
+        total = dist.exchange_status(plan.step, error, total, adapter.num_primitives(), plan.views)
+        dist.all_reduce_gradients(adapter, plan.step)
+        if maps is not None:
+            ref = adapter.positions()
+            maps = dist.gather_loss_maps(maps, len(plan.views), plan.cameras[0].height, plan.cameras[0].width,
+                                         ref.dtype, ref.device, plan.step)
+        if plan.densify:
+            dist.all_reduce_statistics(adapter, plan.step)
+        return total, maps
+
+    @staticmethod
+    def _chunks(plan, mine: Sequence[int]):
+        """(positions, collect statistics?) per chunk of the plan, restricted to this rank's
+        positions (all of them in one process): a chunk split between ranks renders its part
+        on each."""
+        held = set(mine)
+        for chunk, collect in zip(plan.chunks, plan.stats):
+            part = [i for i in chunk if i in held]
+            if part:
+                yield part, collect
 
     def _check_gradients(self, plan) -> None:
         for name, g in self.adapter.named_gradients().items():
@@ -144,11 +215,12 @@ class MVGS:
     # ---- the whole run --------------------------------------------------------------------
     def fit(self, steps: Optional[int] = None, callback: Optional[Callable[[StepInfo], None]] = None,
             progress: bool = True) -> "MVGS":
-        """Runs the remaining steps (or `steps` more) with a progress bar."""
+        """Runs the remaining steps (or `steps` more) with a progress bar (rank 0 only). In a
+        distributed run every rank must call it with the same `steps`."""
         remaining = self.total_steps - self.step_count
         n = remaining if steps is None else min(steps, remaining)
         bar = None
-        if progress:
+        if progress and self.is_main:
             from tqdm import tqdm
 
             bar = tqdm(total=n, desc="MVGS", unit="step", dynamic_ncols=True)
@@ -167,7 +239,8 @@ class MVGS:
     # ---- evaluation -------------------------------------------------------------------------
     @torch.no_grad()
     def evaluate(self, cameras: Optional[Sequence[Camera]] = None, factor: int = 1) -> EvalResult:
-        """PSNR / SSIM (/ LPIPS when available) on the test views at pyramid factor `factor`."""
+        """PSNR / SSIM (/ LPIPS when available) on the test views at pyramid factor `factor`.
+        Local: no collective (every rank holds the same model; rank 0 alone may call it)."""
         cameras = list(self.scene.test_cameras if cameras is None else cameras)
         if not cameras:
             raise ValueError("no cameras to evaluate (the scene has no test split)")
@@ -190,30 +263,58 @@ class MVGS:
 
     # ---- checkpoints ------------------------------------------------------------------------
     def state_dict(self) -> Dict:
+        """Everything to resume. Distributed: a collective (call it on every rank); the
+        densification statistics in it are the ones combined over ranks, so a single process can
+        resume from it."""
+        if self.distributed is None:
+            adapter_state = self.adapter.state_dict()
+        else:
+            local = {name: t.clone() for name, (t, _) in self.adapter.statistics().items()}
+            self.adapter.load_statistics(self.distributed.reduce_statistics(self.adapter, self.step_count))
+            try:
+                adapter_state = self.adapter.state_dict()
+            finally:
+                self.adapter.load_statistics(local)  # keep this rank's own share for the next densify
         return {
             "config": self.config.to_dict(),
             "schedule": self.schedule.state_dict(),
             "torch_rng": torch.get_rng_state(),
-            "adapter": self.adapter.state_dict(),
+            "adapter": adapter_state,
         }
 
     def load_state_dict(self, state: Dict) -> None:
+        """Restore a state_dict(). Distributed: every rank loads the same state; the summed
+        statistics stay on rank 0 only (the others start from zero), so the next densification
+        sums them once."""
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
             raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages}")
         self.schedule.load_state_dict(state["schedule"])
         torch.set_rng_state(state["torch_rng"])
         self.adapter.load_state_dict(state["adapter"])
+        if self.distributed is not None and not self.distributed.is_main:
+            stats = self.adapter.statistics()
+            self.adapter.load_statistics({name: torch.zeros_like(t) if how == "sum" else t.clone()
+                                          for name, (t, how) in stats.items()})
 
     def save_checkpoint(self, path: str) -> None:
         """Controller, adapter, optimizer and sampler state in one file, written atomically: a
-        crash mid-write leaves the previous checkpoint intact."""
+        crash mid-write leaves the previous checkpoint intact. Distributed: call it on every rank;
+        rank 0 writes, the others wait until the file is there."""
+        state = self.state_dict()
+        if self.is_main:
+            self._write(path, state)
+        if self.distributed is not None:
+            self.distributed.barrier("checkpoint", self.step_count)
+
+    @staticmethod
+    def _write(path: str, state: Dict) -> None:
         folder = os.path.dirname(os.path.abspath(path))
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".ckpt-", dir=folder)
         try:
             with os.fdopen(fd, "wb") as f:
-                torch.save(self.state_dict(), f)
+                torch.save(state, f)
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)

@@ -19,6 +19,10 @@ One step of the controller, for the M views the sampler picked (rendered in chun
     if densification is due: adapter.densify(DensifyContext(...))
     adapter.optimizer_step(); adapter.zero_grad()
 
+Training over several processes (mvgs_plugin.distributed) needs three more methods, listed in
+DistributedAdapter: the parameters whose gradients are summed over ranks, and the densification
+statistics with how they combine.
+
 The controller never assumes one Gaussian per trainable row (Scaffold-GS decodes a different set
 of Gaussians per view) nor a static scene (cameras carry `time`).
 """
@@ -26,7 +30,7 @@ of Gaussians per view) nor a static scene (cameras carry `time`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, Optional, Protocol, Sequence, runtime_checkable
+from typing import Any, Dict, Optional, Protocol, Sequence, Tuple, runtime_checkable
 
 from torch import Tensor
 
@@ -133,3 +137,27 @@ class Adapter(Protocol):
     def export(self, path: str, camera: Optional[Camera] = None) -> None:
         """Write the model in its standard interchange format (a 3DGS PLY for Gaussians); the
         camera is for models that decode Gaussians per view."""
+
+
+@runtime_checkable
+class DistributedAdapter(Protocol):
+    """Optional extra methods an adapter implements to be trained over several processes
+    (mvgs_plugin.distributed): every rank holds the full model and renders a share of each
+    step's views, so the controller sums the gradients and the densification statistics over
+    ranks before the optimizer step and before densification.
+
+    check_adapter runs check_distributed_support on adapters that implement these methods.
+    """
+
+    def gradient_parameters(self) -> Dict[str, Tensor]:
+        """Every trainable tensor by the names named_gradients() uses. The controller sums their
+        ``.grad`` over ranks in place, and gives a zero ``.grad`` to a tensor that has none on
+        this rank while another rank has one (a rank that rendered no view)."""
+
+    def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
+        """The densification statistics accumulated so far, by name: (tensor, how ranks combine
+        it: "sum" or "max"). Combining the statistics of two adapters that rendered disjoint sets
+        of views must give the statistics of one adapter that rendered them all."""
+
+    def load_statistics(self, stats: Dict[str, Tensor]) -> None:
+        """Replace the statistics by tensors of the same names and shapes as statistics()."""

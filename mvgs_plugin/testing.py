@@ -3,6 +3,9 @@
     from mvgs_plugin.testing import check_adapter
     check_adapter(lambda scene: MyAdapter.from_scene(scene))       # raises AssertionError on failure
 
+Adapters that implement the optional DistributedAdapter methods (training over several
+processes) also get check_distributed_support.
+
 `make_adapter(scene)` must return a fresh adapter for the scene (same seed -> same model). The
 scene defaults to `synthetic_scene()`: a few coloured points seen by a ring of small cameras,
 with smooth synthetic target images (no renderer needed to make them). Each check is also a
@@ -20,7 +23,7 @@ import torch
 from .camera import Camera
 from .data.scene import PointCloud, Scene
 from .losses import photometric_loss
-from .protocol import Adapter, DensifyContext, RenderResult
+from .protocol import Adapter, DensifyContext, DistributedAdapter, RenderResult
 
 MakeAdapter = Callable[[Scene], Adapter]
 
@@ -217,6 +220,46 @@ def check_hard_cameras(make_adapter: MakeAdapter, scene: Scene) -> None:
         adapter.zero_grad()
 
 
+def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: float = 1e-5) -> None:
+    """For adapters with the optional DistributedAdapter methods (distributed training):
+    gradient_parameters() holds the tensors whose .grad named_gradients() reports; the statistics
+    of two adapters that rendered disjoint views, combined as statistics() declares ("sum" or
+    "max"), equal those of one adapter that rendered all of them; load_statistics() restores
+    them."""
+    cams = scene.train_cameras[:3]
+
+    def accumulate(views):
+        adapter = make_adapter(scene)
+        adapter.set_step(1)
+        for cam in views:
+            loss, result = _loss(adapter, scene, [cam])
+            loss.backward()
+            adapter.accumulate_stats(result)
+        return adapter
+
+    whole, first, rest = accumulate(cams), accumulate(cams[:1]), accumulate(cams[1:])
+    params, grads = whole.gradient_parameters(), whole.named_gradients()
+    assert set(params) == set(grads), \
+        f"gradient_parameters() names {sorted(params)} but named_gradients() names {sorted(grads)}"
+    for name, p in params.items():
+        assert p.grad is grads[name], f"gradient_parameters()[{name!r}].grad is not named_gradients()[{name!r}]"
+    stats = whole.statistics()
+    assert stats, "statistics() must name at least one statistic"
+    a, b = first.statistics(), rest.statistics()
+    for name, (t, op) in stats.items():
+        assert op in ("sum", "max"), f"statistic {name!r} combines by {op!r}; expected 'sum' or 'max'"
+        assert name in a and name in b, f"statistic {name!r} is missing from another adapter's statistics()"
+        combined = a[name][0] + b[name][0] if op == "sum" else torch.maximum(a[name][0], b[name][0])
+        scale = float(t.abs().max()) if t.numel() else 0.0
+        err = float((combined - t).abs().max()) / max(scale, 1e-30) if t.numel() else 0.0
+        assert err <= rtol, (f"statistic {name!r}: the {op} over two adapters that rendered disjoint views "
+                             f"differs from one adapter that rendered all by {err:.3g} (relative)")
+    fresh = make_adapter(scene)
+    fresh.load_statistics({name: t.clone() for name, (t, _) in stats.items()})
+    for name, (t, _) in fresh.statistics().items():
+        assert torch.equal(t, stats[name][0]), f"load_statistics() did not restore {name!r}"
+
+
 CHECKS = [
     check_render,
     check_gradients_reach_every_group,
@@ -238,4 +281,10 @@ def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> D
         except AssertionError as exc:
             raise AssertionError(f"{check.__name__}: {exc}") from exc
         done[check.__name__] = "ok"
+    if isinstance(make_adapter(scene), DistributedAdapter):  # optional: only adapters that support it
+        try:
+            check_distributed_support(make_adapter, scene)
+        except AssertionError as exc:
+            raise AssertionError(f"check_distributed_support: {exc}") from exc
+        done["check_distributed_support"] = "ok"
     return done
