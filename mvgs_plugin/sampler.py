@@ -6,26 +6,62 @@ views it already holds are moved to the end of the next epoch's order (so they a
 once in that epoch, just not in this step) — the released MVGS code could repeat a view there.
 Seeded and reproducible; the state (generator and the rest of the epoch) is saved in
 checkpoints.
+
+Dynamic scenes (cameras with a time): ``time_spread`` chooses how a step's M views spread over
+time. "random" is the rule above (times fall where the shuffle puts them). "stratified" sorts the
+training views by time (ties by index), cuts them into M contiguous bins of nearly equal count
+(sizes differ by at most one; equal counts rather than equal widths, so no bin is empty however
+the times are distributed) and draws one view from each bin: a step always spans the whole time
+range, and never holds two views of one bin. Each bin keeps its own shuffled queue, so within a
+bin every view is seen once before any repeats. The bins depend on M (the pyramid stages change
+M); each M keeps its own queues.
 """
 
 from __future__ import annotations
 
+import math
 import warnings
-from typing import Dict, List
+from typing import Dict, List, Optional, Sequence
 
 import torch
 
+TIME_SPREADS = ("random", "stratified")
+
 
 class ViewSampler:
-    """Draws M distinct view indices per step from range(n_views)."""
+    """Draws M distinct view indices per step from range(n_views).
 
-    def __init__(self, n_views: int, seed: int = 0):
+    times: per view its time in [0, 1] (needed by time_spread="stratified", else unused).
+    time_spread: "random" or "stratified" (see the module docstring).
+    """
+
+    def __init__(self, n_views: int, seed: int = 0, times: Optional[Sequence[Optional[float]]] = None,
+                 time_spread: str = "random"):
         if isinstance(n_views, bool) or not isinstance(n_views, int) or n_views < 1:
             raise ValueError(f"n_views must be a positive int, got {n_views!r}")
+        if time_spread not in TIME_SPREADS:
+            raise ValueError(f"time_spread must be one of {TIME_SPREADS}, got {time_spread!r}")
         self.n_views = n_views
+        self.time_spread = time_spread
+        self._order: List[int] = []
+        if time_spread == "stratified":
+            self._order = self._time_order(times, n_views)
         self._gen = torch.Generator().manual_seed(seed)
         self._queue: List[int] = []
+        self._bins: Dict[int, List[List[int]]] = {}  # M -> one queue per time bin
         self._warned = False
+
+    @staticmethod
+    def _time_order(times, n_views: int) -> List[int]:
+        """View indices sorted by time (ties by index); every time must be a number in [0, 1]."""
+        if times is None or len(times) != n_views:
+            got = None if times is None else len(times)
+            raise ValueError(f'time_spread="stratified" needs one time per view ({n_views}), got {got}')
+        for i, t in enumerate(times):
+            if t is None or isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
+                raise ValueError(f'time_spread="stratified" needs every view\'s time in [0, 1]; '
+                                 f"view {i} has {t!r}")
+        return sorted(range(n_views), key=lambda i: (float(times[i]), i))
 
     def sample(self, m: int) -> List[int]:
         """M distinct indices. M larger than the number of views is capped to it (with a
@@ -37,6 +73,8 @@ class ViewSampler:
                 warnings.warn(f"{m} views per step requested but only {self.n_views} training views: using {self.n_views}")
                 self._warned = True
             m = self.n_views
+        if self.time_spread == "stratified":
+            return self._sample_stratified(m)
         picked: List[int] = []
         while len(picked) < m:
             if not self._queue:
@@ -46,11 +84,33 @@ class ViewSampler:
             picked.append(self._queue.pop(0))
         return picked
 
+    def time_bins(self, m: int) -> List[List[int]]:
+        """The M bins of the stratified rule: contiguous runs of the time order, sizes
+        floor(n/M) or ceil(n/M), earliest times first."""
+        n = self.n_views
+        edges = [math.floor(k * n / m) for k in range(m + 1)]
+        return [self._order[edges[k]:edges[k + 1]] for k in range(m)]
+
+    def _sample_stratified(self, m: int) -> List[int]:
+        queues = self._bins.setdefault(m, [[] for _ in range(m)])
+        picked = []
+        for k, members in enumerate(self.time_bins(m)):
+            if not queues[k]:
+                queues[k] = [members[i] for i in torch.randperm(len(members), generator=self._gen).tolist()]
+            picked.append(queues[k].pop(0))
+        return picked
+
     def state_dict(self) -> Dict:
-        return {"n_views": self.n_views, "generator": self._gen.get_state(), "queue": list(self._queue)}
+        bins = {m: [list(q) for q in qs] for m, qs in self._bins.items()}
+        return {"n_views": self.n_views, "generator": self._gen.get_state(), "queue": list(self._queue),
+                "time_spread": self.time_spread, "bins": bins}
 
     def load_state_dict(self, state: Dict) -> None:
         if state["n_views"] != self.n_views:
             raise ValueError(f"sampler state is for {state['n_views']} views, this sampler has {self.n_views}")
+        spread = state.get("time_spread", "random")  # states saved before the option existed
+        if spread != self.time_spread:
+            raise ValueError(f"sampler state is for time_spread={spread!r}, this sampler has {self.time_spread!r}")
         self._gen.set_state(state["generator"])
         self._queue = list(state["queue"])
+        self._bins = {int(m): [list(q) for q in qs] for m, qs in state.get("bins", {}).items()}

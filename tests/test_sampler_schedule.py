@@ -91,6 +91,15 @@ def test_with_total_steps_keeps_proportions():
     assert b.stages == (Stage(1, 1, 3000),) and b.densify_every == 10
 
 
+def test_short_runs_let_the_model_settle_before_densifying():
+    # 500 / 30k of a 120-step run is step 2: the floor waits 50 steps, but never later than
+    # the recipe's own start.
+    short = MVGSConfig.baseline().with_total_steps(120)
+    assert (short.densify_from, short.densify_until, short.densify_every) == (50, 60, 10)
+    assert MVGSConfig.baseline(densify_from=20).with_total_steps(120).densify_from == 20
+    assert MVGSConfig.baseline().with_total_steps(60_000).densify_from == 1000
+
+
 def test_with_views():
     c = MVGSConfig.default().with_views(4)
     assert [s.views for s in c.stages] == [24, 12, 6, 4]

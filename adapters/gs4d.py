@@ -1,0 +1,622 @@
+"""4D Gaussian Splatting (Wu et al., CVPR 2024) as an MVGS adapter.
+
+One set of canonical 3D Gaussians (exactly the 3DGS adapter's parameters, optimizer groups,
+densification and PLY layout: :class:`GS4DAdapter` subclasses :class:`GS3DAdapter`) plus a
+deformation field that moves them to a time t:
+
+    u = 2 (x - lo) / (hi - lo) - 1 per axis (box [lo, hi] fixed from the initial points),
+    τ = 2 t - 1                                            q = (u_x, u_y, u_z, τ) in [-1, 1]^4
+    f_s(q) = ∏_{(a,b) in 6 pairs} bilinear(P_{s,ab}, (q_a, q_b))      [F] per scale s
+    h = W_0 [f_1, ..., f_S] + b_0                                     concatenated over scales
+    Δx, Δ log s, Δq = head_x(h), head_s(h), head_q(h)                 head = ReLU-Lin-ReLU-Lin
+    means(t) = means + Δx, log scales(t) = log scales + Δ log s, quats(t) = quats + Δq
+
+(the offsets are added before activation; opacities and colours are not deformed, as in the
+original's defaults). The six planes P_ab of a scale are the coordinate pairs of (x, y, z, t):
+xy, xz, xt, yz, yt, zt; scale s multiplies the spatial resolution (not the temporal one), and
+bilinear lookups clamp at the border (the original's ``grid_sample(padding_mode="border")``).
+Planes are initialised uniform in [0.1, 0.5], the time planes to 1 (so a fresh field does not
+depend on t), linear layers Xavier-uniform with zero biases.
+
+Training (``set_step``): steps 1..coarse_steps are the coarse stage (the field is off: a static
+3DGS fit of the canonical Gaussians); later steps the fine stage (the field is on, its Adam groups
+"planes" and "mlp" decay log-linearly over fine_steps, both times the scene extent, and the
+regularisers of :meth:`regularization` are added once per step).
+
+Deviations from the released 4DGS code, each a config field or stated here:
+- ``zero_init_heads`` (default True): the last layer of every head starts at zero, so the fine
+  stage starts exactly from the coarse result (the original's random heads jolt every Gaussian
+  by a random offset at the hand-over).
+- time enters the planes as 2t - 1, the full time axis (the original feeds t in [0, 1] into a
+  [-1, 1] grid, using half of its time resolution).
+- one continuous step clock: the original runs coarse and fine as two trainings that recreate
+  the optimizer and restart the means' learning-rate decay and the densification clock.
+- the plane TV is K-Planes' (squared first differences along both axes of the space planes); the
+  original code applies its second-difference smoother there too.
+
+MVGS: every view of a chunk renders at its own ``Camera.time`` (views of one time share one
+rasterizer call); densification statistics are gathered per view on the deformed Gaussians and
+fold into the canonical rows they came from (one visit per view). Cross-ray boxes are found by
+the controller in world space from views at different times; in the fine stage a canonical
+Gaussian counts as inside a box when its *deformed* position at any of the triggering step's
+view times is inside (see :meth:`GS4DAdapter._box_selection`), and its clone shares its
+canonical position and so its whole trajectory.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import tempfile
+import types
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from mvgs_plugin.camera import Camera
+from mvgs_plugin.data.scene import PointCloud
+from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
+
+from .gs3d import GS3DAdapter, GS3DConfig, _check_float, _check_int, _inside_any_box, _top_by_score
+
+__all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
+
+PLANES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # xy xz xt yz yt zt of (x, y, z, t)
+SPACE_PLANES = (0, 1, 3)
+TIME_PLANES = (2, 4, 5)
+_STATE_FORMAT = "mvgs-gs4d/1"
+_DEFORMATION_FORMAT = "mvgs-gs4d-deformation/1"
+_FIELD_SHAPE_KEYS = ("resolution", "multires", "features", "width")
+
+
+@dataclass
+class GS4DConfig:
+    """Hyper-parameters of the 4DGS model (defaults: the original 4DGS on D-NeRF).
+
+    canonical: the canonical Gaussians' GS3DConfig (learning rates, densification, SH, ...).
+    coarse_steps, fine_steps: length of the static coarse stage and of the deformation stage
+        (original D-NeRF: 3000 and 20000); set_step(s) is coarse while s <= coarse_steps.
+    Field:
+        resolution: (x, y, z, t) plane resolution at scale 1 (original: 64, 64, 64, 25).
+        multires: spatial resolution multipliers, one feature block per entry (original D-NeRF:
+            (1, 2)).
+        features: channels per plane (original 32); width: hidden width of the MLP (64).
+        bounds: ((x0, y0, z0), (x1, y1, z1)) box mapped to [-1, 1]^3; None = the bounding box of
+            the initial Gaussians, each side widened to at least min_bounds_fraction of the
+            longest (a flat initial cloud, e.g. ground points only, still gets a 3D box).
+        zero_init_heads: start the field at exactly zero offset (see the module docstring).
+    Learning rates (Adam, log-linear decay over fine_steps, times the scene extent):
+        lr_planes_init / lr_planes_final (1.6e-3 -> 1.6e-4), lr_mlp_init / lr_mlp_final
+        (1.6e-4 -> 1.6e-5).
+    Regularisers (fine stage, once per step): plane_tv_weight (1e-4) on the space planes,
+        time_smoothness_weight (1e-2) on the time planes' second difference along t,
+        l1_time_planes_weight (1e-4) on |1 - P| of the time planes.
+    Densification caps of the original: growth_cap (360000): no clone/split/box growth once the
+        model has this many Gaussians (None = no cap); prune_min_count (200000): the prune rules
+        act only when the model (after growth) has more Gaussians than this (0 = always, as 3DGS).
+    Initialisation (from_scene): init_random_points extra points uniform in init_box
+        (((x0, y0, z0), (x1, y1, z1)); None = the scene points' bounding box widened to a cube,
+        or without points scene.center ± scene.extent), colours uniform in [0, 1]; for scenes
+        whose point cloud misses the moving objects (4DGS draws 2000 random points in
+        [-1.3, 1.3]^3 for D-NeRF).
+    """
+
+    canonical: GS3DConfig = field(default_factory=GS3DConfig)
+    coarse_steps: int = 3_000
+    fine_steps: int = 20_000
+    resolution: Tuple[int, int, int, int] = (64, 64, 64, 25)
+    multires: Tuple[int, ...] = (1, 2)
+    features: int = 32
+    width: int = 64
+    bounds: Optional[Tuple[Tuple[float, float, float], Tuple[float, float, float]]] = None
+    min_bounds_fraction: float = 0.05
+    zero_init_heads: bool = True
+    lr_planes_init: float = 1.6e-3
+    lr_planes_final: float = 1.6e-4
+    lr_mlp_init: float = 1.6e-4
+    lr_mlp_final: float = 1.6e-5
+    plane_tv_weight: float = 1e-4
+    time_smoothness_weight: float = 1e-2
+    l1_time_planes_weight: float = 1e-4
+    growth_cap: Optional[int] = 360_000
+    prune_min_count: int = 200_000
+    init_random_points: int = 0
+    init_box: Optional[Tuple[Tuple[float, float, float], Tuple[float, float, float]]] = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.canonical, GS3DConfig):
+            raise ValueError(f"canonical must be a GS3DConfig, got {type(self.canonical).__name__}")
+        _check_int("coarse_steps", self.coarse_steps, 0)
+        _check_int("fine_steps", self.fine_steps, 1)
+        self.resolution = tuple(self.resolution)
+        if len(self.resolution) != 4:
+            raise ValueError(f"resolution must be (x, y, z, t), got {self.resolution!r}")
+        for r in self.resolution:
+            _check_int("resolution entries", r, 2)
+        self.multires = tuple(self.multires)
+        if not self.multires:
+            raise ValueError("multires must name at least one scale, got ()")
+        for m in self.multires:
+            _check_int("multires entries", m, 1)
+        _check_int("features", self.features, 1)
+        _check_int("width", self.width, 1)
+        _check_int("prune_min_count", self.prune_min_count, 0)
+        _check_int("init_random_points", self.init_random_points, 0)
+        if self.growth_cap is not None:
+            _check_int("growth_cap", self.growth_cap, 0)
+        for name in ("lr_planes_init", "lr_planes_final", "lr_mlp_init", "lr_mlp_final"):
+            _check_float(name, getattr(self, name), positive=True)
+        for name in ("plane_tv_weight", "time_smoothness_weight", "l1_time_planes_weight"):
+            _check_float(name, getattr(self, name))
+        v = _check_float("min_bounds_fraction", self.min_bounds_fraction, positive=True)
+        if v > 1:
+            raise ValueError(f"min_bounds_fraction must be in (0, 1], got {v}")
+        for name in ("bounds", "init_box"):
+            if getattr(self, name) is not None:
+                setattr(self, name, _check_box(name, getattr(self, name)))
+
+    @property
+    def total_steps(self) -> int:
+        return self.coarse_steps + self.fine_steps
+
+    def saved_values(self) -> Dict[str, Any]:
+        """The fields a checkpoint carries (the canonical config travels with the 3DGS state)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "canonical"}
+
+
+def _check_box(name: str, box) -> Tuple[Tuple[float, ...], Tuple[float, ...]]:
+    try:
+        t = torch.as_tensor(box, dtype=torch.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), got {box!r}") from None
+    if tuple(t.shape) != (2, 3) or not bool(torch.isfinite(t).all()) or not bool((t[0] < t[1]).all()):
+        raise ValueError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)) finite with min < max, got {box!r}")
+    return tuple(map(tuple, t.tolist()))
+
+
+def bounds_from_points(points: Tensor, min_fraction: float) -> Tensor:
+    """[2, 3] float64 box of points [N, 3]; sides shorter than min_fraction x the longest are
+    widened about their centre. Raises when the points do not span any length."""
+    if points.ndim != 2 or points.shape[0] == 0:
+        raise ValueError(f"the deformation box needs initial points, got {list(points.shape)}; "
+                         f"give GS4DConfig.bounds")
+    p = points.detach().to(torch.float64)
+    lo, hi = p.min(dim=0).values, p.max(dim=0).values
+    longest = float((hi - lo).max())
+    if not longest > 0:
+        raise ValueError(f"the initial points span no volume (all at {lo.tolist()}); give GS4DConfig.bounds")
+    pad = ((min_fraction * longest - (hi - lo)) / 2).clamp_min(0)
+    return torch.stack([lo - pad, hi + pad])
+
+
+class HexPlaneField(torch.nn.Module):
+    """The deformation field: multi-resolution HexPlane features -> MLP -> offsets.
+
+    forward(means [N, 3], t) -> (Δmeans [N, 3], Δlog-scales [N, 3], Δquats [N, 4]), t a float
+    in [0, 1]. ``planes[6 * k + p]`` is plane PLANES[p] of scale multires[k], shaped
+    [1, F, R_b, R_a] for the pair (a, b): the lookup's first coordinate runs along the last axis
+    (``grid_sample``'s convention), so a time plane's time axis is dim -2.
+    """
+
+    def __init__(self, bounds: Tensor, resolution: Sequence[int], multires: Sequence[int], features: int,
+                 width: int, zero_init_heads: bool = True, generator: Optional[torch.Generator] = None,
+                 dtype: torch.dtype = torch.float32, device=None) -> None:
+        super().__init__()
+        self.register_buffer("bounds", torch.as_tensor(bounds).to(dtype=dtype, device=device).clone())
+        self.multires = tuple(multires)
+        planes = []
+        for m in self.multires:
+            res = [r * m for r in resolution[:3]] + [resolution[3]]
+            for a, b in PLANES:
+                shape = (1, features, res[b], res[a])
+                if b == 3:  # time planes start at 1: the product of features ignores t at first
+                    plane = torch.ones(shape, dtype=torch.float64)
+                else:
+                    plane = 0.1 + 0.4 * torch.rand(shape, generator=generator, dtype=torch.float64)
+                planes.append(torch.nn.Parameter(plane.to(dtype=dtype, device=device)))
+        self.planes = torch.nn.ParameterList(planes)
+        self.trunk = torch.nn.Linear(features * len(self.multires), width)
+        self.heads = torch.nn.ModuleDict({
+            name: torch.nn.Sequential(torch.nn.ReLU(), torch.nn.Linear(width, width), torch.nn.ReLU(),
+                                      torch.nn.Linear(width, out))
+            for name, out in (("means", 3), ("scales", 3), ("quats", 4))
+        })
+        for lin in [self.trunk] + [h[i] for h in self.heads.values() for i in (1, 3)]:
+            _xavier(lin.weight, generator)
+            torch.nn.init.zeros_(lin.bias)
+        if zero_init_heads:
+            for h in self.heads.values():
+                torch.nn.init.zeros_(h[3].weight)
+        self.to(dtype=dtype, device=device)
+
+    def mlp_parameters(self) -> List[torch.nn.Parameter]:
+        return list(self.trunk.parameters()) + list(self.heads.parameters())
+
+    def normalize(self, xyz: Tensor, t: float) -> Tensor:
+        """[N, 4] lookup coordinates in [-1, 1] (space may fall outside: lookups clamp)."""
+        lo, hi = self.bounds[0], self.bounds[1]
+        u = (xyz - lo) * (2.0 / (hi - lo)) - 1.0
+        tau = torch.full_like(u[:, :1], 2.0 * float(t) - 1.0)
+        return torch.cat([u, tau], dim=1)
+
+    def features(self, xyz: Tensor, t: float) -> Tensor:
+        """[N, F * S] plane features, multiplied over the six planes, concatenated over scales."""
+        q = self.normalize(xyz, t)
+        n = q.shape[0]
+        out = []
+        for k in range(len(self.multires)):
+            f = None
+            for p, (a, b) in enumerate(PLANES):
+                grid = q[:, [a, b]].view(1, 1, n, 2)
+                v = torch.nn.functional.grid_sample(self.planes[6 * k + p], grid, mode="bilinear",
+                                                    padding_mode="border", align_corners=True)
+                v = v[0, :, 0, :].T  # [N, F]
+                f = v if f is None else f * v
+            out.append(f)
+        return torch.cat(out, dim=1)
+
+    def forward(self, xyz: Tensor, t: float) -> Tuple[Tensor, Tensor, Tensor]:
+        h = self.trunk(self.features(xyz, t))
+        return self.heads["means"](h), self.heads["scales"](h), self.heads["quats"](h)
+
+    def regularizers(self) -> Dict[str, Tensor]:
+        """Unweighted plane regularisers, summed over scales:
+        tv: mean squared first difference along both axes of every space plane (K-Planes TV);
+        time_smoothness: mean squared second difference along t of every time plane;
+        l1_time: mean |1 - P| of every time plane (1 = no change with time)."""
+        zero = self.planes[0].new_zeros(())
+        tv, smooth, l1 = zero, zero, zero
+        for k in range(len(self.multires)):
+            for p in SPACE_PLANES:
+                g = self.planes[6 * k + p]
+                tv = tv + (g[..., 1:, :] - g[..., :-1, :]).square().mean() \
+                    + (g[..., :, 1:] - g[..., :, :-1]).square().mean()
+            for p in TIME_PLANES:
+                g = self.planes[6 * k + p]
+                if g.shape[-2] >= 3:
+                    smooth = smooth + (g[..., 2:, :] - 2 * g[..., 1:-1, :] + g[..., :-2, :]).square().mean()
+                l1 = l1 + (1.0 - g).abs().mean()
+        return {"tv": tv, "time_smoothness": smooth, "l1_time": l1}
+
+
+def _xavier(w: Tensor, generator: Optional[torch.Generator]) -> None:
+    """Xavier-uniform (gain 1) from our own generator, so the field is seeded by the config."""
+    fan_out, fan_in = w.shape
+    a = math.sqrt(6.0 / (fan_in + fan_out))
+    with torch.no_grad():
+        w.copy_((2 * torch.rand(w.shape, generator=generator, dtype=torch.float64) - 1) * a)
+
+
+def _log_linear(step: int, start: int, length: int, init: float, final: float) -> float:
+    s = min(max((step - start) / length, 0.0), 1.0)
+    return math.exp((1 - s) * math.log(init) + s * math.log(final))
+
+
+def _check_time(cam: Camera) -> float:
+    if cam.time is None:
+        raise ValueError(f"camera {cam.name!r} (uid {cam.uid}) has no time; the 4DGS deformation "
+                         f"needs Camera.time in [0, 1]")
+    return float(cam.time)
+
+
+class GS4DAdapter(GS3DAdapter):
+    """Canonical 3DGS Gaussians (inherited: parameters, Adam groups, densification, PLY) plus a
+    HexPlane deformation field with its own Adam (groups "planes" and "mlp").
+
+    Construct with :meth:`from_scene` or :meth:`from_canonical` (any GS3DAdapter, e.g. a trained
+    static model); the constructor takes the raw canonical tensors like GS3DAdapter's, and a
+    GS4DConfig (a plain GS3DConfig is taken as GS4DConfig(canonical=it), so the inherited
+    ``from_tensors`` / ``from_ply`` build a 4DGS model with the default field).
+
+    Attributes (besides GS3DAdapter's; ``config`` is the canonical GS3DConfig):
+        config4d: the GS4DConfig; field: the HexPlaneField; field_optimizer: its Adam.
+    """
+
+    def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
+                 opacities: Tensor, scene_extent: float, config=None, active_sh_degree: int = 0) -> None:
+        if config is None or isinstance(config, GS3DConfig):
+            config = GS4DConfig() if config is None else GS4DConfig(canonical=config)
+        if not isinstance(config, GS4DConfig):
+            raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
+        self.config4d = config
+        super().__init__(means, sh0, shN, scales, quats, opacities, scene_extent, config.canonical,
+                         active_sh_degree)
+        bounds = (torch.tensor(config.bounds, dtype=torch.float64) if config.bounds is not None
+                  else bounds_from_points(self.params["means"], config.min_bounds_fraction))
+        self._build_field(bounds)
+
+    def _build_field(self, bounds: Tensor) -> None:
+        c, ref = self.config4d, self.params["means"]
+        gen = torch.Generator().manual_seed(self.config.seed + 1)
+        self.field = HexPlaneField(bounds, c.resolution, c.multires, c.features, c.width, c.zero_init_heads,
+                                   gen, dtype=ref.dtype, device=ref.device)
+        groups = [{"params": list(self.field.planes), "lr": 0.0, "name": "planes"},
+                  {"params": self.field.mlp_parameters(), "lr": 0.0, "name": "mlp"}]
+        self.field_optimizer = torch.optim.Adam(groups, lr=0.0, eps=self.config.adam_eps)
+        self._set_field_lrs(self._step)
+
+    # ---- construction ----------------------------------------------------------------------
+    @classmethod
+    def from_canonical(cls, canonical: GS3DAdapter, config: Optional[GS4DConfig] = None) -> "GS4DAdapter":
+        """A 4DGS model whose canonical Gaussians are a copy of a GS3DAdapter's (its config's
+        canonical part replaced by that adapter's config)."""
+        config = GS4DConfig() if config is None else config
+        config = dataclasses.replace(config, canonical=canonical.config)
+        p = {k: v.detach() for k, v in canonical.params.items()}
+        return cls(p["means"], p["sh0"], p["shN"], p["scales"], p["quats"], p["opacities"],
+                   canonical.scene_extent, config, canonical.active_sh_degree)
+
+    @classmethod
+    def from_scene(cls, scene, config: Optional[GS4DConfig] = None, dtype: torch.dtype = torch.float32,
+                   device=None) -> "GS4DAdapter":
+        """Canonical Gaussians initialised as GS3DAdapter.from_scene does, from the scene's points
+        plus config.init_random_points random ones (see GS4DConfig)."""
+        config = GS4DConfig() if config is None else config
+        if not isinstance(config, GS4DConfig):
+            raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
+        source = scene
+        if config.init_random_points:
+            source = types.SimpleNamespace(points=cls._with_random_points(scene, config),
+                                           extent=scene.extent, center=scene.center)
+        base = GS3DAdapter.from_scene(source, config.canonical, dtype, device)
+        return cls.from_canonical(base, config)
+
+    @staticmethod
+    def _with_random_points(scene, config: GS4DConfig) -> PointCloud:
+        pts = getattr(scene, "points", None)
+        xyz = torch.zeros(0, 3) if pts is None else pts.xyz
+        rgb = torch.zeros(0, 3) if pts is None else pts.rgb
+        if config.init_box is not None:
+            box = torch.tensor(config.init_box, dtype=torch.float64)
+        elif len(xyz):
+            lo, hi = xyz.double().min(0).values, xyz.double().max(0).values
+            half = float((hi - lo).max()) / 2
+            if not half > 0:
+                raise ValueError("init_random_points: the scene points span no volume; give init_box")
+            c = (lo + hi) / 2
+            box = torch.stack([c - half, c + half])
+        else:  # no points: the 3DGS random-init cube, scene.center ± extent
+            c, half = torch.as_tensor(scene.center, dtype=torch.float64), float(scene.extent)
+            box = torch.stack([c - half, c + half])
+        gen = torch.Generator().manual_seed(config.canonical.seed + 2)
+        n = config.init_random_points
+        u = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+        new_xyz = box[0] + u * (box[1] - box[0])
+        new_rgb = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+        return PointCloud(torch.cat([xyz.double(), new_xyz]), torch.cat([rgb.double(), new_rgb]))
+
+    # ---- schedule -----------------------------------------------------------------------
+    @property
+    def deformation_active(self) -> bool:
+        """Whether the current step is in the fine stage (the field moves the Gaussians)."""
+        return self._step > self.config4d.coarse_steps
+
+    def field_lrs(self, step: int) -> Dict[str, float]:
+        """Learning rates of "planes" and "mlp" at ``step``: log-linear over the fine stage (held
+        at the initial rates during the coarse stage), times the scene extent."""
+        c, e = self.config4d, self.scene_extent
+        return {"planes": e * _log_linear(step, c.coarse_steps, c.fine_steps, c.lr_planes_init, c.lr_planes_final),
+                "mlp": e * _log_linear(step, c.coarse_steps, c.fine_steps, c.lr_mlp_init, c.lr_mlp_final)}
+
+    def _set_field_lrs(self, step: int) -> None:
+        lrs = self.field_lrs(step)
+        for group in self.field_optimizer.param_groups:
+            group["lr"] = lrs[group["name"]]
+
+    def set_step(self, step: int) -> None:
+        """The 3DGS schedules, the field's learning rates and the stage (coarse or fine)."""
+        super().set_step(step)
+        self._set_field_lrs(step)
+
+    def learning_rates(self) -> Dict[str, float]:
+        return {**super().learning_rates(), **{g["name"]: g["lr"] for g in self.field_optimizer.param_groups}}
+
+    # ---- deformation and rendering ----------------------------------------------------------
+    def deformed(self, t: float, force: bool = False) -> Dict[str, Tensor]:
+        """Raw (pre-activation) attributes at time t, keyed like self.params: the canonical ones
+        in the coarse stage (unless ``force``), else with the field's offsets added to means,
+        log-scales and quaternions. Differentiable w.r.t. the canonical parameters and the field."""
+        p = dict(self.params)
+        if not (force or self.deformation_active):
+            return p
+        t = _check_float("t", t)
+        if t > 1:
+            raise ValueError(f"t must be in [0, 1], got {t}")
+        dx, ds, dq = self.field(p["means"], t)
+        p["means"], p["scales"], p["quats"] = p["means"] + dx, p["scales"] + ds, p["quats"] + dq
+        return p
+
+    def render(self, cameras: Sequence[Camera], backgrounds: Tensor) -> RenderResult:
+        """Render C cameras of one size, each at its own time (cameras sharing a time share one
+        rasterizer call). Coarse stage: the canonical Gaussians for every camera (time unused).
+
+        Returns images [C, H, W, 3], alphas [C, H, W, 1] and as aux the list of the rasterizer
+        calls' meta dicts with the positions in the chunk they cover (for accumulate_stats).
+        """
+        cams = list(cameras)
+        if not self.deformation_active or not cams:
+            result = super().render(cams, backgrounds)
+            result.aux = [(list(range(len(cams))), result.aux)]
+            return result
+        sizes = sorted({(c.width, c.height) for c in cams})
+        if len(sizes) != 1:
+            raise ValueError(f"all cameras of a chunk must have one size, got (width, height) "
+                             f"{sizes} for uids {[c.uid for c in cams]}")
+        groups: Dict[float, List[int]] = {}
+        for i, cam in enumerate(cams):
+            groups.setdefault(_check_time(cam), []).append(i)
+        bg = torch.as_tensor(backgrounds)
+        if tuple(bg.shape) != (len(cams), 3):
+            raise ValueError(f"backgrounds must be [C,3] with C={len(cams)}, got {list(bg.shape)}")
+        images: List[Optional[Tensor]] = [None] * len(cams)
+        alphas: List[Optional[Tensor]] = [None] * len(cams)
+        aux = []
+        for t, idx in groups.items():
+            res = self.render_raw(self.deformed(t), [cams[i] for i in idx], bg[idx])
+            for k, i in enumerate(idx):
+                images[i], alphas[i] = res.images[k], res.alphas[k]
+            aux.append((idx, res.aux))
+        return RenderResult(images=torch.stack(images), alphas=torch.stack(alphas), aux=aux)
+
+    def accumulate_stats(self, result: RenderResult) -> None:
+        """GS3DAdapter's statistics, per rasterizer call of the chunk: the screen-space gradient of
+        every view's deformed Gaussians folds into the canonical rows (one visit per view)."""
+        if not isinstance(result.aux, list):
+            raise ValueError("accumulate_stats needs the RenderResult returned by this adapter's render()")
+        for _, meta in result.aux:
+            super().accumulate_stats(RenderResult(images=result.images, aux=meta))
+
+    def regularization(self, step: int) -> Optional[Tensor]:
+        """Fine stage: plane_tv_weight * TV(space planes) + time_smoothness_weight * smoothness(time
+        planes) + l1_time_planes_weight * |1 - time planes| (HexPlaneField.regularizers); None in
+        the coarse stage."""
+        if step <= self.config4d.coarse_steps:
+            return None
+        c, r = self.config4d, self.field.regularizers()
+        return (c.plane_tv_weight * r["tv"] + c.time_smoothness_weight * r["time_smoothness"]
+                + c.l1_time_planes_weight * r["l1_time"])
+
+    # ---- densification ----------------------------------------------------------------------
+    def densify(self, ctx: DensifyContext) -> DensifyReport:
+        """GS3DAdapter.densify with the original 4DGS caps: no growth (gradient or boxes) once
+        the model holds growth_cap Gaussians; prune rules only above prune_min_count (see
+        _prune_mask)."""
+        capped = self.config4d.growth_cap is not None and self.num_primitives() >= self.config4d.growth_cap
+        if capped:
+            ctx = dataclasses.replace(ctx, grad_threshold=math.inf, boxes=None)
+        report = super().densify(ctx)
+        report.extra["growth_capped"] = capped
+        return report
+
+    def _prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+        if rows["means"].shape[0] <= self.config4d.prune_min_count:
+            return torch.zeros(rows["means"].shape[0], dtype=torch.bool, device=rows["means"].device)
+        return super()._prune_mask(rows, radii, extent, prune_large)
+
+    def _box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
+        """Cross-ray boxes for moving content. The boxes come from rays of views taken at
+        different times, so they are approximate where content moves between those times; a
+        canonical Gaussian is selected when its deformed position at any time of the step's views
+        (ctx.cameras) is strictly inside any box. Coarse stage or no times: the 3DGS rule on the
+        canonical positions. The cap keeps the largest mean gradients."""
+        times = sorted({c.time for c in ctx.cameras if c.time is not None})
+        if ctx.boxes is None or not self.deformation_active or not times:
+            return super()._box_selection(ctx, g)
+        boxes = torch.as_tensor(ctx.boxes)
+        if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3) or not bool(torch.isfinite(boxes).all()) \
+                or bool((boxes[:, 0] > boxes[:, 1]).any()):
+            raise ValueError(f"ctx.boxes must be finite [B,2,3] (min, max corners), got {boxes.tolist()}")
+        sel = torch.zeros(self.num_primitives(), dtype=torch.bool, device=g.device)
+        with torch.no_grad():
+            for t in times:
+                sel |= _inside_any_box(self.deformed(t)["means"], boxes.to(g.device))
+        total = int(sel.sum())
+        if ctx.max_new_from_boxes is not None:
+            sel = _top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+        return sel, total - int(sel.sum())
+
+    # ---- optimisation -----------------------------------------------------------------------
+    def _field_named(self) -> Dict[str, torch.nn.Parameter]:
+        return {f"deformation.{k}": v for k, v in self.field.named_parameters()}
+
+    def named_gradients(self) -> Dict[str, Optional[Tensor]]:
+        return {**super().named_gradients(), **{k: v.grad for k, v in self._field_named().items()}}
+
+    def gradient_parameters(self) -> Dict[str, Tensor]:
+        """Every trainable tensor, by the names of named_gradients() (canonical and field)."""
+        return {**dict(self.params), **self._field_named()}
+
+    def optimizer_step(self) -> None:
+        super().optimizer_step()
+        self.field_optimizer.step()  # no-op in the coarse stage: the field has no gradients
+
+    def zero_grad(self) -> None:
+        super().zero_grad()
+        self.field_optimizer.zero_grad(set_to_none=True)
+
+    # ---- persistence ------------------------------------------------------------------------
+    def state_dict(self) -> Dict[str, Any]:
+        """GS3DAdapter's state (canonical Gaussians, their Adam, statistics, step) plus the field,
+        its Adam and the GS4DConfig values."""
+        return {
+            "format": _STATE_FORMAT,
+            "canonical": super().state_dict(),
+            "field": {k: v.detach().clone() for k, v in self.field.state_dict().items()},
+            "field_optimizer": copy.deepcopy(self.field_optimizer.state_dict()),
+            "config4d": self.config4d.saved_values(),
+        }
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        """Restore a state_dict() (any number of Gaussians; the field's shape comes from the
+        saved config)."""
+        for key in ("format", "canonical", "field", "field_optimizer", "config4d"):
+            if key not in state:
+                raise ValueError(f"state has no {key!r} entry; not a GS4DAdapter state_dict")
+        if state["format"] != _STATE_FORMAT:
+            raise ValueError(f"state format {state['format']!r} is not {_STATE_FORMAT!r}")
+        unknown = set(state["config4d"]) - set(GS4DConfig().saved_values())
+        if unknown:
+            raise ValueError(f"state config4d has unknown fields {sorted(unknown)}")
+        super().load_state_dict(state["canonical"])
+        self.config4d = dataclasses.replace(self.config4d, canonical=self.config, **state["config4d"])
+        self._build_field(state["field"]["bounds"])
+        self.field.load_state_dict(state["field"])
+        self.field_optimizer.load_state_dict(state["field_optimizer"])
+        self._set_field_lrs(self._step)
+
+    def export(self, path: str, camera: Optional[Camera] = None) -> None:
+        """Without a camera: the canonical Gaussians as a standard 3DGS PLY. With one: the
+        Gaussians baked at camera.time (export_at_time)."""
+        if camera is None:
+            super().export(path)
+        else:
+            self.export_at_time(path, _check_time(camera))
+
+    def export_at_time(self, path: str, t: float) -> None:
+        """The Gaussians deformed to time t (field applied whatever the stage), as a standard 3DGS
+        PLY with raw values (log scales, unnormalised quaternions): any 3DGS viewer shows the
+        scene at t, and GS3DAdapter.from_ply renders it as this model renders t."""
+        from .ply import write_gaussian_ply
+
+        with torch.no_grad():
+            p = self.deformed(t, force=True)
+        write_gaussian_ply(Path(path), p["means"], p["sh0"], p["shN"], p["opacities"], p["scales"], p["quats"])
+
+    def save_deformation(self, path: str) -> None:
+        """The deformation field alone (weights, box, shape), written atomically; with the
+        canonical PLY it is the whole trained model."""
+        c = self.config4d
+        weights = {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()}
+        data = {"format": _DEFORMATION_FORMAT, "field": weights, **{k: getattr(c, k) for k in _FIELD_SHAPE_KEYS}}
+        folder = os.path.dirname(os.path.abspath(path))
+        fd, tmp = tempfile.mkstemp(prefix=".deform-", dir=folder)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                torch.save(data, f)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    def load_deformation(self, path: str) -> None:
+        """Load a save_deformation() file into this model (its field shape must match)."""
+        data = torch.load(path, weights_only=True)
+        if not isinstance(data, dict) or data.get("format") != _DEFORMATION_FORMAT:
+            raise ValueError(f"{path} is not a {_DEFORMATION_FORMAT} file")
+        for k in _FIELD_SHAPE_KEYS:
+            mine, theirs = getattr(self.config4d, k), data[k]
+            if (tuple(mine) if isinstance(mine, (tuple, list)) else mine) != \
+                    (tuple(theirs) if isinstance(theirs, (tuple, list)) else theirs):
+                raise ValueError(f"{path}: field {k} is {theirs!r}, this model has {mine!r}")
+        self._build_field(data["field"]["bounds"])
+        self.field.load_state_dict(data["field"])
+
+    def __repr__(self) -> str:
+        stage = "fine" if self.deformation_active else "coarse"
+        return (f"GS4DAdapter(N={self.num_primitives()}, {stage} stage, step={self._step}, "
+                f"planes={len(self.field.planes)}, extent={self.scene_extent:.4g})")
