@@ -2,7 +2,8 @@
 paper preset and our default, on one scene, same seed; writes a markdown table and plots.
 
     python examples/ablation.py --steps 600 --views 4 --out docs/ablation/tabletop
-    python examples/ablation.py --data /tmp/variants/reflective --steps 600 --out docs/ablation/reflective
+    python examples/scenes/make_scene.py --variant reflective --out /work/scenes/reflective
+    python examples/ablation.py --data /work/scenes/reflective --steps 600 --out docs/ablation/reflective
 
 Variants (our implementations of each rule, with their guards):
     baseline           plain 3DGS (1 view per step, full resolution)
@@ -11,15 +12,20 @@ Variants (our implementations of each rule, with their guards):
     +MVAD              ... plus multi-view augmented densification
     +CIG (= default)   ... plus the coarse-to-fine pyramid: our default preset
     paper              the released behaviour (MVGS_METHOD.md)
-Writes OUT/ablation.md (test PSNR/SSIM/LPIPS, wall time, Gaussians, peak RSS, controller
-overhead), OUT/ablation.png (PSNR and Gaussians per variant) and OUT/psnr_vs_time.png (test PSNR
-against training wall time for baseline and full MVGS; evaluation time excluded).
+    baseline, equal time   plain 3DGS trained for as many steps as fit in the full run's time
+Each variant runs in its own process (its own peak memory). Writes OUT/ablation.md (test
+PSNR/SSIM/LPIPS, wall time, Gaussians, peak RSS, controller overhead, how often MVAD lowered the
+threshold, CRD boxes and the Gaussians cloned in them, the equal-steps and equal-time
+comparisons), OUT/ablation.png (PSNR and Gaussians per variant) and OUT/psnr_vs_time.png (test
+PSNR against training wall time for baseline, full MVGS and the equal-time baseline; evaluation
+time excluded).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import multiprocessing
 import os
 import resource
 import sys
@@ -46,30 +52,55 @@ def variants(steps: int, views: int, seed: int) -> dict:
     return {"baseline": base, "+MVRL": mvrl, "+CRD": crd, "+MVAD": mvad, "+CIG (= default)": full, "paper": paper}
 
 
-def run(scene, config: MVGSConfig, seed: int, curve_every: int = 0, max_seconds: float = float("inf")) -> dict:
+def scaled(config: MVGSConfig, factor: int) -> MVGSConfig:
+    """The same recipe trained at 1/factor resolution (every stage's pyramid factor times it)."""
+    if factor == 1:
+        return config
+    return dataclasses.replace(config, stages=tuple(Stage(s.factor * factor, s.views, s.steps) for s in config.stages))
+
+
+def run(data: Path, config: MVGSConfig, seed: int, factor: int = 1, curve_every: int = 0,
+        max_seconds: float = float("inf")) -> dict:
+    """Trains one variant and evaluates it on the test views (at 1/factor resolution)."""
     torch.manual_seed(seed)
+    scene = load_scene(data)
     adapter = GS3DAdapter.from_scene(scene, model_config(config, seed))
-    trainer = MVGS(adapter, scene, config)
+    trainer = MVGS(adapter, scene, scaled(config, factor))
     train_time, inner_time, curve, finished = 0.0, 0.0, [], True
+    calls = fired = boxes = from_boxes = 0
     while trainer.step_count < trainer.total_steps:
         info = trainer.step()
         train_time += info.seconds
         inner_time += info.render_seconds + info.backward_seconds
+        if info.threshold is not None:
+            calls += 1
+            fired += info.threshold < config.grad_threshold
+            boxes += info.boxes
+            from_boxes += 0 if info.densify is None else info.densify.from_boxes
         if curve_every and (info.step % curve_every == 0 or info.step == trainer.total_steps):
-            curve.append((train_time, info.step, trainer.evaluate().psnr))  # evaluation not timed
+            curve.append((train_time, info.step, trainer.evaluate(factor=factor).psnr))  # evaluation not timed
         if train_time > max_seconds:
             finished = False
             break
-    result = trainer.evaluate()
+    result = trainer.evaluate(factor=factor)
     return {
         "psnr": result.psnr, "ssim": result.ssim, "lpips": result.lpips, "seconds": train_time,
         "steps": trainer.step_count, "finished": finished, "gaussians": adapter.num_primitives(),
+        # Each variant runs in its own process, so this peak is the variant's own.
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         # Everything a step does besides rendering and backward: sampling, losses, MVAD, CRD,
         # densification, the optimizer and bookkeeping (an upper bound on controller overhead).
         "overhead": max(0.0, train_time - inner_time) / max(train_time, 1e-9),
+        "densify_calls": calls, "mvad_fired": fired, "crd_boxes": boxes, "crd_cloned": from_boxes,
         "curve": curve,
     }
+
+
+def run_isolated(*args) -> dict:
+    """run() in a fresh process: peak memory per variant, and no state shared between them."""
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(1) as pool:
+        return pool.apply(run, args)
 
 
 def write_text(path: Path, text: str) -> None:
@@ -109,42 +140,85 @@ def plots(out: Path, rows: dict) -> None:
     plt.close(fig)
 
 
+FULL = "+CIG (= default)"
+
+
+def equal_time_steps(rows: dict, steps: int) -> int:
+    """Baseline steps that take as long as the full MVGS run (from the two runs' step times)."""
+    base, full = rows["baseline"], rows[FULL]
+    per_base = base["seconds"] / base["steps"]
+    full_time = full["seconds"] / full["steps"] * steps  # what the full run takes to finish
+    return max(steps, round(full_time / per_base))
+
+
+def table(rows: dict, args, threads: int) -> str:
+    lines = [
+        f"Scene `{args.data}`, {args.steps} steps, M = {args.views} at full resolution, resolution 1/"
+        f"{args.resolution_scale}, seed {args.seed}, {threads} threads, every variant in its own process. "
+        f"Command: `python examples/ablation.py --data {args.data} --steps {args.steps} --views {args.views} "
+        f"--resolution-scale {args.resolution_scale} --out {args.out}`",
+        "",
+        "| variant | test PSNR (dB) | test SSIM | LPIPS | train time (s) | Gaussians | peak RSS (MB) "
+        "| controller overhead | MVAD fired | CRD boxes / cloned |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, r in rows.items():
+        lp = "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}"
+        note = "" if r["finished"] else f" (stopped at step {r['steps']})"
+        fired = f"{r['mvad_fired']}/{r['densify_calls']}" if r["densify_calls"] else "-"
+        lines.append(f"| {name}{note} | {r['psnr']:.2f} | {r['ssim']:.4f} | {lp} | {r['seconds']:.0f} | "
+                     f"{r['gaussians']} | {r['peak_mb']:.0f} | {100 * r['overhead']:.1f} % | {fired} | "
+                     f"{r['crd_boxes']} / {r['crd_cloned']} |")
+    if "baseline" in rows and FULL in rows:
+        base, full = rows["baseline"], rows[FULL]
+        lines += ["", f"Full MVGS vs baseline at equal steps: {full['psnr'] - base['psnr']:+.2f} dB PSNR, "
+                      f"{full['ssim'] - base['ssim']:+.4f} SSIM, {full['seconds'] / base['seconds']:.2f}x the time, "
+                      f"{full['gaussians'] / max(1, base['gaussians']):.2f}x the Gaussians."]
+        eq = next((r for n, r in rows.items() if n.startswith("baseline, equal time")), None)
+        if eq is not None:
+            lines.append(f"At equal wall time (baseline trained {eq['steps']} steps, {eq['seconds']:.0f} s vs "
+                         f"{full['seconds']:.0f} s): {full['psnr'] - eq['psnr']:+.2f} dB PSNR, "
+                         f"{full['ssim'] - eq['ssim']:+.4f} SSIM, {full['gaussians'] / max(1, eq['gaussians']):.2f}x "
+                         "the Gaussians.")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED)
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--curve-points", type=int, default=6, help="test evaluations along the PSNR-vs-time curves")
     ap.add_argument("--max-minutes", type=float, default=30.0, help="stop a variant that trains longer than this")
+    ap.add_argument("--no-equal-time", action="store_true",
+                    help="skip the extra baseline run as long as the full MVGS run")
     ap.add_argument("--only", nargs="*", default=None, help="run only these variants")
     ap.add_argument("--out", type=Path, default=Path("out/ablation"))
     args = ap.parse_args(argv)
+    if args.resolution_scale < 1:
+        raise ValueError(f"--resolution-scale must be >= 1, got {args.resolution_scale}")
     args.out.mkdir(parents=True, exist_ok=True)
-    scene = load_scene(args.data)
-    rows = {}
+    load_scene(args.data)  # fail here, not in a worker, on a bad path
+    rows, curves = {}, ("baseline", FULL)
     for name, config in variants(args.steps, args.views, args.seed).items():
         if args.only and name not in args.only:
             continue
-        curve_every = max(1, args.steps // args.curve_points) if name in ("baseline", "+CIG (= default)") else 0
+        curve_every = max(1, args.steps // args.curve_points) if name in curves else 0
         print(f"{name} ...", file=sys.stderr, flush=True)
-        rows[name] = run(scene, config, args.seed, curve_every, args.max_minutes * 60)
-    lines = [
-        f"Scene `{args.data}`, {args.steps} steps, M = {args.views} at full resolution, seed {args.seed}, "
-        f"{torch.get_num_threads()} threads. Command: `python examples/ablation.py "
-        f"--data {args.data} --steps {args.steps} --views {args.views} --out {args.out}`",
-        "",
-        "| variant | test PSNR (dB) | test SSIM | LPIPS | train time (s) | Gaussians | peak RSS (MB) | controller overhead |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for name, r in rows.items():
-        lp = "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}"
-        note = "" if r["finished"] else f" (stopped at step {r['steps']})"
-        lines.append(f"| {name}{note} | {r['psnr']:.2f} | {r['ssim']:.4f} | {lp} | {r['seconds']:.0f} | "
-                     f"{r['gaussians']} | {r['peak_mb']:.0f} | {100 * r['overhead']:.1f} % |")
-    write_text(args.out / "ablation.md", "\n".join(lines) + "\n")
+        rows[name] = run_isolated(args.data, config, args.seed, args.resolution_scale, curve_every,
+                                  args.max_minutes * 60)
+    if not args.no_equal_time and "baseline" in rows and FULL in rows:
+        n = equal_time_steps(rows, args.steps)
+        config = MVGSConfig.baseline(seed=args.seed).with_total_steps(n)
+        print(f"baseline for {n} steps (equal time) ...", file=sys.stderr, flush=True)
+        rows[f"baseline, equal time ({n} steps)"] = run_isolated(
+            args.data, config, args.seed, args.resolution_scale, max(1, n // args.curve_points), args.max_minutes * 60)
+    text = table(rows, args, torch.get_num_threads())
+    write_text(args.out / "ablation.md", text)
     plots(args.out, rows)
-    print("\n".join(lines))
+    print(text)
     return rows
 
 

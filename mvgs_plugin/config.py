@@ -58,6 +58,9 @@ class MVGSConfig:
     max_views_rule: what happens when a stage asks for more views than there are training views:
         "cap" (use them all; the only rule: repeats within a step are never allowed).
     seed: seeds the view sampler and random backgrounds.
+    time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
+        "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
+        nearly equal count along the sorted training times, one view per bin; see sampler.py).
 
     Multi-view augmented densification (MVAD, densify/mvad.py):
     mvad: halve the gradient threshold when the step's cameras are far apart.
@@ -73,6 +76,7 @@ class MVGSConfig:
     crd_window_per_level: divide the window by the pyramid factor (ours) or keep it (paper).
     crd_forward_only: drop pairs whose closest points lie behind a camera.
     crd_max_miss: drop pairs whose rays pass further apart than this times the scene extent.
+    crd_pad_by_miss: grow each box by half its pair's largest miss distance (see densify/crd.py).
     crd_min_angle_deg: drop pairs whose rays are closer to parallel than this.
     crd_clip: clip boxes to the bounding box of the model's primitives.
     crd_max_new: cap on primitives one call may add, as a fraction of the current count.
@@ -94,6 +98,7 @@ class MVGSConfig:
     background: Union[str, Tuple[float, float, float]] = "auto"
     max_views_rule: str = "cap"
     seed: int = 0
+    time_spread: str = "random"
     mvad: bool = False
     mvad_tau: float = 1.0
     mvad_rule: Union[str, float] = "any"
@@ -104,6 +109,7 @@ class MVGSConfig:
     crd_window_per_level: bool = True
     crd_forward_only: bool = True
     crd_max_miss: Optional[float] = 0.05
+    crd_pad_by_miss: bool = True
     crd_min_angle_deg: float = 1.0
     crd_clip: bool = True
     crd_max_new: Optional[float] = 0.05
@@ -114,7 +120,7 @@ class MVGSConfig:
         if not self.stages or not all(isinstance(s, Stage) for s in self.stages):
             raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
         choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",),
-                   "mvad_center": ("origin", "scene")}
+                   "mvad_center": ("origin", "scene"), "time_spread": ("random", "stratified")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -159,8 +165,8 @@ class MVGSConfig:
             "stages": stages, "stats_from": "last", "restart_per_stage": True,
             "opacity_reset_at_handoff": True, "preset": "paper",
             "mvad": True, "mvad_center": "origin", "crd": True, "crd_window_per_level": False,
-            "crd_forward_only": False, "crd_max_miss": None, "crd_min_angle_deg": 0.0, "crd_clip": False,
-            "crd_max_new": None, **overrides,
+            "crd_forward_only": False, "crd_max_miss": None, "crd_pad_by_miss": False, "crd_min_angle_deg": 0.0,
+            "crd_clip": False, "crd_max_new": None, **overrides,
         })
 
     @classmethod
@@ -184,8 +190,16 @@ class MVGSConfig:
         Stage lengths keep their proportions (each at least 1 step) and every step-valued clock
         (densification window and interval, opacity reset, size pruning) scales by the same
         ratio, so a 3.9k-step run densifies and resets at the same relative times as a 39k one;
-        but densification never runs more often than every 10 steps and opacity resets never
-        come sooner than 10 densification intervals apart.
+        but densification never runs more often than every 10 steps, never starts before step
+        50 (when the recipe's own start is later), and opacity resets never come sooner than 10
+        densification intervals apart.
+
+        Why the floors: the per-step learning rates are not compressed, so a model needs about
+        as many steps to settle as ever. Densifying at step 3 of a 120-step run (500 / 30k
+        scaled) acts on the large gradients of a model that has not fitted anything yet and
+        multiplies the count for nothing: a flat textured plane went from 1.5k to 42k Gaussians
+        in 70 steps that way, and needs no densification at all once given 40 steps to fit
+        (tests/test_gaussian_budget.py).
         """
         if isinstance(total, bool) or not isinstance(total, int) or total < len(self.stages):
             raise ValueError(f"total steps must be an int >= the number of stages ({len(self.stages)}), got {total!r}")
@@ -201,9 +215,10 @@ class MVGSConfig:
         # opacities need time to recover between resets (the original has 30 densifications per
         # reset interval).
         every = max(min(10, self.densify_every), scale(self.densify_every))
+        start = max(min(50, self.densify_from), scale(self.densify_from))
         reset = max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every))
         return dataclasses.replace(
-            self, stages=stages, densify_from=scale(self.densify_from), densify_until=scale(self.densify_until),
+            self, stages=stages, densify_from=start, densify_until=scale(self.densify_until),
             densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
         )
 

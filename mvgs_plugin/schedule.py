@@ -98,7 +98,9 @@ class ViewSchedule:
         self.scene = scene
         self.config = config
         self.plan = StagePlan(config.stages, config.restart_per_stage)
-        self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed)
+        times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
+        self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed, times=times,
+                                   time_spread=config.time_spread)
         self._bg_gen = torch.Generator().manual_seed(config.seed + 1)
         self._scaled: Dict[Tuple[int, int], Camera] = {}
         self.step_count = 0
@@ -163,7 +165,8 @@ class ViewSchedule:
             windows = best_windows(torch.stack(list(loss_maps)), (h, w))
             max_miss = None if cfg.crd_max_miss is None else cfg.crd_max_miss * float(self.scene.extent)
             boxes, _ = cross_ray_boxes(plan.cameras, windows, cfg.crd_forward_only, max_miss,
-                                       cfg.crd_min_angle_deg, bounds if cfg.crd_clip else None)
+                                       cfg.crd_min_angle_deg, bounds if cfg.crd_clip else None,
+                                       cfg.crd_pad_by_miss)
             if cfg.crd_max_new is not None:
                 cap = int(math.ceil(cfg.crd_max_new * primitive_count))
         return DensifyContext(

@@ -134,7 +134,7 @@ def test_three_line_wrap(scene):
 
 
 def test_checkpoint_resume_matches_uninterrupted_training(scene, tmp_path):
-    config = MVGSConfig.default(background="random").with_total_steps(30).with_views(2)
+    config = MVGSConfig.default(background="random", densify_from=1).with_total_steps(30).with_views(2)
     cut = 6
     assert config.densify_from < cut < config.densify_until  # densification happens on both sides of the cut
     full = MVGS(make(scene), scene, config)

@@ -107,9 +107,9 @@ def centred_window(size, h, w):
     return torch.tensor([(size - h) // 2, (size - w) // 2, h, w])
 
 
-def reference_box(cams, windows):
+def reference_box(cams, windows, with_miss=False):
     """Independent: each corner's two rays from K^-1 and the pose, closest points by least squares."""
-    mids = []
+    mids, misses = [], []
     for k in range(4):
         pts = []
         for cam, win in zip(cams, windows):
@@ -124,8 +124,9 @@ def reference_box(cams, windows):
         A = np.stack([d1, -d2], axis=1)
         t, *_ = np.linalg.lstsq(A, o2 - o1, rcond=None)
         mids.append(0.5 * ((o1 + t[0] * d1) + (o2 + t[1] * d2)))
+        misses.append(np.linalg.norm((o1 + t[0] * d1) - (o2 + t[1] * d2)))
     mids = np.array(mids)
-    return mids.min(0), mids.max(0)
+    return (mids.min(0), mids.max(0)) + ((max(misses),) if with_miss else ())
 
 
 def test_two_cameras_box_contains_the_point_and_has_the_predicted_size():
@@ -187,3 +188,15 @@ def test_max_miss_and_clipping():
     assert float(clipped[0, 0, 2]) == 0.5 and torch.equal(clipped[0, 1], boxes[0, 1])
     outside = torch.tensor([[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]], dtype=torch.float64)
     assert cross_ray_boxes(cams, windows, max_miss=2.0, bounds=outside)[0].shape[0] == 0
+
+
+def test_boxes_grow_by_half_the_largest_miss():
+    # The two cameras' axes pass 1 unit apart, so every midpoint is uncertain by about 0.5: the
+    # padded box is the plain one grown on every side by half the pair's largest miss.
+    cams = [camera(0, (4.0, 0.0, 0.0)), camera(1, (0.0, 4.0, 1.0), target=(0.0, 0.0, 1.0))]
+    windows = torch.stack([centred_window(64, 8, 8)] * 2)
+    lo, hi, miss = reference_box(cams, windows, with_miss=True)
+    assert 0.9 < miss < 1.1
+    padded, _ = cross_ray_boxes(cams, windows, pad_by_miss=True)
+    np.testing.assert_allclose(padded[0, 0].numpy(), lo - miss / 2, atol=1e-9)
+    np.testing.assert_allclose(padded[0, 1].numpy(), hi + miss / 2, atol=1e-9)

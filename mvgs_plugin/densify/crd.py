@@ -8,7 +8,10 @@ densifies what lies inside. All of it is vectorised over views and pairs.
 
 Guards (each optional, all off in the paper preset): rays only forward (both closest points in
 front of their cameras), a maximum miss distance between the two rays, near-parallel pairs
-skipped, boxes clipped to given bounds (e.g. the model's bounding box).
+skipped, boxes grown by half the pair's largest miss distance (each midpoint is only known to
+within half the gap between its two rays, and four nearly coplanar midpoints would otherwise
+give a box too thin to hold anything), boxes clipped to given bounds (e.g. the model's bounding
+box).
 """
 
 from __future__ import annotations
@@ -76,7 +79,7 @@ def closest_points(o1: Tensor, d1: Tensor, o2: Tensor, d2: Tensor):
 
 def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = True,
                     max_miss: Optional[float] = None, min_angle_deg: float = 0.0,
-                    bounds: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+                    bounds: Optional[Tensor] = None, pad_by_miss: bool = False) -> Tuple[Tensor, Tensor]:
     """Boxes from corresponding corner rays of every pair of views.
 
     Args:
@@ -87,6 +90,7 @@ def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = Tru
             units); None = no limit.
         min_angle_deg: drop a pair when any corner's rays are closer to parallel than this.
         bounds: [2, 3] (min, max) to clip boxes to; boxes left empty are dropped.
+        pad_by_miss: grow each box on every side by half the largest miss distance of its pair.
     Returns:
         boxes [B, 2, 3] float64 (min corner, max corner) and pairs [B, 2] (view indices).
     """
@@ -105,6 +109,9 @@ def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = Tru
     if max_miss is not None:
         keep &= (miss <= max_miss).all(-1)
     lo, hi = mid.amin(dim=1), mid.amax(dim=1)  # [P,3]
+    if pad_by_miss:
+        pad = 0.5 * miss.amax(dim=-1, keepdim=True)  # [P,1]
+        lo, hi = lo - pad, hi + pad
     if bounds is not None:
         b = torch.as_tensor(bounds, dtype=torch.float64)
         lo, hi = torch.maximum(lo, b[0]), torch.minimum(hi, b[1])
