@@ -60,8 +60,11 @@ def scaled(config: MVGSConfig, factor: int) -> MVGSConfig:
 
 
 def run(data: Path, config: MVGSConfig, seed: int, factor: int = 1, curve_every: int = 0,
-        max_seconds: float = float("inf")) -> dict:
-    """Trains one variant and evaluates it on the test views (at 1/factor resolution)."""
+        max_seconds: float = float("inf"), threads: int = 0) -> dict:
+    """Trains one variant and evaluates it on the test views (at 1/factor resolution) with
+    `threads` torch threads (0: torch's default; the C++ kernels use as many)."""
+    if threads:
+        torch.set_num_threads(threads)
     torch.manual_seed(seed)
     scene = load_scene(data)
     adapter = GS3DAdapter.from_scene(scene, model_config(config, seed))
@@ -151,12 +154,13 @@ def equal_time_steps(rows: dict, steps: int) -> int:
     return max(steps, round(full_time / per_base))
 
 
-def table(rows: dict, args, threads: int) -> str:
+def table(rows: dict, args) -> str:
     lines = [
         f"Scene `{args.data}`, {args.steps} steps, M = {args.views} at full resolution, resolution 1/"
-        f"{args.resolution_scale}, seed {args.seed}, {threads} threads, every variant in its own process. "
-        f"Command: `python examples/ablation.py --data {args.data} --steps {args.steps} --views {args.views} "
-        f"--resolution-scale {args.resolution_scale} --out {args.out}`",
+        f"{args.resolution_scale}, seed {args.seed}, {args.threads or torch.get_num_threads()} thread(s) per "
+        f"variant, every variant in its own process. Command: `python examples/ablation.py --data {args.data} "
+        f"--steps {args.steps} --views {args.views} --resolution-scale {args.resolution_scale} "
+        f"--threads {args.threads} --out {args.out}`",
         "",
         "| variant | test PSNR (dB) | test SSIM | LPIPS | train time (s) | Gaussians | peak RSS (MB) "
         "| controller overhead | MVAD fired | CRD boxes / cloned |",
@@ -190,6 +194,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads per variant (0: torch's default); 1 is steadier on a shared machine")
     ap.add_argument("--curve-points", type=int, default=6, help="test evaluations along the PSNR-vs-time curves")
     ap.add_argument("--max-minutes", type=float, default=30.0, help="stop a variant that trains longer than this")
     ap.add_argument("--no-equal-time", action="store_true",
@@ -208,14 +214,16 @@ def main(argv=None) -> dict:
         curve_every = max(1, args.steps // args.curve_points) if name in curves else 0
         print(f"{name} ...", file=sys.stderr, flush=True)
         rows[name] = run_isolated(args.data, config, args.seed, args.resolution_scale, curve_every,
-                                  args.max_minutes * 60)
+                                  args.max_minutes * 60, args.threads)
+        write_text(args.out / "ablation.md", table(rows, args))  # a stopped run keeps what it has
     if not args.no_equal_time and "baseline" in rows and FULL in rows:
         n = equal_time_steps(rows, args.steps)
         config = MVGSConfig.baseline(seed=args.seed).with_total_steps(n)
         print(f"baseline for {n} steps (equal time) ...", file=sys.stderr, flush=True)
         rows[f"baseline, equal time ({n} steps)"] = run_isolated(
-            args.data, config, args.seed, args.resolution_scale, max(1, n // args.curve_points), args.max_minutes * 60)
-    text = table(rows, args, torch.get_num_threads())
+            args.data, config, args.seed, args.resolution_scale, max(1, n // args.curve_points), args.max_minutes * 60,
+            args.threads)
+    text = table(rows, args)
     write_text(args.out / "ablation.md", text)
     plots(args.out, rows)
     print(text)

@@ -87,6 +87,30 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     return ap
 
 
+def config_from_args(args, **preset_overrides) -> MVGSConfig:
+    """The MVGSConfig the common CLI asks for: preset rescaled to --steps, --views, --mvad/--crd,
+    and every pyramid factor times --resolution-scale."""
+    config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides).with_total_steps(args.steps)
+    if args.views is not None:
+        config = config.with_views(args.views)
+    for rule in ("mvad", "crd"):
+        if getattr(args, rule) is not None:
+            config = dataclasses.replace(config, **{rule: getattr(args, rule)})
+    if args.resolution_scale != 1:
+        s = args.resolution_scale
+        config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
+    return config
+
+
+def save_test_renders(out: Path, result) -> None:
+    """OUT/test/<view>.png for every evaluated view (atomic writes)."""
+    (out / "test").mkdir(parents=True, exist_ok=True)
+    from reference_renderer.demo import save_png
+
+    for row in result.per_view:
+        save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
+
+
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
@@ -113,15 +137,7 @@ def main(argv=None) -> dict:
 
 def run(args, dist) -> dict:
     scene = load_scene(args.data)
-    config = MVGSConfig.from_preset(args.preset, seed=args.seed).with_total_steps(args.steps)
-    if args.views is not None:
-        config = config.with_views(args.views)
-    for rule in ("mvad", "crd"):
-        if getattr(args, rule) is not None:
-            config = dataclasses.replace(config, **{rule: getattr(args, rule)})
-    if args.resolution_scale != 1:
-        s = args.resolution_scale
-        config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
+    config = config_from_args(args)
     adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
     trainer = MVGS(adapter, scene, config, distributed=dist)
 
@@ -135,11 +151,7 @@ def run(args, dist) -> dict:
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
-    (out / "test").mkdir(parents=True, exist_ok=True)
-    from reference_renderer.demo import save_png
-
-    for row in result.per_view:
-        save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
+    save_test_renders(out, result)
     adapter.export(str(out / "point_cloud.ply"))
     metrics = {
         "psnr": result.psnr,

@@ -21,7 +21,6 @@ time bins) or "random".
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import resource
 import sys
@@ -31,10 +30,12 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from train_3dgs import common_args, load_scene, model_config, write_json  # noqa: E402
+from train_3dgs import (  # noqa: E402
+    common_args, config_from_args, load_scene, model_config, save_test_renders, write_json,
+)
 
 from adapters.gs4d import GS4DAdapter, GS4DConfig  # noqa: E402
-from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
+from mvgs_plugin import MVGS, MVGSConfig  # noqa: E402
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
 
@@ -85,17 +86,7 @@ def main(argv=None) -> dict:
     if untimed:
         raise ValueError(f"{args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
-    config = MVGSConfig.from_preset(args.preset, seed=args.seed, time_spread=args.time_spread)
-    config = config.with_total_steps(args.steps)
-    if args.views is not None:
-        config = config.with_views(args.views)
-    for rule in ("mvad", "crd"):
-        if getattr(args, rule) is not None:
-            config = dataclasses.replace(config, **{rule: getattr(args, rule)})
-    if args.resolution_scale != 1:
-        s = args.resolution_scale
-        stages = tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages)
-        config = dataclasses.replace(config, stages=stages)
+    config = config_from_args(args, time_spread=args.time_spread)
     model_cfg = gs4d_config(config, args)
     adapter = GS4DAdapter.from_scene(scene, model_cfg)
     trainer = MVGS(adapter, scene, config)
@@ -106,11 +97,7 @@ def main(argv=None) -> dict:
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
-    (out / "test").mkdir(parents=True, exist_ok=True)
-    from reference_renderer.demo import save_png
-
-    for row in result.per_view:
-        save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
+    save_test_renders(out, result)
     adapter.export(str(out / "point_cloud.ply"))
     adapter.save_deformation(str(out / "deformation.pt"))
     for t in args.export_times:
