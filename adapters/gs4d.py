@@ -48,8 +48,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import os
-import tempfile
 import types
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +58,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data.scene import PointCloud
+from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
 from .gs3d import GS3DAdapter, GS3DConfig, _check_float, _check_int, _inside_any_box, _top_by_score
@@ -593,15 +592,7 @@ class GS4DAdapter(GS3DAdapter):
         c = self.config4d
         weights = {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()}
         data = {"format": _DEFORMATION_FORMAT, "field": weights, **{k: getattr(c, k) for k in _FIELD_SHAPE_KEYS}}
-        folder = os.path.dirname(os.path.abspath(path))
-        fd, tmp = tempfile.mkstemp(prefix=".deform-", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save(data, f)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        save_atomic(data, path)
 
     def load_deformation(self, path: str) -> None:
         """Load a save_deformation() file into this model (its field shape must match)."""

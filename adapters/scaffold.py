@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 
@@ -686,8 +687,8 @@ class ScaffoldAdapter:
         self._generator.set_state(state["generator"])
 
     def save_anchors(self, path: str) -> None:
-        """Write the native anchor checkpoint (state_dict()) to ``path``."""
-        torch.save(self.state_dict(), path)
+        """Write the native anchor checkpoint (state_dict()) to ``path``, atomically."""
+        save_atomic(self.state_dict(), path)
 
     @torch.no_grad()
     def export(self, path: str, camera: Optional[Camera] = None) -> None:

@@ -14,8 +14,6 @@ single-process step (see distributed.py).
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence
@@ -26,6 +24,7 @@ from .camera import Camera
 from .config import MVGSConfig
 from .densify import loss_map
 from .distributed import Collective, require_support
+from .io import save_atomic
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
 from .protocol import Adapter, DensifyReport
@@ -303,24 +302,9 @@ class MVGS:
         rank 0 writes, the others wait until the file is there."""
         state = self.state_dict()
         if self.is_main:
-            self._write(path, state)
+            save_atomic(state, path)
         if self.distributed is not None:
             self.distributed.barrier("checkpoint", self.step_count)
-
-    @staticmethod
-    def _write(path: str, state: Dict) -> None:
-        folder = os.path.dirname(os.path.abspath(path))
-        os.makedirs(folder, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".ckpt-", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save(state, f)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
 
     def load_checkpoint(self, path: str) -> None:
         self.load_state_dict(torch.load(path, weights_only=False))

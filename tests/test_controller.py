@@ -254,3 +254,29 @@ def test_mvad_and_crd_off_in_the_baseline(scene):
     trainer.step()
     trainer.step()
     assert seen[0].grad_threshold == config.grad_threshold and seen[0].boxes is None
+
+
+def test_a_failed_checkpoint_write_keeps_the_previous_file(scene, tmp_path, monkeypatch):
+    """save_atomic (used for checkpoints, anchors and deformation files) writes a temporary file
+    and renames it: a crash mid-write leaves the old checkpoint loadable and no partial file."""
+    import mvgs_plugin.io as io
+
+    trainer = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(4))
+    trainer.step()
+    path = tmp_path / "ckpt.pt"
+    trainer.save_checkpoint(str(path))
+    before = path.read_bytes()
+    trainer.step()
+
+    def crash(obj, f):
+        f.write(b"half a checkpoint")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(io.torch, "save", crash)
+    with pytest.raises(OSError, match="disk full"):
+        trainer.save_checkpoint(str(path))
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
+    monkeypatch.undo()
+    fresh = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(4))
+    fresh.load_checkpoint(str(path))
+    assert fresh.step_count == 1
