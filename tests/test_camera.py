@@ -181,3 +181,27 @@ def test_stack_cameras():
     assert v64.dtype == torch.float64 and torch.equal(v64[0], a.world_to_camera)
     with pytest.raises(ValueError, match="at least one camera"):
         stack_cameras([])
+
+
+def test_plane_scene_images_are_the_analytic_texture():
+    """mvgs_plugin.testing.plane_image: a camera straight above the origin sees the texture at the
+    ground point under each pixel centre (pinhole geometry by hand), and black off the square."""
+    from mvgs_plugin.testing import PLANE_HALF, look_at, plane_image, plane_texture
+
+    size, f, h = 32, 16.0, 2.0  # 2 units above the plane, 90 degree field of view
+    cam = Camera(0, "top", [[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]],
+                 look_at((0.0, 0.0, h), up=(0.0, 1.0, 0.0)), size, size)
+    img = plane_image(cam, supersample=1)
+    # Pixel (i, j) centre -> camera ray ((j + .5 - 16) / f, (i + .5 - 16) / f, 1) -> ground point.
+    j, i = 20, 9
+    x_cam, y_cam = (j + 0.5 - size / 2) / f * h, (i + 0.5 - size / 2) / f * h
+    right = cam.world_to_camera[0, :3].to(torch.float64)
+    down = cam.world_to_camera[1, :3].to(torch.float64)
+    ground = x_cam * right + y_cam * down  # camera x / y axes in world, from the origin under the camera
+    expected = plane_texture(ground[0], ground[1]).float()
+    assert torch.allclose(img[i, j], expected, atol=1e-5)
+    assert abs(float(ground[0])) < PLANE_HALF and abs(float(ground[1])) < PLANE_HALF
+    far = Camera(1, "far", [[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]],
+                 look_at((0.0, 0.0, 40.0), up=(0.0, 1.0, 0.0)), size, size)
+    edge = plane_image(far, supersample=1)
+    assert float(edge[0, 0].abs().max()) == 0.0 and float(edge[16, 16].abs().min()) > 0.0
