@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.densify import check_boxes
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 from reference_renderer.projection import quat_to_rotmat
@@ -686,15 +687,7 @@ class GS3DAdapter:
         none = torch.zeros(n, dtype=torch.bool, device=g.device)
         if ctx.boxes is None:
             return none, 0
-        boxes = torch.as_tensor(ctx.boxes)
-        if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3):
-            raise ValueError(f"ctx.boxes must be [B,2,3] (min, max corners), got {list(boxes.shape)}")
-        if not bool(torch.isfinite(boxes).all()):
-            raise ValueError("ctx.boxes must be finite")
-        bad = (boxes[:, 0] > boxes[:, 1]).any(dim=-1)
-        if bool(bad.any()):
-            i = int(bad.nonzero()[0, 0])
-            raise ValueError(f"ctx.boxes[{i}] has min > max: {boxes[i].tolist()} (corners swapped?)")
+        boxes = check_boxes(ctx.boxes)
         sel = _inside_any_box(self.params["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:

@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.densify import check_boxes
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
@@ -550,7 +551,7 @@ class ScaffoldAdapter:
         occupied = self.anchors
         box_new = 0
         if ctx.boxes is not None:
-            sel = _inside_any_box(xyz, self._check_boxes(ctx.boxes))
+            sel = _inside_any_box(xyz, check_boxes(ctx.boxes))
             cap = ctx.max_new_from_boxes
             cap = None if cap is None else _check_int("max_new_from_boxes", cap, 0)
             cells, f = self._seed(xyz, feats, g, sel, occupied, self.voxel_size, cap, budget)
@@ -575,19 +576,6 @@ class ScaffoldAdapter:
         return DensifyReport(before=a0, after=self.num_primitives(), pruned=int(prune.sum()), from_boxes=box_new,
                              extra={"grad_threshold": beta, "grown": n_new - box_new, "grown_per_level": per_level,
                                     "visit_thresholds": (t_child, t_anchor)})
-
-    @staticmethod
-    def _check_boxes(boxes) -> Tensor:
-        boxes = torch.as_tensor(boxes)
-        if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3):
-            raise ValueError(f"ctx.boxes must be [B,2,3] (min, max corners), got {list(boxes.shape)}")
-        if not bool(torch.isfinite(boxes).all()):
-            raise ValueError("ctx.boxes must be finite")
-        bad = (boxes[:, 0] > boxes[:, 1]).any(dim=-1)
-        if bool(bad.any()):
-            i = int(bad.nonzero()[0, 0])
-            raise ValueError(f"ctx.boxes[{i}] has min > max: {boxes[i].tolist()} (corners swapped?)")
-        return boxes
 
     def _seed(self, xyz: Tensor, feats: Tensor, g: Tensor, sel: Tensor, occupied: Tensor, size: float,
               cap: Optional[int], budget: float) -> Tuple[Tensor, Tensor]:

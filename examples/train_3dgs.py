@@ -111,6 +111,29 @@ def save_test_renders(out: Path, result) -> None:
         save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
 
 
+def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, world_size: int = 1,
+                   **extra) -> dict:
+    """The metrics.json every train_*.py script writes: test PSNR/SSIM/LPIPS, training seconds,
+    steps, primitives, peak memory, the run's settings and per-view results; `extra` adds the
+    model family's own entries (model size, anchors, ...)."""
+    return {
+        "psnr": result.psnr,
+        "ssim": result.ssim,
+        "lpips": result.lpips,
+        "train_seconds": train_seconds,
+        "steps": trainer.step_count,
+        "num_gaussians": trainer.adapter.num_primitives(),
+        **extra,
+        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "preset": args.preset,
+        "data": str(args.data),
+        "threads": torch.get_num_threads(),
+        "world_size": world_size,
+        "config": config.to_dict(),
+        "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
+    }
+
+
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
@@ -153,21 +176,8 @@ def run(args, dist) -> dict:
     out = args.out
     save_test_renders(out, result)
     adapter.export(str(out / "point_cloud.ply"))
-    metrics = {
-        "psnr": result.psnr,
-        "ssim": result.ssim,
-        "lpips": result.lpips,
-        "train_seconds": train_seconds,
-        "steps": trainer.step_count,
-        "num_gaussians": adapter.num_primitives(),
-        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "preset": args.preset,
-        "data": str(args.data),
-        "threads": torch.get_num_threads(),
-        "world_size": 1 if dist is None else dist.world_size,
-        "config": config.to_dict(),
-        "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
-    }
+    metrics = metrics_record(args, config, trainer, result, train_seconds,
+                             world_size=1 if dist is None else dist.world_size)
     write_json(out / "metrics.json", metrics)
     print(
         f"{args.preset}: test PSNR {result.psnr:.2f} dB, SSIM {result.ssim:.4f}, "

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import time
 from pathlib import Path
@@ -31,7 +30,8 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, load_scene, model_config, save_test_renders, write_json,
+    common_args, config_from_args, load_scene, metrics_record, model_config, save_test_renders,
+    write_json,
 )
 
 from adapters.gs4d import GS4DAdapter, GS4DConfig  # noqa: E402
@@ -103,26 +103,14 @@ def main(argv=None) -> dict:
     for t in args.export_times:
         adapter.export_at_time(str(out / f"point_cloud_t{t:.3f}.ply"), t)
     model_bytes = os.path.getsize(out / "point_cloud.ply") + os.path.getsize(out / "deformation.pt")
-    metrics = {
-        "psnr": result.psnr,
-        "ssim": result.ssim,
-        "lpips": result.lpips,
-        "train_seconds": train_seconds,
-        "steps": trainer.step_count,
-        "num_gaussians": adapter.num_primitives(),
-        "model_mb": model_bytes / 2**20,
-        "deformation_parameters": sum(p.numel() for p in adapter.field.parameters()),
-        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "preset": args.preset,
-        "data": str(args.data),
-        "threads": torch.get_num_threads(),
-        "config": config.to_dict(),
-        "model_config": {"coarse_steps": model_cfg.coarse_steps, "fine_steps": model_cfg.fine_steps,
-                         **{k: v for k, v in model_cfg.saved_values().items()
-                            if k not in ("coarse_steps", "fine_steps")},
-                         "canonical": model_cfg.canonical.saved_values()},
-        "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
-    }
+    metrics = metrics_record(
+        args, config, trainer, result, train_seconds,
+        model_mb=model_bytes / 2**20,
+        deformation_parameters=sum(p.numel() for p in adapter.field.parameters()),
+        model_config={"coarse_steps": model_cfg.coarse_steps, "fine_steps": model_cfg.fine_steps,
+                      **{k: v for k, v in model_cfg.saved_values().items() if k not in ("coarse_steps", "fine_steps")},
+                      "canonical": model_cfg.canonical.saved_values()},
+    )
     write_json(out / "metrics.json", metrics)
     print(
         f"{args.preset}: test PSNR {result.psnr:.2f} dB, SSIM {result.ssim:.4f}, "

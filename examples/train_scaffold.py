@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, load_scene, save_test_renders, write_json,
+    BUNDLED, common_args, config_from_args, load_scene, metrics_record, save_test_renders, write_json,
 )
 
 from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig  # noqa: E402
@@ -79,26 +78,11 @@ def main(argv=None) -> dict:
     adapter.export(str(out / "point_cloud.ply"), views[0])
     adapter.save_anchors(str(out / "anchors.pt"))
     model_numel = adapter.anchors.numel() + sum(p.numel() for p in adapter.gradient_parameters().values())
-    metrics = {
-        "psnr": result.psnr,
-        "ssim": result.ssim,
-        "lpips": result.lpips,
-        "train_seconds": train_seconds,
-        "steps": trainer.step_count,
-        "num_gaussians": adapter.num_primitives(),
-        "num_anchors": adapter.num_primitives(),
-        "decoded_gaussians": sum(decoded) / len(decoded),
-        "voxel_size": adapter.voxel_size,
-        "model_mb": model_numel * 4 / 2**20,
-        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "preset": args.preset,
-        "data": str(args.data),
-        "threads": torch.get_num_threads(),
-        "world_size": 1,
-        "config": config.to_dict(),
-        "model_config": model_cfg.saved_values(),
-        "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
-    }
+    metrics = metrics_record(
+        args, config, trainer, result, train_seconds,
+        num_anchors=adapter.num_primitives(), decoded_gaussians=sum(decoded) / len(decoded),
+        voxel_size=adapter.voxel_size, model_mb=model_numel * 4 / 2**20, model_config=model_cfg.saved_values(),
+    )
     write_json(out / "metrics.json", metrics)
     print(
         f"{args.preset}: test PSNR {result.psnr:.2f} dB, SSIM {result.ssim:.4f}, {metrics['num_anchors']} anchors, "

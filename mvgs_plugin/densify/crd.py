@@ -120,6 +120,21 @@ def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = Tru
     return boxes, torch.stack([i, j], dim=-1)[keep]
 
 
+def check_boxes(boxes) -> Tensor:
+    """A DensifyContext's boxes as a [B, 2, 3] tensor (min corner, max corner); raises on a wrong
+    shape, non-finite values or a box whose min exceeds its max (naming the box)."""
+    boxes = torch.as_tensor(boxes)
+    if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3):
+        raise ValueError(f"ctx.boxes must be [B,2,3] (min, max corners), got {list(boxes.shape)}")
+    if not bool(torch.isfinite(boxes).all()):
+        raise ValueError("ctx.boxes must be finite")
+    bad = (boxes[:, 0] > boxes[:, 1]).any(dim=-1)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"ctx.boxes[{i}] has min > max: {boxes[i].tolist()} (corners swapped?)")
+    return boxes
+
+
 def loss_map(render: Tensor, target: Tensor) -> Tensor:
     """[H, W] per-pixel L1 loss (mean over channels), as the released code uses."""
     return (render.detach() - target.to(render)).abs().mean(dim=-1)
