@@ -111,6 +111,13 @@ def save_test_renders(out: Path, result) -> None:
         save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
 
 
+def timed_fit(trainer: MVGS, args) -> float:
+    """Runs the whole training (progress bar unless --no-progress); returns its wall seconds."""
+    t0 = time.perf_counter()
+    trainer.fit(progress=not args.no_progress)
+    return time.perf_counter() - t0
+
+
 def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, world_size: int = 1,
                    **extra) -> dict:
     """The metrics.json every train_*.py script writes: test PSNR/SSIM/LPIPS, training seconds,
@@ -164,9 +171,7 @@ def run(args, dist) -> dict:
     adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
     trainer = MVGS(adapter, scene, config, distributed=dist)
 
-    t0 = time.perf_counter()
-    trainer.fit(progress=not args.no_progress)
-    train_seconds = time.perf_counter() - t0
+    train_seconds = timed_fit(trainer, args)
     if args.checkpoint:
         trainer.save_checkpoint(str(args.out / "checkpoint.pt"))  # every rank takes part; rank 0 writes
     if not trainer.is_main:  # identical model on every rank: rank 0 evaluates and writes

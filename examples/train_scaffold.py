@@ -19,14 +19,14 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, load_scene, metrics_record, save_test_renders, write_json,
+    BUNDLED, common_args, config_from_args, load_scene, metrics_record, save_test_renders, timed_fit,
+    write_json,
 )
 
 from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig  # noqa: E402
@@ -65,9 +65,7 @@ def main(argv=None) -> dict:
     adapter = ScaffoldAdapter.from_scene(scene, model_cfg)
     trainer = MVGS(adapter, scene, config)
 
-    t0 = time.perf_counter()
-    trainer.fit(progress=not args.no_progress)
-    train_seconds = time.perf_counter() - t0
+    train_seconds = timed_fit(trainer, args)
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out

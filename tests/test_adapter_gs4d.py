@@ -65,6 +65,19 @@ def cam_at(uid, t, eye=(3.0, 0.4, 0.8), size=20):
 
 
 # ---- conformance -------------------------------------------------------------------------------
+def central_difference(loss, flat, i: int, eps: float) -> float:
+    """(loss(x + eps e_i) - loss(x - eps e_i)) / 2 eps, with entry i of `flat` (a view into a
+    parameter) perturbed in place and restored."""
+    old = float(flat[i])
+    with torch.no_grad():
+        flat[i] = old + eps
+        up = float(loss())
+        flat[i] = old - eps
+        down = float(loss())
+        flat[i] = old
+    return (up - down) / (2 * eps)
+
+
 def test_passes_the_conformance_suite_with_time():
     scene = synthetic_scene(time=True)
     done = check_adapter(lambda s: GS4DAdapter.from_scene(s, tiny_config()), scene)
@@ -96,14 +109,7 @@ def test_field_gradients_match_finite_differences():
         # entries with a gradient (a plane has many cells no point touches), plus one random one
         idx = set(torch.nonzero(grad).view(-1)[:2].tolist()) | {int(torch.randint(flat.numel(), (1,), generator=g))}
         for i in idx:
-            old = float(flat[i])
-            with torch.no_grad():
-                flat[i] = old + eps
-                up = float(loss())
-                flat[i] = old - eps
-                down = float(loss())
-                flat[i] = old
-            fd = (up - down) / (2 * eps)
+            fd = central_difference(loss, flat, i, eps)
             assert abs(fd - float(grad[i])) <= 1e-6 + 1e-5 * abs(fd), f"{name}[{i}]: autograd {float(grad[i])}, FD {fd}"
             checked += 1
     assert checked >= len(params) * 2
@@ -126,14 +132,7 @@ def test_render_gradients_through_the_deformation_match_finite_differences():
         i = int(p.grad.view(-1).abs().argmax())
         grad = float(p.grad.view(-1)[i])
         flat = p.data.view(-1)
-        eps, old = 1e-6, float(flat[i])
-        with torch.no_grad():
-            flat[i] = old + eps
-            up = float(loss())
-            flat[i] = old - eps
-            down = float(loss())
-            flat[i] = old
-        fd = (up - down) / (2 * eps)
+        fd = central_difference(loss, flat, i, 1e-6)
         assert abs(fd) > 1e-8, "pick entries the loss depends on"
         assert abs(fd - grad) <= 1e-5 * max(1.0, abs(fd)), f"autograd {grad} vs FD {fd}"
 
