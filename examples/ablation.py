@@ -13,6 +13,8 @@ Variants (our implementations of each rule, with their guards):
     +CIG (= default)   ... plus the coarse-to-fine pyramid: our default preset
     paper              the released behaviour (MVGS_METHOD.md)
     baseline, equal time   plain 3DGS trained for as many steps as fit in the full run's time
+All but paper scale the gradient threshold to the rendered image width as MVGSConfig.default()
+does (--threshold-width, 0 for 3DGS's fixed threshold), so they differ only by MVGS's parts.
 Each variant runs in its own process (its own peak memory). Writes OUT/ablation.md (test
 PSNR/SSIM/LPIPS, wall time, Gaussians, peak RSS, controller overhead, how often MVAD lowered the
 threshold, CRD boxes and the Gaussians cloned in them, the equal-steps and equal-time
@@ -31,6 +33,7 @@ import resource
 import sys
 import tempfile
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -40,14 +43,18 @@ from train_3dgs import BUNDLED, load_scene, model_config  # noqa: E402
 from adapters.gs3d import GS3DAdapter  # noqa: E402
 from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
 
+DEFAULT_WIDTH = MVGSConfig.default().grad_threshold_width
 
-def variants(steps: int, views: int, seed: int) -> dict:
-    """name -> MVGSConfig, all rescaled to `steps`."""
-    base = MVGSConfig.baseline(seed=seed).with_total_steps(steps)
+
+def variants(steps: int, views: int, seed: int, threshold_width: Optional[float] = DEFAULT_WIDTH) -> dict:
+    """name -> MVGSConfig, all rescaled to `steps`. Every variant but `paper` uses our default's
+    threshold policy (grad_threshold_width = threshold_width), so the rows differ only by the
+    MVGS components; `paper` keeps the released one (β unscaled)."""
+    base = MVGSConfig.baseline(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps)
     mvrl = dataclasses.replace(base, stages=(Stage(1, views, steps),), preset="custom")
     crd = dataclasses.replace(mvrl, crd=True)
     mvad = dataclasses.replace(crd, mvad=True)
-    full = MVGSConfig.default(seed=seed).with_total_steps(steps).with_views(views)
+    full = MVGSConfig.default(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps).with_views(views)
     paper = MVGSConfig.paper(seed=seed).with_total_steps(steps).with_views(views)
     return {"baseline": base, "+MVRL": mvrl, "+CRD": crd, "+MVAD": mvad, "+CIG (= default)": full, "paper": paper}
 
@@ -77,7 +84,7 @@ def run(data: Path, config: MVGSConfig, seed: int, factor: int = 1, curve_every:
         inner_time += info.render_seconds + info.backward_seconds
         if info.threshold is not None:
             calls += 1
-            fired += info.threshold < config.grad_threshold
+            fired += info.mvad_fired
             boxes += info.boxes
             from_boxes += 0 if info.densify is None else info.densify.from_boxes
         if curve_every and (info.step % curve_every == 0 or info.step == trainer.total_steps):
@@ -157,10 +164,12 @@ def equal_time_steps(rows: dict, steps: int) -> int:
 def table(rows: dict, args) -> str:
     lines = [
         f"Scene `{args.data}`, {args.steps} steps, M = {args.views} at full resolution, resolution 1/"
-        f"{args.resolution_scale}, seed {args.seed}, {args.threads or torch.get_num_threads()} thread(s) per "
+        f"{args.resolution_scale}, seed {args.seed}, gradient threshold meant for "
+        f"{'any width' if not args.threshold_width else f'{args.threshold_width:g} px images'} (all but paper), "
+        f"{args.threads or torch.get_num_threads()} thread(s) per "
         f"variant, every variant in its own process. Command: `python examples/ablation.py --data {args.data} "
         f"--steps {args.steps} --views {args.views} --resolution-scale {args.resolution_scale} "
-        f"--threads {args.threads} --out {args.out}`",
+        f"--threads {args.threads} --threshold-width {args.threshold_width:g} --out {args.out}`",
         "",
         "| variant | test PSNR (dB) | test SSIM | LPIPS | train time (s) | Gaussians | peak RSS (MB) "
         "| controller overhead | MVAD fired | CRD boxes / cloned |",
@@ -196,6 +205,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=0,
                     help="torch threads per variant (0: torch's default); 1 is steadier on a shared machine")
+    ap.add_argument("--threshold-width", type=float, default=DEFAULT_WIDTH,
+                    help="image width the gradient threshold is meant for, for every variant but paper "
+                         f"(0: never scaled, as 3DGS; default {DEFAULT_WIDTH:g}, as MVGSConfig.default())")
     ap.add_argument("--curve-points", type=int, default=6, help="test evaluations along the PSNR-vs-time curves")
     ap.add_argument("--max-minutes", type=float, default=30.0, help="stop a variant that trains longer than this")
     ap.add_argument("--no-equal-time", action="store_true",
@@ -208,7 +220,8 @@ def main(argv=None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     load_scene(args.data)  # fail here, not in a worker, on a bad path
     rows, curves = {}, ("baseline", FULL)
-    for name, config in variants(args.steps, args.views, args.seed).items():
+    width = args.threshold_width or None
+    for name, config in variants(args.steps, args.views, args.seed, width).items():
         if args.only and name not in args.only:
             continue
         curve_every = max(1, args.steps // args.curve_points) if name in curves else 0
@@ -218,7 +231,7 @@ def main(argv=None) -> dict:
         write_text(args.out / "ablation.md", table(rows, args))  # a stopped run keeps what it has
     if not args.no_equal_time and "baseline" in rows and FULL in rows:
         n = equal_time_steps(rows, args.steps)
-        config = MVGSConfig.baseline(seed=args.seed).with_total_steps(n)
+        config = MVGSConfig.baseline(seed=args.seed, grad_threshold_width=width).with_total_steps(n)
         print(f"baseline for {n} steps (equal time) ...", file=sys.stderr, flush=True)
         rows[f"baseline, equal time ({n} steps)"] = run_isolated(
             args.data, config, args.seed, args.resolution_scale, max(1, n // args.curve_points), args.max_minutes * 60,

@@ -79,6 +79,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="multi-view augmented densification on/off (default: as the preset)")
     ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
                     help="cross-ray densification on/off (default: as the preset)")
+    ap.add_argument("--threshold-width", type=float, default=None,
+                    help="image width in pixels the gradient threshold is meant for; it is scaled to the "
+                         "rendered width (0: never scaled, as 3DGS; default: as the preset, 800 for default)")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path(out))
     ap.add_argument("--seed", type=int, default=0)
@@ -89,13 +92,15 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
 
 def config_from_args(args, **preset_overrides) -> MVGSConfig:
     """The MVGSConfig the common CLI asks for: preset rescaled to --steps, --views, --mvad/--crd,
-    and every pyramid factor times --resolution-scale."""
+    --threshold-width, and every pyramid factor times --resolution-scale."""
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides).with_total_steps(args.steps)
     if args.views is not None:
         config = config.with_views(args.views)
     for rule in ("mvad", "crd"):
         if getattr(args, rule) is not None:
             config = dataclasses.replace(config, **{rule: getattr(args, rule)})
+    if args.threshold_width is not None:
+        config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
     if args.resolution_scale != 1:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))

@@ -33,8 +33,9 @@ from .schedule import ViewSchedule
 
 @dataclass
 class StepInfo:
-    """What one step did (threshold and boxes: the MVAD threshold and the number of CRD boxes
-    of its densification call, when it made one; seconds: the whole step, of which
+    """What one step did (threshold and boxes: the gradient threshold and the number of CRD
+    boxes of its densification call, when it made one; mvad_fired: MVAD halved that threshold;
+    seconds: the whole step, of which
     render_seconds and backward_seconds were spent in the adapter's render and in backward,
     and comm_seconds in collectives across ranks, waiting for the slowest rank included).
     In a distributed run, loss is the sum over every rank's views."""
@@ -53,6 +54,7 @@ class StepInfo:
     render_seconds: float = 0.0
     backward_seconds: float = 0.0
     comm_seconds: float = 0.0
+    mvad_fired: bool = False
 
 
 @dataclass
@@ -140,7 +142,8 @@ class MVGS:
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
                         report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
                         0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
-                        time.perf_counter() - t_step, times["render"], times["backward"], times["comm"])
+                        time.perf_counter() - t_step, times["render"], times["backward"], times["comm"],
+                        ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan))
 
     def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], times: Dict[str, float]) -> float:
         """Renders and backpropagates the step's views at positions `mine`, chunk by chunk (the

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from .camera import Camera
 from .config import MVGSConfig, Stage
-from .densify import best_windows, camera_axes, cross_ray_boxes, mvad_threshold
+from .densify import best_windows, camera_axes, cross_ray_boxes, mvad_threshold, resolution_threshold
 from .protocol import DensifyContext
 from .sampler import ViewSampler
 
@@ -141,13 +141,23 @@ class ViewSchedule:
         """Whether densification steps need per-view loss maps (cross-ray densification)."""
         return self.config.crd
 
+    def base_threshold(self, plan: StepPlan) -> float:
+        """β before MVAD: config.grad_threshold, times config.grad_threshold_width / W when that
+        is set (W the mean width of the step's images at its pyramid level). The statistics of
+        a densification call may include views from the previous level when a stage has just
+        handed over; the current level decides."""
+        cfg = self.config
+        width = sum(c.width for c in plan.cameras) / len(plan.cameras)
+        return resolution_threshold(cfg.grad_threshold, width, cfg.grad_threshold_width)
+
     def densify_context(self, plan: StepPlan, loss_maps: Optional[Sequence[Tensor]] = None,
                         primitive_count: int = 0, bounds: Optional[Tensor] = None) -> DensifyContext:
-        """The densification context of a step: the threshold (lowered by MVAD when the step's
-        cameras are far apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
+        """The densification context of a step: the threshold (scaled to the step's image width
+        when config.grad_threshold_width is set, halved by MVAD when the step's cameras are far
+        apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
         from the step's per-view loss maps [H', W'] (same order as plan.cameras)."""
         cfg = self.config
-        threshold = cfg.grad_threshold
+        threshold = self.base_threshold(plan)
         if cfg.mvad:
             cams = [self.scene.train_cameras[i] for i in plan.views]
             centers = torch.stack([c.center for c in cams])

@@ -75,3 +75,9 @@ def test_ablation_smoke(tmp_path, monkeypatch):
     assert len(rows["baseline"]["curve"]) >= 2 and rows["+MVRL"]["curve"] == []
     # Counters: the baseline never lowers its threshold nor gets boxes; +MVRL has no MVAD/CRD.
     assert rows["baseline"]["mvad_fired"] == 0 and rows["+MVRL"]["crd_boxes"] == 0
+    # One threshold policy for every variant but paper (the released code never scales it).
+    for width in (800.0, None):
+        configs = ablation.variants(300, 4, 0, width)
+        assert all(c.grad_threshold_width == width for n, c in configs.items() if n != "paper")
+        assert configs["paper"].grad_threshold_width is None
+    assert "--threshold-width 800" in table

@@ -84,3 +84,21 @@ def mvad_threshold(centers: Tensor, base_threshold: float, origin: Optional[Tens
 def camera_axes(cameras: Sequence) -> Tensor:
     """[M, 3] optical axes (camera +z in world coordinates) of mvgs_plugin Cameras."""
     return torch.stack([c.camera_to_world[:3, 2] for c in cameras])
+
+
+def resolution_threshold(base_threshold: float, width: float, reference_width: Optional[float]) -> float:
+    """β scaled to the rendered width: β × reference_width / width (β itself when
+    reference_width is None).
+
+    Why 1 / W: with the loss averaged over the W × H pixels, the pixel-space gradient of a
+    Gaussian s pixels wide sums ~s² pixels of weight 1 / (W H), each ~ e / s for an error e per
+    pixel, so ~ e s / (W H); the NDC factor W / 2 leaves ~ e s / (2 H). A threshold meant for
+    images reference_width wide thus has to grow by reference_width / W to ask for the same
+    error per pixel at width W.
+    """
+    if reference_width is None:
+        return float(base_threshold)
+    if not (0 < width < float("inf")) or not (0 < reference_width < float("inf")):
+        raise ValueError(f"widths must be finite and > 0, got width={width!r}, reference_width={reference_width!r}")
+    return float(base_threshold) * float(reference_width) / float(width)
+
