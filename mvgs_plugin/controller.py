@@ -35,9 +35,11 @@ from .schedule import ViewSchedule
 class StepInfo:
     """What one step did (threshold and boxes: the gradient threshold and the number of CRD
     boxes of its densification call, when it made one; mvad_fired: MVAD halved that threshold;
-    seconds: the whole step, of which
-    render_seconds and backward_seconds were spent in the adapter's render and in backward,
-    and comm_seconds in collectives across ranks, waiting for the slowest rank included).
+    seconds: the whole step, of which render_seconds and backward_seconds were spent in the
+    adapter's render and in backward, loss_seconds in the photometric loss (and CRD's loss
+    maps, and the adapter's regulariser), adapter_seconds in the adapter's other work
+    (statistics, densification, opacity reset, optimizer step), comm_seconds in collectives
+    across ranks, waiting for the slowest rank included; controller_seconds is the rest).
     In a distributed run, loss is the sum over every rank's views."""
 
     step: int
@@ -55,6 +57,16 @@ class StepInfo:
     backward_seconds: float = 0.0
     comm_seconds: float = 0.0
     mvad_fired: bool = False
+    loss_seconds: float = 0.0
+    adapter_seconds: float = 0.0
+
+    @property
+    def controller_seconds(self) -> float:
+        """The controller's own time: sampling and the step plan, MVAD, CRD's windows and boxes,
+        the finiteness checks and bookkeeping; everything but the adapter's render and its
+        other work (statistics, densification, optimizer), backward, the loss and collectives."""
+        return max(0.0, self.seconds - self.render_seconds - self.backward_seconds - self.comm_seconds
+                   - self.loss_seconds - self.adapter_seconds)
 
 
 @dataclass
@@ -109,13 +121,15 @@ class MVGS:
         t_step = time.perf_counter()
         plan = self.schedule.next()
         adapter = self.adapter
+        times = {"render": 0.0, "backward": 0.0, "comm": 0.0, "loss": 0.0, "adapter": 0.0}
+        t0 = time.perf_counter()
         if plan.handoff_reset:
             adapter.reset_opacity()
         adapter.set_step(plan.clock)
+        times["adapter"] += time.perf_counter() - t0
         maps = [] if plan.densify and self.schedule.needs_loss_maps else None
         dist = self.distributed
         mine = list(range(len(plan.views))) if dist is None else dist.positions(len(plan.views))
-        times = {"render": 0.0, "backward": 0.0, "comm": 0.0}
         error: Optional[BaseException] = None
         try:
             total = self._render_and_backward(plan, mine, maps, times)
@@ -134,16 +148,21 @@ class MVGS:
                 positions = adapter.positions()
                 bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
                 ctx = self.schedule.densify_context(plan, maps, adapter.num_primitives(), bounds)
+                t0 = time.perf_counter()
                 report = adapter.densify(ctx)
+                times["adapter"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
             if plan.reset_opacity:
                 adapter.reset_opacity()
         adapter.optimizer_step()
         adapter.zero_grad()
+        times["adapter"] += time.perf_counter() - t0
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
                         report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
                         0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
                         time.perf_counter() - t_step, times["render"], times["backward"], times["comm"],
-                        ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan))
+                        ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan),
+                        times["loss"], times["adapter"])
 
     def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], times: Dict[str, float]) -> float:
         """Renders and backpropagates the step's views at positions `mine`, chunk by chunk (the
@@ -156,6 +175,7 @@ class MVGS:
             t0 = time.perf_counter()
             result = adapter.render(cams, plan.backgrounds[positions])
             times["render"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
             if maps is not None:
                 maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
             loss = plan.weight * sum(
@@ -170,12 +190,15 @@ class MVGS:
                     f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
                     "stopping before the optimizer step"
                 )
+            times["loss"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             loss.backward()  # gradients accumulate; this chunk's graph is freed here
             times["backward"] += time.perf_counter() - t0
             total += loss.item()
             if collect:
+                t0 = time.perf_counter()
                 adapter.accumulate_stats(result)
+                times["adapter"] += time.perf_counter() - t0
             del result, loss
         return total
 

@@ -283,3 +283,34 @@ def test_a_failed_checkpoint_write_keeps_the_previous_file(scene, tmp_path, monk
     fresh = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(4))
     fresh.load_checkpoint(str(path))
     assert fresh.step_count == 1
+
+
+def test_step_timing_splits_the_adapter_loss_and_controller_time(scene, monkeypatch):
+    """Time spent in the adapter's statistics, densification and optimizer step, and in the
+    loss, is not counted as the controller's own (StepInfo.controller_seconds)."""
+    import time as _time
+
+    adapter = make(scene)
+    pause = 0.05
+
+    def slow(fn):
+        def wrapped(*a, **k):
+            _time.sleep(pause)
+            return fn(*a, **k)
+        return wrapped
+
+    for name in ("accumulate_stats", "densify", "optimizer_step"):
+        monkeypatch.setattr(adapter, name, slow(getattr(adapter, name)))
+    import mvgs_plugin.controller as controller
+
+    monkeypatch.setattr(controller, "photometric_loss", slow(controller.photometric_loss))
+    config = MVGSConfig(stages=(Stage(1, 2, 2),), densify_from=1, densify_every=2, crd=False)
+    trainer = MVGS(adapter, scene, config)
+    trainer.step()
+    info = trainer.step()  # densifies: 2 x statistics + densify + optimizer, 2 x loss
+    assert info.densify is not None
+    assert info.adapter_seconds >= 4 * pause and info.loss_seconds >= 2 * pause
+    parts = info.render_seconds + info.backward_seconds + info.loss_seconds + info.adapter_seconds
+    assert parts <= info.seconds
+    assert info.controller_seconds == pytest.approx(info.seconds - parts, abs=1e-12)
+    assert info.controller_seconds < pause  # none of the sleeps landed in the controller's share
