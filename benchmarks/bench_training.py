@@ -6,8 +6,10 @@ size (prints a markdown table; each run is examples/train_3dgs.py in its own pro
 
 Runs: "baseline", "default" and "paper" presets at the same number of steps;
 "default-rules-off": the default preset without its two densification rules (MVAD, CRD), i.e.
-multi-view training and the pyramid only; and "baseline-xM": the baseline given M times the
-steps (the same number of rendered views as MVGS with M views per step at full resolution).
+multi-view training and the pyramid only; "baseline-xM": the baseline given M times the steps
+(the same number of rendered views as MVGS with M views per step at full resolution);
+"baseline-scaled" and "baseline-scaled-xM": the same with the default's gradient threshold
+policy (--threshold-width 800 instead of 3DGS's fixed β), so that only MVGS differs from default.
 """
 
 from __future__ import annotations
@@ -35,8 +37,10 @@ def main() -> None:
     for run in args.runs:
         preset, steps = run, args.steps
         extra = []
-        if run == "baseline-xM":
+        if run in ("baseline-xM", "baseline-scaled-xM"):
             preset, steps = "baseline", args.steps * args.views
+        if run in ("baseline-scaled", "baseline-scaled-xM"):
+            preset, extra = "baseline", ["--threshold-width", "800"]
         if run == "default-rules-off":
             preset, extra = "default", ["--no-mvad", "--no-crd"]
         out = args.out / run
