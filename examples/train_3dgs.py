@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -87,6 +88,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--dist-timeout", type=float, default=DEFAULT_TIMEOUT,
+                    help="under torchrun: seconds a rank waits for the others before stopping with an error")
     return ap
 
 
@@ -151,13 +154,13 @@ def parse_args(argv=None):
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     common_args(ap, "out/train_3dgs")
     ap.add_argument("--checkpoint", action="store_true", help="also write OUT/checkpoint.pt after training")
-    ap.add_argument("--dist-timeout", type=float, default=DEFAULT_TIMEOUT,
-                    help="under torchrun: seconds a rank waits for the others before stopping with an error")
     return ap.parse_args(argv)
 
 
-def main(argv=None) -> dict:
-    args = parse_args(argv)
+def launch(args, run: Callable) -> dict:
+    """run(args, dist) in one process (dist None), or on every rank when torchrun started more
+    than one (dist a Collective; the training script itself is unchanged). Every train_*.py
+    example starts this way."""
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -168,6 +171,10 @@ def main(argv=None) -> dict:
         metrics = run(args, dist)
     torch.distributed.destroy_process_group()
     return metrics
+
+
+def main(argv=None) -> dict:
+    return launch(parse_args(argv), run)
 
 
 def run(args, dist) -> dict:

@@ -4,6 +4,7 @@
     python examples/scenes/make_scene.py --variant moving --out /work/scenes/moving   # the scene
     python examples/train_4dgs.py --data /work/scenes/moving --preset baseline --steps 600 --out out/4dgs
     python examples/train_4dgs.py --data /work/scenes/moving --preset default --views 4 --steps 600
+    torchrun --nproc-per-node 2 examples/train_4dgs.py --data /work/scenes/moving --views 8 --threads 1
 
 Same CLI contract as train_3dgs.py (plus the 4DGS options below). Writes OUT/metrics.json (psnr,
 ssim, lpips or null, train_seconds, steps, num_gaussians, model_mb, peak_memory_mb, preset,
@@ -25,12 +26,10 @@ import os
 import sys
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, load_scene, metrics_record, model_config, save_test_renders, timed_fit,
-    write_json,
+    common_args, config_from_args, launch, load_scene, metrics_record, model_config, save_test_renders,
+    timed_fit, write_json,
 )
 
 from adapters.gs4d import GS4DAdapter, GS4DConfig  # noqa: E402
@@ -76,10 +75,12 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
+    return launch(parse_args(argv), run)
+
+
+def run(args, dist) -> dict:
+    """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
+    evaluates and writes."""
     scene = load_scene(args.data)
     untimed = [c.name for c in scene.train_cameras + scene.test_cameras if c.time is None]
     if untimed:
@@ -88,9 +89,11 @@ def main(argv=None) -> dict:
     config = config_from_args(args, time_spread=args.time_spread)
     model_cfg = gs4d_config(config, args)
     adapter = GS4DAdapter.from_scene(scene, model_cfg)
-    trainer = MVGS(adapter, scene, config)
+    trainer = MVGS(adapter, scene, config, distributed=dist)
 
     train_seconds = timed_fit(trainer, args)
+    if not trainer.is_main:  # identical model on every rank
+        return {}
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
@@ -107,6 +110,7 @@ def main(argv=None) -> dict:
         model_config={"coarse_steps": model_cfg.coarse_steps, "fine_steps": model_cfg.fine_steps,
                       **{k: v for k, v in model_cfg.saved_values().items() if k not in ("coarse_steps", "fine_steps")},
                       "canonical": model_cfg.canonical.saved_values()},
+        world_size=1 if dist is None else dist.world_size,
     )
     write_json(out / "metrics.json", metrics)
     print(

@@ -4,6 +4,7 @@ baseline, and evaluate it.
     python examples/train_scaffold.py --preset baseline --steps 300 --resolution-scale 2 --out out/sc_base
     python examples/train_scaffold.py --preset default --views 4 --steps 300 --resolution-scale 2 --out out/sc_mvgs
     python examples/train_scaffold.py --data /work/scenes/reflective --voxel-size 0.02
+    torchrun --nproc-per-node 2 examples/train_scaffold.py --views 8 --threads 1   # views over 2 processes
 
 Same CLI contract as train_3dgs.py (plus the Scaffold options below). Writes OUT/metrics.json
 (psnr, ssim, lpips or null, train_seconds, steps, num_gaussians (= anchors, the primitives the
@@ -25,7 +26,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, load_scene, metrics_record, save_test_renders, timed_fit,
+    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, save_test_renders, timed_fit,
     write_json,
 )
 
@@ -55,17 +56,21 @@ def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
+    return launch(parse_args(argv), run)
+
+
+def run(args, dist) -> dict:
+    """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
+    evaluates and writes."""
     scene = load_scene(args.data)
     config = config_from_args(args)
     model_cfg = scaffold_config(config, args)
     adapter = ScaffoldAdapter.from_scene(scene, model_cfg)
-    trainer = MVGS(adapter, scene, config)
+    trainer = MVGS(adapter, scene, config, distributed=dist)
 
     train_seconds = timed_fit(trainer, args)
+    if not trainer.is_main:  # identical model on every rank
+        return {}
     result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
@@ -80,6 +85,7 @@ def main(argv=None) -> dict:
         args, config, trainer, result, train_seconds,
         num_anchors=adapter.num_primitives(), decoded_gaussians=sum(decoded) / len(decoded),
         voxel_size=adapter.voxel_size, model_mb=model_numel * 4 / 2**20, model_config=model_cfg.saved_values(),
+        world_size=1 if dist is None else dist.world_size,
     )
     write_json(out / "metrics.json", metrics)
     print(
