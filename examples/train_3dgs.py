@@ -119,11 +119,19 @@ def save_test_renders(out: Path, result) -> None:
         save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
 
 
-def timed_fit(trainer: MVGS, args) -> float:
-    """Runs the whole training (progress bar unless --no-progress); returns its wall seconds."""
+def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
+    """Trains on every rank (each on its share of a step's views under torchrun; progress bar
+    unless --no-progress), writes OUT/checkpoint.pt when args.checkpoint is set (every rank takes
+    part, rank 0 writes), then evaluates on rank 0. Returns (trainer, training wall seconds,
+    test result), the result None on the other ranks: the model is the same on every rank."""
+    trainer = MVGS(adapter, scene, config, distributed=dist)
     t0 = time.perf_counter()
     trainer.fit(progress=not args.no_progress)
-    return time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    if getattr(args, "checkpoint", False):
+        trainer.save_checkpoint(str(args.out / "checkpoint.pt"))
+    result = trainer.evaluate(factor=args.resolution_scale) if trainer.is_main else None
+    return trainer, seconds, result
 
 
 def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, world_size: int = 1,
@@ -181,14 +189,9 @@ def run(args, dist) -> dict:
     scene = load_scene(args.data)
     config = config_from_args(args)
     adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
-    trainer = MVGS(adapter, scene, config, distributed=dist)
-
-    train_seconds = timed_fit(trainer, args)
-    if args.checkpoint:
-        trainer.save_checkpoint(str(args.out / "checkpoint.pt"))  # every rank takes part; rank 0 writes
-    if not trainer.is_main:  # identical model on every rank: rank 0 evaluates and writes
+    trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
+    if result is None:  # not rank 0
         return {}
-    result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
     save_test_renders(out, result)

@@ -29,11 +29,11 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
     common_args, config_from_args, launch, load_scene, metrics_record, model_config, save_test_renders,
-    timed_fit, write_json,
+    train_and_evaluate, write_json,
 )
 
 from adapters.gs4d import GS4DAdapter, GS4DConfig  # noqa: E402
-from mvgs_plugin import MVGS, MVGSConfig  # noqa: E402
+from mvgs_plugin import MVGSConfig  # noqa: E402
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
 
@@ -89,12 +89,9 @@ def run(args, dist) -> dict:
     config = config_from_args(args, time_spread=args.time_spread)
     model_cfg = gs4d_config(config, args)
     adapter = GS4DAdapter.from_scene(scene, model_cfg)
-    trainer = MVGS(adapter, scene, config, distributed=dist)
-
-    train_seconds = timed_fit(trainer, args)
-    if not trainer.is_main:  # identical model on every rank
+    trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
+    if result is None:  # not rank 0
         return {}
-    result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
     save_test_renders(out, result)

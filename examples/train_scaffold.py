@@ -26,12 +26,12 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, save_test_renders, timed_fit,
-    write_json,
+    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, save_test_renders,
+    train_and_evaluate, write_json,
 )
 
 from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig  # noqa: E402
-from mvgs_plugin import MVGS, MVGSConfig  # noqa: E402
+from mvgs_plugin import MVGSConfig  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -66,12 +66,9 @@ def run(args, dist) -> dict:
     config = config_from_args(args)
     model_cfg = scaffold_config(config, args)
     adapter = ScaffoldAdapter.from_scene(scene, model_cfg)
-    trainer = MVGS(adapter, scene, config, distributed=dist)
-
-    train_seconds = timed_fit(trainer, args)
-    if not trainer.is_main:  # identical model on every rank
+    trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
+    if result is None:  # not rank 0
         return {}
-    result = trainer.evaluate(factor=args.resolution_scale)
 
     out = args.out
     save_test_renders(out, result)
