@@ -122,20 +122,23 @@ def save_test_renders(out: Path, result) -> None:
 def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     """Trains on every rank (each on its share of a step's views under torchrun; progress bar
     unless --no-progress), writes OUT/checkpoint.pt when args.checkpoint is set (every rank takes
-    part, rank 0 writes), then evaluates on rank 0. Returns (trainer, training wall seconds,
-    test result), the result None on the other ranks: the model is the same on every rank."""
+    part, rank 0 writes), then evaluates on rank 0 and writes OUT/test/<view>.png. Returns
+    (trainer, training wall seconds, test result), the result None on the other ranks: the
+    model is the same on every rank."""
     trainer = MVGS(adapter, scene, config, distributed=dist)
     t0 = time.perf_counter()
     trainer.fit(progress=not args.no_progress)
     seconds = time.perf_counter() - t0
     if getattr(args, "checkpoint", False):
         trainer.save_checkpoint(str(args.out / "checkpoint.pt"))
-    result = trainer.evaluate(factor=args.resolution_scale) if trainer.is_main else None
+    if not trainer.is_main:
+        return trainer, seconds, None
+    result = trainer.evaluate(factor=args.resolution_scale)
+    save_test_renders(args.out, result)
     return trainer, seconds, result
 
 
-def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, world_size: int = 1,
-                   **extra) -> dict:
+def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, **extra) -> dict:
     """The metrics.json every train_*.py script writes: test PSNR/SSIM/LPIPS, training seconds,
     steps, primitives, peak memory, the run's settings and per-view results; `extra` adds the
     model family's own entries (model size, anchors, ...)."""
@@ -151,7 +154,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "preset": args.preset,
         "data": str(args.data),
         "threads": torch.get_num_threads(),
-        "world_size": world_size,
+        "world_size": 1 if trainer.distributed is None else trainer.distributed.world_size,
         "config": config.to_dict(),
         "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
     }
@@ -194,10 +197,8 @@ def run(args, dist) -> dict:
         return {}
 
     out = args.out
-    save_test_renders(out, result)
     adapter.export(str(out / "point_cloud.ply"))
-    metrics = metrics_record(args, config, trainer, result, train_seconds,
-                             world_size=1 if dist is None else dist.world_size)
+    metrics = metrics_record(args, config, trainer, result, train_seconds)
     write_json(out / "metrics.json", metrics)
     print(
         f"{args.preset}: test PSNR {result.psnr:.2f} dB, SSIM {result.ssim:.4f}, "

@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, launch, load_scene, metrics_record, model_config, save_test_renders,
+    common_args, config_from_args, launch, load_scene, metrics_record, model_config,
     train_and_evaluate, write_json,
 )
 
@@ -94,7 +94,6 @@ def run(args, dist) -> dict:
         return {}
 
     out = args.out
-    save_test_renders(out, result)
     adapter.export(str(out / "point_cloud.ply"))
     adapter.save_deformation(str(out / "deformation.pt"))
     for t in args.export_times:
@@ -107,7 +106,6 @@ def run(args, dist) -> dict:
         model_config={"coarse_steps": model_cfg.coarse_steps, "fine_steps": model_cfg.fine_steps,
                       **{k: v for k, v in model_cfg.saved_values().items() if k not in ("coarse_steps", "fine_steps")},
                       "canonical": model_cfg.canonical.saved_values()},
-        world_size=1 if dist is None else dist.world_size,
     )
     write_json(out / "metrics.json", metrics)
     print(

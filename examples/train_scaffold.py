@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, save_test_renders,
+    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record,
     train_and_evaluate, write_json,
 )
 
@@ -71,7 +71,6 @@ def run(args, dist) -> dict:
         return {}
 
     out = args.out
-    save_test_renders(out, result)
     views = [c if args.resolution_scale == 1 else c.scaled(args.resolution_scale) for c in scene.test_cameras]
     with torch.no_grad():
         decoded = [int((adapter.decode(v)[1]["opacities"] > 0).sum()) for v in views]
@@ -82,7 +81,6 @@ def run(args, dist) -> dict:
         args, config, trainer, result, train_seconds,
         num_anchors=adapter.num_primitives(), decoded_gaussians=sum(decoded) / len(decoded),
         voxel_size=adapter.voxel_size, model_mb=model_numel * 4 / 2**20, model_config=model_cfg.saved_values(),
-        world_size=1 if dist is None else dist.world_size,
     )
     write_json(out / "metrics.json", metrics)
     print(
