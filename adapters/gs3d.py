@@ -142,6 +142,16 @@ class GS3DConfig:
                 if f.name not in _RUNTIME_FIELDS}
 
 
+
+def make_adam(groups, eps: float) -> torch.optim.Adam:
+    """Adam as the original (lr per group, eps), with torch's fused kernel where it exists (CPU
+    since torch 2.4, CUDA): the same update in one pass over all groups, 6x faster than the
+    per-tensor loop at 50k Gaussians on one CPU thread (benchmarks/bench_step.py)."""
+    try:
+        return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=True)
+    except (RuntimeError, TypeError, ValueError):  # no fused kernel for this torch / device / dtype
+        return torch.optim.Adam(groups, lr=0.0, eps=eps)
+
 def _check_int(name: str, value, lo: int, hi: Optional[int] = None) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"{name} must be an int, got {value!r}")
@@ -334,7 +344,7 @@ class GS3DAdapter:
         }
         lrs = self._base_lrs()
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=self.config.adam_eps)
+        self.optimizer = make_adam(groups, self.config.adam_eps)
         self._reset_stats()
 
     def _base_lrs(self) -> Dict[str, float]:

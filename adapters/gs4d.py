@@ -61,7 +61,7 @@ from mvgs_plugin.data.scene import PointCloud
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
-from .gs3d import GS3DAdapter, GS3DConfig, _check_float, _check_int, _inside_any_box, _top_by_score
+from .gs3d import GS3DAdapter, GS3DConfig, make_adam, _check_float, _check_int, _inside_any_box, _top_by_score
 
 __all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
 
@@ -336,7 +336,7 @@ class GS4DAdapter(GS3DAdapter):
                                    gen, dtype=ref.dtype, device=ref.device)
         groups = [{"params": list(self.field.planes), "lr": 0.0, "name": "planes"},
                   {"params": self.field.mlp_parameters(), "lr": 0.0, "name": "mlp"}]
-        self.field_optimizer = torch.optim.Adam(groups, lr=0.0, eps=self.config.adam_eps)
+        self.field_optimizer = make_adam(groups, self.config.adam_eps)
         self._set_field_lrs(self._step)
 
     # ---- construction ----------------------------------------------------------------------

@@ -57,7 +57,7 @@ from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 
-from .gs3d import SH_C0, GS3DAdapter, _check_float, _check_int, _inside_any_box, knn_mean_sq_dist
+from .gs3d import SH_C0, GS3DAdapter, make_adam, _check_float, _check_int, _inside_any_box, knn_mean_sq_dist
 from .gs4d import _log_linear
 from .ply import write_gaussian_ply
 
@@ -276,7 +276,7 @@ class ScaffoldAdapter:
         lrs = self._lrs(self._step)
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in ANCHOR_GROUPS]
         groups += [{"params": list(getattr(self.mlps, n).parameters()), "lr": lrs[n], "name": n} for n in MLP_NAMES]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=self.config.adam_eps)
+        self.optimizer = make_adam(groups, self.config.adam_eps)
         self._reset_all_stats()
 
     def _reset_all_stats(self) -> None:

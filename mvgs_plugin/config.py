@@ -43,7 +43,11 @@ class MVGSConfig:
     reduction: "sum" of the per-view losses (the paper) or "mean".
     stats_from: densification statistics from "all" views of a step (ours) or the "last" one
         (the released code).
-    chunk_size: views rendered and backpropagated together; memory grows with it, not with M.
+    chunk_size: views rendered and backpropagated together (one renderer call, one batched
+        loss); memory grows with it, not with M. None (default): the most views whose
+        estimated working memory fits chunk_memory_mb (see schedule.view_bytes: about 128 B per
+        Gaussian plus 640 B per pixel per view, measured on the reference renderer), at least 1.
+    chunk_memory_mb: the memory bound of chunk_size=None, in MiB.
     lambda_dssim: weight of the SSIM term in (1 - λ) L1 + λ (1 - SSIM).
     densify_from / densify_until / densify_every / opacity_reset_every: the 3DGS clock
         (densify when from < step < until and step % every == 0; reset at multiples of
@@ -93,7 +97,8 @@ class MVGSConfig:
     stages: Tuple[Stage, ...] = (Stage(1, 1, 30_000),)
     reduction: str = "sum"
     stats_from: str = "all"
-    chunk_size: int = 1
+    chunk_size: Optional[int] = None
+    chunk_memory_mb: float = 512.0
     lambda_dssim: float = 0.2
     densify_from: int = 500
     densify_until: int = 15_000
@@ -135,8 +140,13 @@ class MVGSConfig:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
         for name in ("chunk_size", "densify_every", "opacity_reset_every"):
             v = getattr(self, name)
+            if name == "chunk_size" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive int, got {v!r}")
+                raise ValueError(f"{name} must be a positive int{' or None' if name == 'chunk_size' else ''}, got {v!r}")
+        m = self.chunk_memory_mb
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 < m < float("inf"):
+            raise ValueError(f"chunk_memory_mb must be a finite number of MiB > 0, got {m!r}")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
         if not self.grad_threshold > 0:

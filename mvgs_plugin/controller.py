@@ -119,6 +119,7 @@ class MVGS:
     def step(self) -> StepInfo:
         """Runs the next training step and returns what it did."""
         t_step = time.perf_counter()
+        self.schedule.primitive_count = self.adapter.num_primitives()
         plan = self.schedule.next()
         adapter = self.adapter
         times = {"render": 0.0, "backward": 0.0, "comm": 0.0, "loss": 0.0, "adapter": 0.0}
@@ -178,9 +179,11 @@ class MVGS:
             t0 = time.perf_counter()
             if maps is not None:
                 maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
-            loss = plan.weight * sum(
-                photometric_loss(img, gt.to(img), self.config.lambda_dssim) for img, gt in zip(result.images, gts)
-            )
+            # One batched loss for the chunk: the mean over its views times their number is the
+            # sum of the per-view losses (same image size), with one SSIM filter call.
+            images = result.images if isinstance(result.images, torch.Tensor) else torch.stack(list(result.images))
+            target = torch.stack(gts).to(images)
+            loss = plan.weight * len(gts) * photometric_loss(images, target, self.config.lambda_dssim)
             if positions[0] == 0:  # the regulariser counts once per step (on one rank), not once per view
                 reg = adapter.regularization(plan.clock)
                 if reg is not None:
@@ -230,7 +233,11 @@ class MVGS:
 
     def _check_gradients(self, plan) -> None:
         for name, g in self.adapter.named_gradients().items():
-            if g is not None and not bool(torch.isfinite(g).all()):
+            # One sum first (no mask): a NaN or Inf anywhere makes it non-finite; a finite sum
+            # clears the group, an overflowing one goes to the exact check.
+            if g is None or bool(torch.isfinite(g.sum())):
+                continue
+            if not bool(torch.isfinite(g).all()):
                 bad = int((~torch.isfinite(g)).sum())
                 raise FloatingPointError(
                     f"step {plan.step}: {bad} non-finite gradient entries in group {name!r} after views "

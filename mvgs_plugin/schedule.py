@@ -19,6 +19,21 @@ from .protocol import DensifyContext
 from .sampler import ViewSampler
 
 
+# Working memory of one view in a renderer call (forward intermediates, what backward keeps,
+# the loss's SSIM maps), measured on the reference renderer as the growth of peak RSS per added
+# view: 105-110 B per Gaussian (200k Gaussians, 16 px) and 530-600 B per pixel (128 and 256 px);
+# rounded up. A GPU rasterizer needs less per Gaussian; the bound is then conservative.
+VIEW_BYTES_PER_GAUSSIAN = 128
+VIEW_BYTES_PER_PIXEL = 640
+# Model size assumed when nobody has told the schedule (ViewSchedule.primitive_count).
+UNKNOWN_PRIMITIVES = 1_000_000
+
+
+def view_bytes(primitives: int, height: int, width: int) -> int:
+    """Estimated working memory (bytes) of one view of a renderer call."""
+    return VIEW_BYTES_PER_GAUSSIAN * max(0, int(primitives)) + VIEW_BYTES_PER_PIXEL * height * width
+
+
 @dataclass(frozen=True)
 class StagePosition:
     """Where a global step (1-based) falls: the stage, its index, the step within the stage
@@ -90,6 +105,10 @@ class ViewSchedule:
     This is the part of the controller a hand-written training loop can use directly (see
     examples/three_line_wrap): the same loop trains plain 3DGS with MVGSConfig.baseline() and
     MVGS with MVGSConfig.default().
+
+    primitive_count: the model's current size, for the memory bound of chunk_size=None; the
+    controller sets it every step. A loop of your own may set it too; until then the scene's
+    point count is assumed, or UNKNOWN_PRIMITIVES without points (small chunks: safe, slower).
     """
 
     def __init__(self, scene, config: MVGSConfig):
@@ -104,6 +123,8 @@ class ViewSchedule:
         self._bg_gen = torch.Generator().manual_seed(config.seed + 1)
         self._scaled: Dict[Tuple[int, int], Camera] = {}
         self.step_count = 0
+        points = getattr(scene, "points", None)
+        self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
 
     @property
     def total_steps(self) -> int:
@@ -123,7 +144,7 @@ class ViewSchedule:
         ids = self.sampler.sample(min(pos.stage.views, len(self.scene.train_cameras)))
         cams = [self._camera(i, pos.stage.factor) for i in ids]
         images = [self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
-        chunks = self._chunks(len(ids))
+        chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
         collect = pos.clock < cfg.densify_until
         stats = [collect and (cfg.stats_from == "all" or c[-1] == len(ids) - 1) for c in chunks]
         self.step_count = s
@@ -189,10 +210,17 @@ class ViewSchedule:
             cameras=tuple(plan.cameras),
         )
 
-    def _chunks(self, m: int) -> List[List[int]]:
-        """View positions grouped for rendering. With stats_from="last" the last view renders
-        alone, so its statistics can be taken without the others'."""
-        size = self.config.chunk_size
+    def chunk_size(self, m: int, height: int, width: int) -> int:
+        """Views per renderer call for a step of m views of height x width: config.chunk_size,
+        or (None) the most views whose view_bytes() fit config.chunk_memory_mb, in [1, m]."""
+        if self.config.chunk_size is not None:
+            return self.config.chunk_size
+        per_view = view_bytes(self.primitive_count, height, width)
+        return max(1, min(m, int(self.config.chunk_memory_mb * 2**20 // max(1, per_view))))
+
+    def _chunks(self, m: int, size: int) -> List[List[int]]:
+        """View positions grouped for rendering, `size` per chunk. With stats_from="last" the
+        last view renders alone, so its statistics can be taken without the others'."""
         head = m - 1 if self.config.stats_from == "last" else m
         chunks = [list(range(i, min(i + size, head))) for i in range(0, head, size)]
         return chunks + ([[m - 1]] if self.config.stats_from == "last" else [])

@@ -1,4 +1,5 @@
-"""Build, load and call the compiled compositing kernels (csrc/rasterize.cpp).
+"""Build, load and call the compiled kernels: compositing (csrc/rasterize.cpp) and the fused
+projection with SH colours (csrc/project.cpp).
 
 The library is compiled on first use with the system C++ compiler and cached, keyed by the
 source, the flags, the compiler and the CPU (``-march=native`` code must not run on another CPU).
@@ -25,7 +26,7 @@ from typing import Optional
 
 import torch
 
-_SOURCE = Path(__file__).with_name("csrc") / "rasterize.cpp"
+_SOURCES = [Path(__file__).with_name("csrc") / name for name in ("rasterize.cpp", "project.cpp")]
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread"]
 _lock = threading.Lock()
 _lib: Optional[ctypes.CDLL] = None
@@ -56,7 +57,8 @@ def _build() -> ctypes.CDLL:
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True).stdout
     key = hashlib.sha256(
         b"\0".join(
-            [_SOURCE.read_bytes(), " ".join(_FLAGS).encode(), version.encode(), _cpu_signature().encode()]
+            [*(src.read_bytes() for src in _SOURCES), " ".join(_FLAGS).encode(), version.encode(),
+             _cpu_signature().encode()]
         )
     ).hexdigest()[:16]
     target = _cache_dir() / f"mvgs_rasterize_{key}.so"
@@ -67,25 +69,28 @@ def _build() -> ctypes.CDLL:
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
         os.close(fd)
         try:
-            proc = subprocess.run([cxx, *_FLAGS, str(_SOURCE), "-o", tmp], capture_output=True, text=True)
+            proc = subprocess.run([cxx, *_FLAGS, *map(str, _SOURCES), "-o", tmp], capture_output=True, text=True)
             if proc.returncode != 0:
-                raise RuntimeError(f"compiling {_SOURCE.name} failed:\n{proc.stderr[-4000:]}")
+                raise RuntimeError(f"compiling {[src.name for src in _SOURCES]} failed:\n{proc.stderr[-4000:]}")
             os.replace(tmp, target)
         finally:
             if os.path.exists(tmp):
                 os.unlink(tmp)
     lib = ctypes.CDLL(str(target))
-    lib.mvgs_bin_count.restype = _i64
-    lib.mvgs_bin_count.argtypes = [_i64, _i64, _i64, _i64, _ptr, _ptr]
-    lib.mvgs_bin_fill.restype = None
-    lib.mvgs_bin_fill.argtypes = [_i64, _i64, _i64, _i64, _ptr, _ptr, _ptr, _ptr]
-    for suffix in ("f32", "f64"):
-        fwd = getattr(lib, f"mvgs_forward_{suffix}")
-        fwd.restype = None
-        fwd.argtypes = [_i64] * 6 + [_ptr] * 10 + [ctypes.c_int]
-        bwd = getattr(lib, f"mvgs_backward_{suffix}")
-        bwd.restype = None
-        bwd.argtypes = [_i64] * 6 + [_ptr] * 17 + [ctypes.c_int]
+    # name: (return type, argument types); f32 and f64 variants alike
+    signatures = {
+        "mvgs_bin_depth_count": (_i64, [_i64] * 4 + [_ptr] * 3),
+        "mvgs_bin_depth_fill": (None, [_i64] * 4 + [_ptr] * 5),
+        "mvgs_forward": (None, [_i64] * 6 + [_ptr] * 10),
+        "mvgs_backward": (None, [_i64] * 6 + [_ptr] * 18),
+        "mvgs_project_forward": (None, [_ptr] * 16),
+        "mvgs_project_backward": (None, [_ptr] * 17),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        for suffix in ("f32", "f64"):
+            fn = getattr(lib, f"{name}_{suffix}")
+            fn.restype = restype
+            fn.argtypes = argtypes + [ctypes.c_int]  # the last argument: number of threads
     return lib
 
 
@@ -114,20 +119,23 @@ def _suffix(dtype: torch.dtype) -> str:
     return {torch.float32: "f32", torch.float64: "f64"}[dtype]
 
 
-def bin_tiles(rects: torch.Tensor, order: torch.Tensor, tiles_x: int, tiles_y: int):
-    """Per-(camera, tile) lists of Gaussians in depth order (counting sort).
+def bin_by_depth(rects: torch.Tensor, depths: torch.Tensor, valid: torch.Tensor, tiles_x: int, tiles_y: int):
+    """Per-(camera, tile) lists of the valid Gaussians in depth order (ties by index), as
+    bin_tiles on a stable argsort of the depths gives, without the sort over all N.
 
-    rects: [C, N, 4] int32 (x0, x1, y0, y1) tile ranges; order: [C, N] int64 depth order.
+    rects: [C, N, 4] int32; depths: [C, N] float; valid: [C, N] bool.
     Returns offsets [C * tiles + 1] int64 and ids [total] int32.
     """
     lib = load()
-    C, N = order.shape
-    rects = rects.contiguous()
-    order = order.contiguous()
+    C, N = depths.shape
+    rects, depths, valid = rects.contiguous(), depths.detach().contiguous(), valid.contiguous()
+    sfx, threads = _suffix(depths.dtype), torch.get_num_threads()
     offsets = torch.empty(C * tiles_x * tiles_y + 1, dtype=torch.int64)
-    total = lib.mvgs_bin_count(C, N, tiles_x, tiles_y, _p(rects), _p(offsets))
+    total = getattr(lib, f"mvgs_bin_depth_count_{sfx}")(C, N, tiles_x, tiles_y, _p(rects), _p(valid), _p(offsets),
+                                                         threads)
     ids = torch.empty(total, dtype=torch.int32)
-    lib.mvgs_bin_fill(C, N, tiles_x, tiles_y, _p(rects), _p(order), _p(offsets), _p(ids))
+    getattr(lib, f"mvgs_bin_depth_fill_{sfx}")(C, N, tiles_x, tiles_y, _p(rects), _p(depths), _p(valid),
+                                               _p(offsets), _p(ids), threads)
     return offsets, ids
 
 
@@ -146,7 +154,7 @@ def forward(means2d, conics, opacities, colors, backgrounds, offsets, ids, width
     return out_color, out_trans, out_last
 
 
-def backward(means2d, conics, opacities, colors, backgrounds, offsets, ids, out_trans, out_last,
+def backward(means2d, conics, opacities, colors, backgrounds, offsets, ids, out_color, out_trans, out_last,
              grad_color, grad_alpha, width, height, tile):
     """Gradients w.r.t. means2d [C,N,2], conics [C,N,3], opacities [C,N], colours [C,N,D], and
     the summed |d/dmeans2d| per pixel [C,N,2] (AbsGS's "absgrad")."""
@@ -158,7 +166,53 @@ def backward(means2d, conics, opacities, colors, backgrounds, offsets, ids, out_
     getattr(lib, f"mvgs_backward_{_suffix(colors.dtype)}")(
         C, N, D, width, height, tile,
         _p(means2d), _p(conics), _p(opacities), _p(colors), _p(backgrounds), _p(offsets), _p(ids),
-        _p(out_trans), _p(out_last), _p(grad_color), _p(grad_alpha), _p(isect),
+        _p(out_color), _p(out_trans), _p(out_last), _p(grad_color), _p(grad_alpha), _p(isect),
         _p(g_means2d), _p(g_conics), _p(g_opac), _p(g_colors), _p(absgrad), torch.get_num_threads(),
     )
     return g_means2d, g_conics, g_opac, g_colors, absgrad
+
+
+def _settings(C, N, width, height, tile, K, sh_degree, near, far, eps2d, radius_clip):
+    ints = torch.tensor([C, N, width, height, tile, K, -1 if sh_degree is None else sh_degree], dtype=torch.int64)
+    reals = torch.tensor([near, far, eps2d, radius_clip], dtype=torch.float64)
+    return ints, reals
+
+
+def project_forward(means, quats, scales, sh, viewmats, Ks, width, height, near, far, eps2d, tile,
+                    radius_clip, sh_degree):
+    """Fused projection (+ SH colours when sh_degree is not None; sh [N, K, 3]) of N Gaussians
+    into C cameras. Returns means2d [C,N,2], conics [C,N,3], depths [C,N], compensation [C,N],
+    colours [C,N,3] (empty without SH), radii [C,N] int32, rects [C,N,4] int32, valid [C,N] bool."""
+    lib = load()
+    C, N = viewmats.shape[0], means.shape[0]
+    K = 0 if sh is None else sh.shape[1]
+    ints, reals = _settings(C, N, width, height, tile, K, sh_degree, near, far, eps2d, radius_clip)
+    e = lambda *shape, dtype=means.dtype: torch.empty(*shape, dtype=dtype)  # noqa: E731
+    means2d, conics, depths, comp = e(C, N, 2), e(C, N, 3), e(C, N), e(C, N)
+    colors = e(C, N, 3) if sh is not None else e(0)
+    radii, rects, valid = e(C, N, dtype=torch.int32), e(C, N, 4, dtype=torch.int32), e(C, N, dtype=torch.bool)
+    getattr(lib, f"mvgs_project_forward_{_suffix(means.dtype)}")(
+        _p(ints), _p(reals), _p(means), _p(quats), _p(scales), None if sh is None else _p(sh), _p(viewmats),
+        _p(Ks), _p(means2d), _p(conics), _p(depths), _p(comp), _p(colors), _p(radii), _p(rects), _p(valid),
+        torch.get_num_threads(),
+    )
+    return means2d, conics, depths, comp, colors, radii, rects, valid
+
+
+def project_backward(means, quats, scales, sh, viewmats, Ks, width, height, near, far, eps2d, tile,
+                     radius_clip, sh_degree, g_means2d, g_conics, g_depths, g_comp, g_colors):
+    """Gradients w.r.t. means [N,3], quats [N,4], scales [N,3] and sh [N,K,3] (None without SH)
+    from those w.r.t. the outputs of project_forward (all contiguous, same dtype)."""
+    lib = load()
+    C, N = viewmats.shape[0], means.shape[0]
+    K = 0 if sh is None else sh.shape[1]
+    ints, reals = _settings(C, N, width, height, tile, K, sh_degree, near, far, eps2d, radius_clip)
+    d_means, d_quats, d_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+    d_sh = None if sh is None else torch.zeros_like(sh)
+    getattr(lib, f"mvgs_project_backward_{_suffix(means.dtype)}")(
+        _p(ints), _p(reals), _p(means), _p(quats), _p(scales), None if sh is None else _p(sh), _p(viewmats),
+        _p(Ks), _p(g_means2d), _p(g_conics), _p(g_depths), _p(g_comp),
+        _p(g_colors) if sh is not None else None, _p(d_means), _p(d_quats), _p(d_scales),
+        None if d_sh is None else _p(d_sh), torch.get_num_threads(),
+    )
+    return d_means, d_quats, d_scales, d_sh

@@ -1,10 +1,14 @@
 """rasterization(): gsplat's call shape, classic 3DGS image formation, on the CPU.
 
-Pipeline: validate -> project (projection.py) -> colours (SH, sh.py) -> depth order and tile
-binning -> compositing (compiled kernels in csrc/, or the PyTorch reference in
-rasterize_torch.py). Projection and SH are PyTorch ops, so autograd carries gradients from the
-screen-space quantities back to the Gaussians and cameras; the compiled compositing has a
-hand-written backward that the tests check against the PyTorch path and finite differences.
+Pipeline: validate -> project and colour (SH) -> depth order and tile binning -> compositing.
+Two twins implement it. The "torch" backend is plain PyTorch (projection.py, sh.py,
+rasterize_torch.py): the readable reference, on any device, with autograd's gradients. The
+"cpp" backend runs the same rules in compiled kernels (csrc/) with hand-written backwards: one
+fused pass projects and colours all C cameras (the per-Gaussian covariance formed once per call),
+then binning and compositing run over (camera, tile) pairs in parallel. The tests check both
+against a dense float64 reference, finite differences and each other. When camera gradients are
+asked for (viewmats or Ks require grad), the cpp backend projects through the PyTorch twin so
+autograd reaches the cameras.
 """
 
 from __future__ import annotations
@@ -16,11 +20,19 @@ from torch import Tensor
 
 from . import _cpp, rasterize_torch
 from . import _validate as V
-from .projection import project
+from .projection import Projection, project
 from .sh import sh_to_rgb
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("cpp", "torch")
+
+
+def all_finite(t: Tensor) -> bool:
+    """Whether every entry of t is finite. One sum first (no mask allocated): a NaN or Inf
+    anywhere makes it non-finite; finite entries that overflow it go to the exact check."""
+    if t.numel() == 0 or bool(torch.isfinite(t.sum())):
+        return True
+    return bool(torch.isfinite(t).all())
 
 
 def available_backends() -> list:
@@ -42,6 +54,53 @@ def _pick_backend(backend: Optional[str], device: torch.device) -> str:
     return backend
 
 
+class _ProjectCpp(torch.autograd.Function):
+    """Fused projection and SH colours (csrc/project.cpp) with its hand-written backward."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, sh, viewmats, Ks, settings):
+        args = [x.contiguous() for x in (means, quats, scales)]
+        sh_c = None if sh is None else sh.contiguous()
+        cams = [viewmats.detach().contiguous(), Ks.detach().contiguous()]
+        out = _cpp.project_forward(*args, sh_c, *cams, *settings)
+        ctx.save_for_backward(*args, *cams, *([] if sh_c is None else [sh_c]))
+        ctx.settings = settings
+        ctx.has_sh = sh_c is not None
+        ctx.mark_non_differentiable(*out[5:])
+        return out
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, g_comp, g_colors, *_):
+        means, quats, scales, viewmats, Ks, *rest = ctx.saved_tensors
+        sh = rest[0] if ctx.has_sh else None
+        C, N = viewmats.shape[0], means.shape[0]
+        z = lambda g, *shape: (torch.zeros(*shape, dtype=means.dtype) if g is None  # noqa: E731
+                               else g.contiguous())
+        grads = _cpp.project_backward(
+            means, quats, scales, sh, viewmats, Ks, *ctx.settings, z(g_means2d, C, N, 2),
+            z(g_conics, C, N, 3), z(g_depths, C, N), z(g_comp, C, N),
+            z(g_colors, C, N, 3) if ctx.has_sh else None)
+        for name, g in zip(("means", "quats", "scales", "sh coefficients"), grads):
+            if g is not None and not all_finite(g):
+                raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the projection backward")
+        return (*grads, None, None, None)
+
+
+def _project(means, quats, scales, colors, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+             tile_size, radius_clip, sh_degree, render_mode, backend):
+    """Projection and, when the compiled path fuses them, SH colours [C, N, 3] (else None)."""
+    fused = backend == "cpp" and not (viewmats.requires_grad or Ks.requires_grad)
+    if not fused:
+        return project(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                       tile_size, radius_clip), None
+    fuse_sh = sh_degree is not None and colors.dim() == 3 and render_mode != "D" and render_mode != "ED"
+    settings = (width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, float(radius_clip),
+                sh_degree if fuse_sh else None)
+    out = _ProjectCpp.apply(means, quats, scales, colors if fuse_sh else None, viewmats, Ks, settings)
+    means2d, conics, depths, comp, rgb, radii, rects, valid = out
+    return Projection(means2d, conics, depths, comp, radii, rects, valid), (rgb if fuse_sh else None)
+
+
 class _CompositeCpp(torch.autograd.Function):
     """Compiled compositing with its hand-written backward (csrc/rasterize.cpp)."""
 
@@ -49,7 +108,7 @@ class _CompositeCpp(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile, absgrad):
         args = [x.contiguous() for x in (means2d, conics, opacities, colors, backgrounds)]
         color, trans, last = _cpp.forward(*args, offsets, ids, width, height, tile)
-        ctx.save_for_backward(*args, offsets, ids, trans, last)
+        ctx.save_for_backward(*args, offsets, ids, color, trans, last)
         ctx.size = (width, height, tile)
         # gsplat's convention: the summed |gradient| lands on means2d.absgrad (AbsGS).
         ctx.absgrad_target = means2d if absgrad else None
@@ -57,17 +116,17 @@ class _CompositeCpp(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_color, grad_alpha):
-        means2d, conics, opacities, colors, backgrounds, offsets, ids, trans, last = ctx.saved_tensors
+        means2d, conics, opacities, colors, backgrounds, offsets, ids, color, trans, last = ctx.saved_tensors
         width, height, tile = ctx.size
         grad_color = grad_color.contiguous()
         grad_alpha = grad_alpha.squeeze(-1).contiguous()
         g_m, g_q, g_o, g_c, absgrad = _cpp.backward(
-            means2d, conics, opacities, colors, backgrounds, offsets, ids, trans, last,
+            means2d, conics, opacities, colors, backgrounds, offsets, ids, color, trans, last,
             grad_color, grad_alpha, width, height, tile,
         )
         g_bg = (grad_color * trans.unsqueeze(-1)).sum(dim=(1, 2))
         for name, g in (("means2d", g_m), ("conics", g_q), ("opacities", g_o), ("colors", g_c)):
-            if not bool(torch.isfinite(g).all()):
+            if not all_finite(g):
                 raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the compositing backward")
         if ctx.absgrad_target is not None:
             ctx.absgrad_target.absgrad = absgrad
@@ -141,9 +200,9 @@ def rasterization(
     if absgrad and backend != "cpp":
         raise ValueError("absgrad=True needs backend 'cpp' (the PyTorch path has no per-pixel gradients)")
 
-    proj = project(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
-                   tile_size, radius_clip)
-    feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C)
+    proj, rgb = _project(means, quats, scales, colors, viewmats, Ks, width, height, near_plane, far_plane,
+                         eps2d, tile_size, radius_clip, sh_degree, render_mode, backend)
+    feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C, rgb)
     opac = opacities.expand(C, N) if opacities.dim() == 1 else opacities
     if rasterize_mode == "antialiased":
         opac = opac * proj.compensation
@@ -158,10 +217,12 @@ def rasterization(
 
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     with torch.no_grad():
-        key = torch.where(proj.valid, proj.depths, torch.full_like(proj.depths, float("inf")))
-        order = torch.argsort(key, dim=-1, stable=True)
-        binner = _cpp.bin_tiles if backend == "cpp" else rasterize_torch.bin_tiles
-        offsets, ids = binner(proj.rects, order, tiles_x, tiles_y)
+        if backend == "cpp":
+            offsets, ids = _cpp.bin_by_depth(proj.rects, proj.depths, proj.valid, tiles_x, tiles_y)
+        else:
+            key = torch.where(proj.valid, proj.depths, torch.full_like(proj.depths, float("inf")))
+            order = torch.argsort(key, dim=-1, stable=True)
+            offsets, ids = rasterize_torch.bin_tiles(proj.rects, order, tiles_x, tiles_y)
 
     if backend == "cpp":
         img, alpha = _CompositeCpp.apply(proj.means2d, proj.conics, opac, feats, bg, offsets, ids,
@@ -171,7 +232,7 @@ def rasterization(
                                                width, height, tile_size)
     if render_mode in ("ED", "RGB+ED"):
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
-    if not bool(torch.isfinite(img).all()) or not bool(torch.isfinite(alpha).all()):
+    if not all_finite(img) or not all_finite(alpha):
         raise FloatingPointError("the renderer produced a non-finite pixel; please report this input")
 
     meta = {
@@ -195,11 +256,14 @@ def rasterization(
     return img, alpha, meta
 
 
-def _features(means, colors, viewmats, sh_degree, render_mode, depths, C) -> Tensor:
-    """Per-camera features [C, N, D] to composite: colours (from SH if asked) and/or depth."""
+def _features(means, colors, viewmats, sh_degree, render_mode, depths, C, rgb=None) -> Tensor:
+    """Per-camera features [C, N, D] to composite: colours (from SH if asked, or the fused
+    projection's `rgb`) and/or depth."""
     feats = []
     if render_mode in ("RGB", "RGB+D", "RGB+ED"):
-        if sh_degree is None:
+        if rgb is not None:
+            feats.append(rgb)
+        elif sh_degree is None:
             feats.append(colors.expand(C, *colors.shape) if colors.dim() == 2 else colors)
         else:
             R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]

@@ -43,9 +43,11 @@ def grads_at_optimizer_step(trainer):
     return seen, info
 
 
+@pytest.mark.parametrize("chunk", [1, 3, None])
 @pytest.mark.parametrize("reduction", ["sum", "mean"])
-def test_accumulated_gradient_equals_summed_loss_in_one_graph(scene, reduction):
-    config = MVGSConfig(stages=(Stage(1, 4, 10),), reduction=reduction, chunk_size=1, densify_from=100)
+def test_accumulated_gradient_equals_summed_loss_in_one_graph(scene, reduction, chunk):
+    # chunk None: the memory bound puts all 4 views in one call with one batched loss.
+    config = MVGSConfig(stages=(Stage(1, 4, 10),), reduction=reduction, chunk_size=chunk, densify_from=100)
     trainer = MVGS(make(scene, F64), scene, config)
     grads, info = grads_at_optimizer_step(trainer)
     assert len(info.views) == 4
@@ -61,6 +63,28 @@ def test_accumulated_gradient_equals_summed_loss_in_one_graph(scene, reduction):
             continue
         err = float((grads[name] - g).abs().max() / g.abs().max().clamp_min(1e-300))
         assert err <= 1e-10, f"{name}: relative difference {err}"
+
+
+def test_default_chunk_size_is_the_memory_bound(scene):
+    from mvgs_plugin.schedule import ViewSchedule
+
+    n, (h, w) = 100_000, (scene.train_cameras[0].height, scene.train_cameras[0].width)
+    per_view = 128 * n + 640 * h * w  # bytes: the documented per-view working memory
+    for views_fitting in (1, 2, 4):
+        budget_mb = (views_fitting + 0.5) * per_view / 2**20
+        schedule = ViewSchedule(scene, MVGSConfig(stages=(Stage(1, 6, 10),), chunk_memory_mb=budget_mb))
+        schedule.primitive_count = n
+        plan = schedule.next()
+        assert [len(c) for c in plan.chunks] == [views_fitting] * (6 // views_fitting) + (
+            [6 % views_fitting] if 6 % views_fitting else [])
+    # A model of unknown size is assumed large (1M): small chunks rather than a memory blow-up.
+    schedule = ViewSchedule(scene, MVGSConfig(stages=(Stage(1, 6, 10),), chunk_memory_mb=200))
+    schedule.primitive_count = 10**6
+    assert [len(c) for c in schedule.next().chunks] == [1] * 6
+    with pytest.raises(ValueError, match="chunk_memory_mb"):
+        MVGSConfig(chunk_memory_mb=0)
+    with pytest.raises(ValueError, match="chunk_size must be a positive int or None"):
+        MVGSConfig(chunk_size=0)
 
 
 def test_chunks_do_not_change_the_step(scene):
@@ -95,7 +119,8 @@ def test_stages_render_at_their_pyramid_level_and_carry_the_model(scene):
     trainer.adapter.render = lambda cams, bgs: (sizes.append((len(cams), cams[0].width)), original(cams, bgs))[1]
     infos = [trainer.step() for _ in range(6)]
     assert [i.factor for i in infos] == [4, 4, 2, 2, 1, 1]
-    assert sizes[:3] == [(1, 4)] * 3 and sizes[6:8] == [(1, 8)] * 2 and sizes[-1] == (1, 16)
+    # Default chunking: a small model's views fit the memory bound, so each step is one call.
+    assert sizes == [(3, 4), (3, 4), (2, 8), (2, 8), (1, 16), (1, 16)]
     assert [len(i.views) for i in infos] == [3, 3, 2, 2, 1, 1]
 
 
@@ -304,7 +329,7 @@ def test_step_timing_splits_the_adapter_loss_and_controller_time(scene, monkeypa
     import mvgs_plugin.controller as controller
 
     monkeypatch.setattr(controller, "photometric_loss", slow(controller.photometric_loss))
-    config = MVGSConfig(stages=(Stage(1, 2, 2),), densify_from=1, densify_every=2, crd=False)
+    config = MVGSConfig(stages=(Stage(1, 2, 2),), densify_from=1, densify_every=2, crd=False, chunk_size=1)
     trainer = MVGS(adapter, scene, config)
     trainer.step()
     info = trainer.step()  # densifies: 2 x statistics + densify + optimizer, 2 x loss

@@ -1,9 +1,9 @@
-// Tile-based Gaussian compositing on the CPU: binning, forward and backward.
+// Tile-based Gaussian compositing on the CPU: depth-ordered binning, forward and backward.
 //
 // This is the compiled fast path of reference_renderer (see _cpp.py for how it is built and
-// called). It implements only the per-pixel part of image formation; projection, spherical
-// harmonics and culling happen in PyTorch (projection.py), so autograd handles them and this file
-// stays small. The pure-PyTorch path in rasterize_torch.py implements the same rules and the tests
+// called). It implements the per-pixel part of image formation; projection and SH colours are
+// in project.cpp (and, as the readable reference, in PyTorch: projection.py, sh.py). The
+// pure-PyTorch compositing in rasterize_torch.py implements the same rules and the tests
 // compare the two.
 //
 // Rules (DESIGN.md, "Image formation"): per pixel, the Gaussians of its tile front to back;
@@ -21,6 +21,7 @@
 #include <cstring>
 #include <limits>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -85,14 +86,17 @@ struct TileSplats {
     int64_t count = 0, channels = 0;
     std::vector<T> geo;        // [count, 7]: u, v, conic a, b, c, opacity, sigma beyond which alpha < 1/255
     std::vector<T> color;      // [count, channels]
-    std::vector<int64_t> slot; // [count]: position in the tile's full list (gradient slot)
+    std::vector<int64_t> slot; // [count]: position in the tile's full list (its gradient slot)
+    std::vector<float> bounds; // [count, 4]: x0, x1, y0, y1 of the alpha >= 1/255 ellipse, widened
 
-    void load(const int32_t* ids, int64_t n, int64_t cam, int64_t N, int64_t D, const T* means2d,
+    // Loads ids[0, n), the part of the tile's list that starts at position `first`.
+    void load(const int32_t* ids, int64_t n, int64_t first, int64_t cam, int64_t N, int64_t D, const T* means2d,
               const T* conics, const T* opacities, const T* colors, const double box[4]) {
         channels = D;
         geo.resize(n * 7);
         color.resize(n * D);
         slot.resize(n);
+        bounds.resize(n * 4);
         count = 0;
         for (int64_t k = 0; k < n; ++k) {
             const int64_t g = cam * N + ids[k];
@@ -106,10 +110,37 @@ struct TileSplats {
             // o * exp(-sigma) < 1/255 exactly when sigma > log(255 o). The margin keeps this a
             // pure shortcut: near the boundary the exact test below decides, as in the rules.
             q[6] = q[5] > T(0) ? std::log(T(255) * q[5]) + T(1e-3) : T(-1);
-            if (splat_misses_box(q, box[0], box[1], box[2], box[3])) continue;
+            if (q[6] < T(0)) continue;  // sigma >= 0 wherever the conic is positive definite
+            float* bb = &bounds[count * 4];
+            if (!ellipse_bounds(q, bb)) {
+                if (splat_misses_box(q, box[0], box[1], box[2], box[3])) continue;
+            } else if (bb[1] < box[0] || bb[0] > box[1] || bb[3] < box[2] || bb[2] > box[3] ||
+                       splat_misses_box(q, box[0], box[1], box[2], box[3])) {
+                continue;
+            }
             std::memcpy(&color[count * D], &colors[g * D], sizeof(T) * D);
-            slot[count++] = k;
+            slot[count++] = first + k;
         }
+    }
+
+    // Axis-aligned box of {d : sigma(d) <= q[6]}: half-widths sqrt(2 q6 cov_xx) and
+    // sqrt(2 q6 cov_yy) with cov the inverse conic; widened by 0.1 % and 0.01 px so rounding of
+    // the per-pixel sigma cannot reach past it. False (no box) when the conic is not positive
+    // definite, where sigma < 0 somewhere and the rules' skip decides.
+    static bool ellipse_bounds(const T* q, float* bb) {
+        const double a = q[2], b = q[3], c = q[4], det = a * c - b * b;
+        if (!(a > 0 && c > 0 && det > 0 && std::isfinite(det))) {
+            bb[0] = bb[2] = -std::numeric_limits<float>::infinity();
+            bb[1] = bb[3] = std::numeric_limits<float>::infinity();
+            return false;
+        }
+        const double hx = std::sqrt(2.0 * double(q[6]) * c / det) * 1.001 + 0.01;
+        const double hy = std::sqrt(2.0 * double(q[6]) * a / det) * 1.001 + 0.01;
+        bb[0] = float(double(q[0]) - hx);
+        bb[1] = float(double(q[0]) + hx);
+        bb[2] = float(double(q[1]) - hy);
+        bb[3] = float(double(q[1]) + hy);
+        return true;
     }
 };
 
@@ -133,6 +164,73 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
     return alpha >= Consts<T>::alpha_min;
 }
 
+// A tile's list is consumed in batches of kBatch Gaussians, front to back, and a tile stops as
+// soon as every one of its pixels has stopped (transmittance below 1e-4): behind an opaque
+// surface, or in a small view where hundreds of splats cover each pixel, most of a tile's list
+// is never loaded. Within a batch, each pixel block of kBlock x kBlock pixels gets the batch's
+// Gaussians whose alpha >= 1/255 ellipse box reaches one of its pixel centres: small splats
+// reach few pixels, so the per-pixel loops skip most of the batch. Neither changes the image:
+// a Gaussian left out has alpha < 1/255 at the pixel, and a stopped pixel takes nothing more.
+#ifndef MVGS_BLOCK
+#define MVGS_BLOCK 2
+#endif
+constexpr int64_t kBlock = MVGS_BLOCK;
+constexpr int64_t kBatch = 256;
+
+// Pixel range of a tile and the lists of one batch per pixel block (indices into the batch).
+template <typename T>
+struct Blocks {
+    int64_t bx = 0, by = 0, x_begin = 0, y_begin = 0, x_end = 0, y_end = 0;
+    std::vector<std::vector<int32_t>> lists;
+
+    void set_tile(const Grid& grid, int64_t tx, int64_t ty) {
+        x_begin = tx * grid.tile;
+        y_begin = ty * grid.tile;
+        x_end = std::min(grid.width, x_begin + grid.tile);
+        y_end = std::min(grid.height, y_begin + grid.tile);
+        bx = (x_end - x_begin + kBlock - 1) / kBlock;
+        by = (y_end - y_begin + kBlock - 1) / kBlock;
+        if (static_cast<int64_t>(lists.size()) < bx * by) lists.resize(bx * by);
+    }
+    int64_t width() const { return x_end - x_begin; }
+    int64_t pixels() const { return (x_end - x_begin) * (y_end - y_begin); }
+    // Tile's pixel box (centres) for the per-tile cull.
+    void box(double out[4]) const { out[0] = x_begin + 0.5; out[1] = x_end - 0.5; out[2] = y_begin + 0.5; out[3] = y_end - 0.5; }
+
+    void build(const TileSplats<T>& splats) {
+        for (int64_t i = 0; i < bx * by; ++i) lists[i].clear();
+        auto range = [](float lo, float hi, int64_t begin, int64_t n, int64_t& r0, int64_t& r1) {
+            // blocks holding a pixel x with lo <= x + 0.5 <= hi (the box is already widened)
+            const double first = std::ceil(double(lo) - 0.5) - double(begin);
+            const double last = std::floor(double(hi) - 0.5) - double(begin);
+            r0 = first <= 0 ? 0 : std::min<int64_t>(n, static_cast<int64_t>(first) / kBlock);
+            r1 = last < 0 ? 0 : std::min<int64_t>(n, static_cast<int64_t>(std::min(last, 1e9)) / kBlock + 1);
+        };
+        for (int64_t k = 0; k < splats.count; ++k) {
+            const float* bb = &splats.bounds[k * 4];
+            int64_t x0, x1, y0, y1;
+            range(bb[0], bb[1], x_begin, bx, x0, x1);
+            range(bb[2], bb[3], y_begin, by, y0, y1);
+            for (int64_t j = y0; j < y1; ++j)
+                for (int64_t i = x0; i < x1; ++i) lists[j * bx + i].push_back(static_cast<int32_t>(k));
+        }
+    }
+
+    // fn(x, y, p, list) for every pixel of the tile (p: its index in the tile), block by block.
+    template <typename Fn>
+    void for_pixels(Fn&& fn) const {
+        for (int64_t j = 0; j < by; ++j) {
+            for (int64_t i = 0; i < bx; ++i) {
+                const std::vector<int32_t>& list = lists[j * bx + i];
+                const int64_t x0 = x_begin + i * kBlock, y0 = y_begin + j * kBlock;
+                for (int64_t y = y0; y < std::min(y_end, y0 + kBlock); ++y)
+                    for (int64_t x = x0; x < std::min(x_end, x0 + kBlock); ++x)
+                        fn(x, y, (y - y_begin) * width() + (x - x_begin), list);
+            }
+        }
+    }
+};
+
 template <typename T>
 void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d, const T* conics,
              const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
@@ -140,38 +238,54 @@ void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d
     const int64_t n_tiles = grid.n_tiles();
     parallel_for(C * n_tiles, n_threads, [&](int64_t item, int) {
         const int64_t cam = item / n_tiles, t = item % n_tiles;
-        const int64_t tx = t % grid.tiles_x, ty = t / grid.tiles_x;
         const int64_t begin = offsets[item], end = offsets[item + 1];
-        const int64_t y_end = std::min(grid.height, (ty + 1) * grid.tile);
-        const int64_t x_end = std::min(grid.width, (tx + 1) * grid.tile);
-        const double box[4] = {tx * grid.tile + 0.5, x_end - 0.5, ty * grid.tile + 0.5, y_end - 0.5};
+        thread_local Blocks<T> blocks;
         thread_local TileSplats<T> splats;
-        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors, box);
-        std::vector<T> acc(D);
-        const T* bg = backgrounds + cam * D;
-        for (int64_t y = ty * grid.tile; y < y_end; ++y) {
-            for (int64_t x = tx * grid.tile; x < x_end; ++x) {
+        thread_local std::vector<T> acc, trans;
+        thread_local std::vector<int32_t> last;
+        thread_local std::vector<uint8_t> done;
+        blocks.set_tile(grid, t % grid.tiles_x, t / grid.tiles_x);
+        const int64_t n_pix = blocks.pixels();
+        acc.assign(n_pix * D, T(0));
+        trans.assign(n_pix, T(1));
+        last.assign(n_pix, 0);
+        done.assign(n_pix, 0);
+        double box[4];
+        blocks.box(box);
+        int64_t running = n_pix;
+        for (int64_t b0 = 0; b0 < end - begin && running > 0; b0 += kBatch) {
+            splats.load(ids + begin + b0, std::min(kBatch, end - begin - b0), b0, cam, N, D, means2d, conics,
+                        opacities, colors, box);
+            if (splats.count == 0) continue;
+            blocks.build(splats);
+            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>& list) {
+                if (done[p]) return;
                 const T px = T(x) + T(0.5), py = T(y) + T(0.5);
-                std::fill(acc.begin(), acc.end(), T(0));
-                T trans = T(1);
-                int32_t last = 0;
-                for (int64_t k = 0; k < splats.count; ++k) {
+                T* a = &acc[p * D];
+                for (int32_t k : list) {
                     T alpha, raw, dx, dy;
                     if (!splat_alpha(&splats.geo[k * 7], px, py, alpha, raw, dx, dy)) continue;
-                    const T next = trans * (T(1) - alpha);
-                    if (next < Consts<T>::t_min) break;
-                    const T w = alpha * trans;
+                    const T next = trans[p] * (T(1) - alpha);
+                    if (next < Consts<T>::t_min) {
+                        done[p] = 1;
+                        --running;
+                        return;
+                    }
+                    const T w = alpha * trans[p];
                     const T* c = &splats.color[k * D];
-                    for (int64_t ch = 0; ch < D; ++ch) acc[ch] += w * c[ch];
-                    trans = next;
-                    last = static_cast<int32_t>(k + 1);
+                    for (int64_t ch = 0; ch < D; ++ch) a[ch] += w * c[ch];
+                    trans[p] = next;
+                    last[p] = static_cast<int32_t>(splats.slot[k] + 1);
                 }
-                const int64_t pix = (cam * grid.height + y) * grid.width + x;
-                for (int64_t ch = 0; ch < D; ++ch) out_color[pix * D + ch] = acc[ch] + trans * bg[ch];
-                out_trans[pix] = trans;
-                out_last[pix] = last;
-            }
+            });
         }
+        const T* bg = backgrounds + cam * D;
+        blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>&) {
+            const int64_t pix = (cam * grid.height + y) * grid.width + x;
+            for (int64_t ch = 0; ch < D; ++ch) out_color[pix * D + ch] = acc[p * D + ch] + trans[p] * bg[ch];
+            out_trans[pix] = trans[p];
+            out_last[pix] = last[p];  // 1 + the position in the tile's list of its last contributor
+        });
     });
 }
 
@@ -180,81 +294,82 @@ void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d
 // threads never write to the same memory and the result does not depend on scheduling.
 constexpr int64_t kGeoSlots = 8;
 
+// The backward walks each pixel's contributors front to back, in the forward's order, with the
+// exact transmittances (no division by 1 - alpha to walk back from the final one). What a
+// contributor hides behind it (later colours and the background) is the pixel's colour minus
+// what it and those before it added: out_color - sum_{j <= k} c_j w_j.
 template <typename T>
 void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d, const T* conics,
               const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
-              const int32_t* ids, const T* out_trans, const int32_t* out_last, const T* grad_color,
-              const T* grad_alpha, T* isect_grads, int n_threads) {
+              const int32_t* ids, const T* out_color, const T* out_trans, const int32_t* out_last,
+              const T* grad_color, const T* grad_alpha, T* isect_grads, int n_threads) {
     const int64_t n_tiles = grid.n_tiles();
     const int64_t slots = kGeoSlots + D;
     parallel_for(C * n_tiles, n_threads, [&](int64_t item, int) {
         const int64_t cam = item / n_tiles, t = item % n_tiles;
-        const int64_t tx = t % grid.tiles_x, ty = t / grid.tiles_x;
         const int64_t begin = offsets[item], end = offsets[item + 1];
         if (end == begin) return;
-        const int64_t y_end = std::min(grid.height, (ty + 1) * grid.tile);
-        const int64_t x_end = std::min(grid.width, (tx + 1) * grid.tile);
-        const double box[4] = {tx * grid.tile + 0.5, x_end - 0.5, ty * grid.tile + 0.5, y_end - 0.5};
-        thread_local TileSplats<T> splats;
-        splats.load(ids + begin, end - begin, cam, N, D, means2d, conics, opacities, colors, box);
         T* g_tile = isect_grads + begin * slots;
         std::fill(g_tile, g_tile + (end - begin) * slots, T(0));
-        // Contributors of one pixel, front to back: index in the tile, alpha, transmittance
-        // before it, whether alpha was clamped at 0.999, and d. Replaying the forward pass keeps
-        // the exact transmittances (no division by 1 - alpha to walk back from the final one).
-        struct Hit { int64_t k; T alpha, trans, dx, dy; bool clamped; };
-        thread_local std::vector<Hit> hits;
-        std::vector<T> behind(D);
-        const T* bg = backgrounds + cam * D;
-        for (int64_t y = ty * grid.tile; y < y_end; ++y) {
-            for (int64_t x = tx * grid.tile; x < x_end; ++x) {
+        thread_local Blocks<T> blocks;
+        thread_local TileSplats<T> splats;
+        thread_local std::vector<T> trans, added;
+        blocks.set_tile(grid, t % grid.tiles_x, t / grid.tiles_x);
+        const int64_t n_pix = blocks.pixels();
+        trans.assign(n_pix, T(1));
+        added.assign(n_pix * D, T(0));
+        int64_t max_last = 0;
+        blocks.for_pixels([&](int64_t x, int64_t y, int64_t, const std::vector<int32_t>&) {
+            max_last = std::max<int64_t>(max_last, out_last[(cam * grid.height + y) * grid.width + x]);
+        });
+        double box[4];
+        blocks.box(box);
+        for (int64_t b0 = 0; b0 < max_last; b0 += kBatch) {
+            splats.load(ids + begin + b0, std::min(kBatch, end - begin - b0), b0, cam, N, D, means2d, conics,
+                        opacities, colors, box);
+            if (splats.count == 0) continue;
+            blocks.build(splats);
+            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>& list) {
                 const int64_t pix = (cam * grid.height + y) * grid.width + x;
                 const int32_t last = out_last[pix];
-                if (last == 0) continue;
+                if (last <= b0) return;
                 const T px = T(x) + T(0.5), py = T(y) + T(0.5);
-                hits.clear();
-                T trans = T(1);
-                for (int64_t k = 0; k < last; ++k) {
-                    T alpha, raw, dx, dy;
-                    if (!splat_alpha(&splats.geo[k * 7], px, py, alpha, raw, dx, dy)) continue;
-                    hits.push_back({k, alpha, trans, dx, dy, raw > Consts<T>::alpha_max});
-                    trans *= T(1) - alpha;
-                }
-                const T final_trans = out_trans[pix];
+                const T final_trans = out_trans[pix], ga = grad_alpha[pix];
                 const T* gc = grad_color + pix * D;
-                const T ga = grad_alpha[pix];
-                // behind = sum over later contributors of colour * alpha * T, walked back to front.
-                std::fill(behind.begin(), behind.end(), T(0));
-                for (auto h = hits.rbegin(); h != hits.rend(); ++h) {
-                    const T* q = &splats.geo[h->k * 7];
-                    const T* c = &splats.color[h->k * D];
-                    T* g = g_tile + splats.slot[h->k] * slots;
-                    const T w = h->alpha * h->trans;
-                    const T inv_keep = T(1) / (T(1) - h->alpha);
-                    // dL/dalpha: own colour seen through T, minus what it hides behind it (the
-                    // later colours and the background, both scaled by 1 / (1 - alpha)); the
-                    // rendered alpha 1 - T_final grows by T_final / (1 - alpha).
+                const T* color = out_color + pix * D;
+                T* sum = &added[p * D];
+                for (int32_t k : list) {
+                    if (splats.slot[k] >= last) break;
+                    T alpha, raw, dx, dy;
+                    const T* q = &splats.geo[k * 7];
+                    if (!splat_alpha(q, px, py, alpha, raw, dx, dy)) continue;
+                    const T* c = &splats.color[k * D];
+                    T* g = g_tile + splats.slot[k] * slots;
+                    const T w = alpha * trans[p];
+                    const T inv_keep = T(1) / (T(1) - alpha);
+                    // dL/dalpha: own colour seen through T, minus what it hides behind it (scaled
+                    // by 1 / (1 - alpha)); the rendered alpha 1 - T_final grows by T_final / (1 - alpha).
                     T g_alpha = ga * final_trans * inv_keep;
                     for (int64_t ch = 0; ch < D; ++ch) {
+                        sum[ch] += c[ch] * w;
                         g[kGeoSlots + ch] += gc[ch] * w;
-                        g_alpha += gc[ch] * (c[ch] * h->trans -
-                                             (behind[ch] + bg[ch] * final_trans) * inv_keep);
-                        behind[ch] += c[ch] * w;
+                        g_alpha += gc[ch] * (c[ch] * trans[p] - (color[ch] - sum[ch]) * inv_keep);
                     }
-                    if (h->clamped) continue;  // alpha = 0.999 does not depend on o or sigma
-                    const T g_sigma = -g_alpha * h->alpha;
-                    const T gu = g_sigma * (q[2] * h->dx + q[3] * h->dy);
-                    const T gv = g_sigma * (q[3] * h->dx + q[4] * h->dy);
+                    trans[p] *= T(1) - alpha;
+                    if (raw > Consts<T>::alpha_max) continue;  // alpha = 0.999 does not depend on o or sigma
+                    const T g_sigma = -g_alpha * alpha;
+                    const T gu = g_sigma * (q[2] * dx + q[3] * dy);
+                    const T gv = g_sigma * (q[3] * dx + q[4] * dy);
                     g[0] += gu;
                     g[1] += gv;
-                    g[2] += g_sigma * T(0.5) * h->dx * h->dx;
-                    g[3] += g_sigma * h->dx * h->dy;
-                    g[4] += g_sigma * T(0.5) * h->dy * h->dy;
-                    g[5] += g_alpha * h->alpha / q[5];
+                    g[2] += g_sigma * T(0.5) * dx * dx;
+                    g[3] += g_sigma * dx * dy;
+                    g[4] += g_sigma * T(0.5) * dy * dy;
+                    g[5] += g_alpha * alpha / q[5];
                     g[6] += std::abs(gu);
                     g[7] += std::abs(gv);
                 }
-            }
+            });
         }
     });
 }
@@ -288,40 +403,100 @@ void reduce(const Grid& grid, int64_t C, int64_t N, int64_t D, const int64_t* of
 
 extern "C" {
 
-// Counts the intersections of each (camera, tile) and writes their prefix sums to
-// offsets [C * tiles + 1]; returns the total. rects [C, N, 4] = x0, x1, y0, y1 (half-open,
-// already clamped to the grid; empty for culled Gaussians).
-int64_t mvgs_bin_count(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y,
-                       const int32_t* rects, int64_t* offsets) {
+}  // extern "C"
+
+namespace {
+
+// Valid Gaussians of one camera in depth order, ties by index (what a stable argsort of the
+// depths gives). Depths of valid Gaussians are > near > 0, and positive IEEE floats order as
+// their bit patterns, so an LSD radix sort on the bits (11-bit digits; stable, and the input is
+// in index order) does it in a few linear passes instead of a comparison sort.
+template <typename T>
+void depth_order(int64_t N, const T* depths, const uint8_t* valid, std::vector<int32_t>& order,
+                 std::vector<int32_t>& tmp) {
+    using Key = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
+    order.clear();
+    for (int64_t n = 0; n < N; ++n)
+        if (valid[n]) order.push_back(static_cast<int32_t>(n));
+    tmp.resize(order.size());
+    auto key = [&](int32_t n) { Key k; std::memcpy(&k, &depths[n], sizeof(T)); return k; };
+    constexpr int kBits = 11;
+    constexpr int kPasses = (8 * sizeof(Key) + kBits - 1) / kBits;
+    std::vector<int64_t> count(size_t(1) << kBits);
+    for (int pass = 0; pass < kPasses; ++pass) {
+        const int shift = pass * kBits;
+        std::fill(count.begin(), count.end(), 0);
+        bool same = true;
+        const Key first = order.empty() ? 0 : (key(order[0]) >> shift) & ((Key(1) << kBits) - 1);
+        for (int32_t n : order) {
+            const Key d = (key(n) >> shift) & ((Key(1) << kBits) - 1);
+            same = same && d == first;
+            ++count[d];
+        }
+        if (same) continue;  // this digit is equal everywhere: the pass would not move anything
+        int64_t sum = 0;
+        for (auto& c : count) { const int64_t c0 = c; c = sum; sum += c0; }
+        for (int32_t n : order) tmp[count[(key(n) >> shift) & ((Key(1) << kBits) - 1)]++] = n;
+        order.swap(tmp);
+    }
+}
+
+template <typename T>
+int64_t bin_count(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y, const int32_t* rects,
+                  const uint8_t* valid, int64_t* offsets, int n_threads) {
     const int64_t n_tiles = tiles_x * tiles_y;
     std::fill(offsets, offsets + C * n_tiles + 1, int64_t(0));
-    for (int64_t cam = 0; cam < C; ++cam) {
+    parallel_for(C, n_threads, [&](int64_t cam, int) {
+        int64_t* cnt = offsets + cam * n_tiles + 1;
         for (int64_t n = 0; n < N; ++n) {
+            if (!valid[cam * N + n]) continue;
             const int32_t* r = rects + (cam * N + n) * 4;
             for (int64_t ty = r[2]; ty < r[3]; ++ty)
-                for (int64_t tx = r[0]; tx < r[1]; ++tx) ++offsets[cam * n_tiles + ty * tiles_x + tx + 1];
+                for (int64_t tx = r[0]; tx < r[1]; ++tx) ++cnt[ty * tiles_x + tx];
         }
-    }
+    });
     for (int64_t i = 0; i < C * n_tiles; ++i) offsets[i + 1] += offsets[i];
     return offsets[C * n_tiles];
 }
 
-// Fills ids with the Gaussian indices of each (camera, tile) in depth order: order [C, N] lists
-// each camera's Gaussians front to back, so a counting sort keeps that order within every tile.
-void mvgs_bin_fill(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y, const int32_t* rects,
-                   const int64_t* order, const int64_t* offsets, int32_t* ids) {
+template <typename T>
+void bin_fill(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y, const int32_t* rects,
+              const T* depths, const uint8_t* valid, const int64_t* offsets, int32_t* ids, int n_threads) {
     const int64_t n_tiles = tiles_x * tiles_y;
-    std::vector<int64_t> cursor(offsets, offsets + C * n_tiles);
-    for (int64_t cam = 0; cam < C; ++cam) {
-        for (int64_t k = 0; k < N; ++k) {
-            const int64_t n = order[cam * N + k];
+    parallel_for(C, n_threads, [&](int64_t cam, int) {
+        thread_local std::vector<int32_t> order, tmp;
+        depth_order(N, depths + cam * N, valid + cam * N, order, tmp);
+        std::vector<int64_t> cursor(offsets + cam * n_tiles, offsets + (cam + 1) * n_tiles);
+        for (int32_t n : order) {
             const int32_t* r = rects + (cam * N + n) * 4;
             for (int64_t ty = r[2]; ty < r[3]; ++ty)
-                for (int64_t tx = r[0]; tx < r[1]; ++tx)
-                    ids[cursor[cam * n_tiles + ty * tiles_x + tx]++] = static_cast<int32_t>(n);
+                for (int64_t tx = r[0]; tx < r[1]; ++tx) ids[cursor[ty * tiles_x + tx]++] = n;
         }
-    }
+    });
 }
+
+}  // namespace
+
+extern "C" {
+
+// Tile lists in depth order straight from the projection: counts (returns the total; offsets
+// [C * tiles + 1] get the prefix sums), then fills ids. Cameras run in parallel.
+#define MVGS_BIN(T, SUFFIX)                                                                        \
+    int64_t mvgs_bin_depth_count_##SUFFIX(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y,  \
+                                          const int32_t* rects, const uint8_t* valid,             \
+                                          int64_t* offsets, int n_threads) {                      \
+        return bin_count<T>(C, N, tiles_x, tiles_y, rects, valid, offsets, n_threads);            \
+    }                                                                                              \
+    void mvgs_bin_depth_fill_##SUFFIX(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y,      \
+                                      const int32_t* rects, const T* depths, const uint8_t* valid,  \
+                                      const int64_t* offsets, int32_t* ids, int n_threads) {        \
+        bin_fill<T>(C, N, tiles_x, tiles_y, rects, depths, valid, offsets, ids, n_threads);        \
+    }
+
+MVGS_BIN(float, f32)
+MVGS_BIN(double, f64)
+
+#undef MVGS_BIN
 
 #define MVGS_DEFINE(T, SUFFIX)                                                                    \
     void mvgs_forward_##SUFFIX(int64_t C, int64_t N, int64_t D, int64_t width, int64_t height,     \
@@ -336,14 +511,15 @@ void mvgs_bin_fill(int64_t C, int64_t N, int64_t tiles_x, int64_t tiles_y, const
     void mvgs_backward_##SUFFIX(int64_t C, int64_t N, int64_t D, int64_t width, int64_t height,    \
                                 int64_t tile, const T* means2d, const T* conics,                    \
                                 const T* opacities, const T* colors, const T* backgrounds,          \
-                                const int64_t* offsets, const int32_t* ids, const T* out_trans,     \
-                                const int32_t* out_last, const T* grad_color, const T* grad_alpha,  \
+                                const int64_t* offsets, const int32_t* ids, const T* out_color,     \
+                                const T* out_trans, const int32_t* out_last, const T* grad_color,   \
+                                const T* grad_alpha,                                                \
                                 T* isect_grads, T* grad_means2d, T* grad_conics,                    \
                                 T* grad_opacities, T* grad_colors, T* absgrad_means2d,              \
                                 int n_threads) {                                                   \
         const Grid grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile}; \
         backward<T>(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,   \
-                    out_trans, out_last, grad_color, grad_alpha, isect_grads, n_threads);          \
+                    out_color, out_trans, out_last, grad_color, grad_alpha, isect_grads, n_threads); \
         reduce<T>(grid, C, N, D, offsets, ids, isect_grads, grad_means2d, grad_conics,              \
                   grad_opacities, grad_colors, absgrad_means2d, n_threads);                        \
     }
