@@ -4,13 +4,15 @@
     python examples/train_3dgs.py --preset baseline --steps 2000 --out out/baseline
     python examples/train_3dgs.py --data path/to/colmap_or_nerf --preset paper --views 8
     python examples/train_3dgs.py --preset default --no-crd --no-mvad     # MVRL + CIG only
+    python examples/train_3dgs.py --preset baseline --budget 1000        # a budget of work, not steps
     torchrun --nproc-per-node 2 examples/train_3dgs.py --views 8 --threads 1   # views sharded over 2 processes
 
 Under torchrun every rank trains the same model on its share of each step's views
 (mvgs_plugin.distributed; gloo on CPU, NCCL on GPU); only rank 0 writes outputs.
 
-Writes OUT/metrics.json (psnr, ssim, lpips or null, train_seconds, steps, num_gaussians,
-peak_memory_mb, preset, config, world_size), OUT/test/*.png (test renders), OUT/point_cloud.ply
+Writes OUT/metrics.json (psnr, ssim, lpips or null, train_seconds (wall), cpu_seconds (user +
+sys of the process), steps, budget (null without --budget), work (full-resolution view renders
+spent), num_gaussians, peak_memory_mb, preset, config, world_size), OUT/test/*.png (test renders), OUT/point_cloud.ply
 and, with --checkpoint, OUT/checkpoint.pt (loadable by a single process).
 
 The three lines that make MVGS out of a model: build the adapter, the config, and let the
@@ -57,7 +59,7 @@ def load_scene(path: Path):
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is."""
-    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
+    clock = config.clock_length
     return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
                       sh_degree_interval=max(1, round(1000 * clock / 30_000)))
 
@@ -75,6 +77,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--preset", choices=["baseline", "paper", "default"], default="default")
     ap.add_argument("--views", type=int, default=None, help="views per step M at full resolution (coarser stages scale)")
     ap.add_argument("--steps", type=int, default=3000, help="total steps (the preset's schedule is rescaled to it)")
+    ap.add_argument("--budget", type=float, default=None,
+                    help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
+                         "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it")
     ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--mvad", action=argparse.BooleanOptionalAction, default=None,
                     help="multi-view augmented densification on/off (default: as the preset)")
@@ -94,19 +99,25 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
 
 
 def config_from_args(args, **preset_overrides) -> MVGSConfig:
-    """The MVGSConfig the common CLI asks for: preset rescaled to --steps, --views, --mvad/--crd,
-    --threshold-width, and every pyramid factor times --resolution-scale."""
-    config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides).with_total_steps(args.steps)
+    """The MVGSConfig the common CLI asks for: preset, --views, rescaled to --steps (or run on
+    --budget), --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
+    config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
     if args.views is not None:
         config = config.with_views(args.views)
+    if args.resolution_scale != 1:
+        s = args.resolution_scale
+        config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
+    if args.budget is not None:
+        if not args.budget > 0:
+            raise ValueError(f"--budget must be > 0 (full-resolution view renders), got {args.budget}")
+        config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
+    else:
+        config = config.with_total_steps(args.steps)
     for rule in ("mvad", "crd"):
         if getattr(args, rule) is not None:
             config = dataclasses.replace(config, **{rule: getattr(args, rule)})
     if args.threshold_width is not None:
         config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
-    if args.resolution_scale != 1:
-        s = args.resolution_scale
-        config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     return config
 
 
@@ -126,9 +137,10 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     (trainer, training wall seconds, test result), the result None on the other ranks: the
     model is the same on every rank."""
     trainer = MVGS(adapter, scene, config, distributed=dist)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     trainer.fit(progress=not args.no_progress)
     seconds = time.perf_counter() - t0
+    trainer.cpu_seconds = time.process_time() - c0  # user + sys of this process, all its threads
     if getattr(args, "checkpoint", False):
         trainer.save_checkpoint(str(args.out / "checkpoint.pt"))
     if not trainer.is_main:
@@ -147,7 +159,10 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "ssim": result.ssim,
         "lpips": result.lpips,
         "train_seconds": train_seconds,
+        "cpu_seconds": getattr(trainer, "cpu_seconds", None),
         "steps": trainer.step_count,
+        "budget": config.budget,
+        "work": trainer.schedule.work_done,
         "num_gaussians": trainer.adapter.num_primitives(),
         **extra,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,

@@ -67,7 +67,7 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     """The canonical 3DGS schedules compressed with the run (as train_3dgs.py) and the coarse /
     fine split of the clock the adapter sees (the whole run; with restart_per_stage, as the paper
     preset, the clock restarts at every pyramid stage, so each stage begins with a coarse part)."""
-    total = config.stages[-1].steps if config.restart_per_stage else config.total_steps
+    total = config.clock_length
     coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
     return GS4DConfig(canonical=model_config(config, args.seed, args.max_gaussians), coarse_steps=coarse,

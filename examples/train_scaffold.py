@@ -50,7 +50,7 @@ def parse_args(argv=None):
 def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:
     """The MLP and offset learning-rate decays (30k steps in the original) compressed with the
     run, as train_3dgs.py compresses the 3DGS schedules."""
-    clock = config.stages[-1].steps if config.restart_per_stage else config.total_steps
+    clock = config.clock_length
     return ScaffoldConfig(voxel_size=args.voxel_size, use_distance=args.use_distance, seed=args.seed,
                           lr_max_steps=clock, max_anchors=args.max_gaussians)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+import math
 from typing import Optional, Tuple, Union
 
 
@@ -70,6 +71,16 @@ class MVGSConfig:
     max_views_rule: what happens when a stage asks for more views than there are training views:
         "cap" (use them all; the only rule: repeats within a step are never allowed).
     seed: seeds the view sampler and random backgrounds.
+    budget: None (the clocks count steps) or the run's budget of work in full-resolution view
+        renders (set by with_budget()). Then every clock (learning-rate decay, SH degree,
+        densification window and interval, opacity resets, size pruning) counts work: a step of
+        M views at pyramid factor f advances it by M * view_cost(f), so a baseline step is 1 and
+        a run given budget B does B units of work whatever its recipe.
+    view_cost: (a, b): the work of one view at pyramid factor f is a + b / f full-resolution
+        views (a + b = 1; f relative to the finest stage). Measured with benchmarks/bench_step.py on the reference renderer
+        (10k Gaussians, 128 px, one thread; a view in a batched call): 16 px and 32 px views cost
+        0.23 and 0.34 of a 128 px one and a 1 x 1 px view 0.10, so work shrinks as 1 / f (splats
+        keep a footprint of a few pixels however small the image), not as the pixel count 1 / f^2.
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -113,6 +124,8 @@ class MVGSConfig:
     max_views_rule: str = "cap"
     seed: int = 0
     time_spread: str = "random"
+    budget: Optional[float] = None
+    view_cost: Tuple[float, float] = (0.1, 0.9)
     mvad: bool = False
     mvad_tau: float = 1.0
     mvad_rule: Union[str, float] = "any"
@@ -157,6 +170,16 @@ class MVGSConfig:
         if not (isinstance(self.mvad_rule, str) and self.mvad_rule == "any") and not (
                 not isinstance(self.mvad_rule, (str, bool)) and 0.0 < float(self.mvad_rule) <= 1.0):
             raise ValueError(f"mvad_rule must be 'any' or a fraction in (0, 1], got {self.mvad_rule!r}")
+        self.view_cost = tuple(float(v) for v in self.view_cost)
+        if len(self.view_cost) != 2 or not all(0.0 <= v < float("inf") for v in self.view_cost) or not math.isclose(
+                sum(self.view_cost), 1.0):
+            raise ValueError(f"view_cost must be (a, b) with a, b >= 0 and a + b = 1, got {self.view_cost!r}")
+        b = self.budget
+        if b is not None and (isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 < b < float("inf")):
+            raise ValueError(f"budget must be None or a finite number of full-resolution views > 0, got {b!r}")
+        if b is not None and self.restart_per_stage:
+            raise ValueError("budget needs one continuous clock (restart_per_stage=False); the paper() preset "
+                             "restarts its schedules at every stage")
         self.crd_window = tuple(self.crd_window)
         if len(self.crd_window) != 2 or not all(isinstance(v, int) and v >= 1 for v in self.crd_window):
             raise ValueError(f"crd_window must be (rows, columns) of positive ints, got {self.crd_window!r}")
@@ -172,6 +195,25 @@ class MVGSConfig:
     @property
     def total_steps(self) -> int:
         return sum(s.steps for s in self.stages)
+
+    def step_work(self, stage: Stage) -> float:
+        """Work of one step of `stage` in full-resolution view renders (see view_cost); "full
+        resolution" is the finest stage's (e.g. 1/4 of the images' with --resolution-scale 4)."""
+        a, b = self.view_cost
+        return stage.views * (a + b * min(s.factor for s in self.stages) / stage.factor)
+
+    @property
+    def total_work(self) -> float:
+        return sum(s.steps * self.step_work(s) for s in self.stages)
+
+    @property
+    def clock_length(self) -> int:
+        """Length of the clock the schedules run on (what the model's learning-rate decay and SH
+        schedule should span): the budget, else the last stage's steps when the clocks restart
+        per stage, else the total steps."""
+        if self.budget is not None:
+            return max(1, int(round(self.budget)))
+        return self.stages[-1].steps if self.restart_per_stage else self.total_steps
 
     # ---- presets --------------------------------------------------------------------------
     @classmethod
@@ -247,6 +289,34 @@ class MVGSConfig:
             densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
         )
 
+    def with_budget(self, budget: float) -> "MVGSConfig":
+        """The recipe run on a budget of work instead of a step count (see `budget`).
+
+        budget: full-resolution view renders (a baseline given B does B steps). Each stage
+        keeps its share of the recipe's work (its steps x step_work), so a cheap coarse stage
+        keeps its many steps; every clock-valued field is the 30k-view 3DGS recipe's value times
+        budget / 30000 (densification from 1/60 to 1/2 of the budget, a reset every 1/10), with
+        with_total_steps()'s floors for short runs. Baseline and MVGS given one budget thus do
+        the same work on the same clock.
+        """
+        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < float("inf"):
+            raise ValueError(f"budget must be a finite number of full-resolution views > 0, got {budget!r}")
+        if self.restart_per_stage:
+            raise ValueError("with_budget needs one continuous clock (restart_per_stage=False); the paper() "
+                             "preset restarts its schedules at every stage")
+        work = [s.steps * self.step_work(s) for s in self.stages]
+        steps = [max(1, round(budget * w / sum(work) / self.step_work(s))) for s, w in zip(self.stages, work)]
+        stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
+        ratio = budget / 30_000
+        scale = lambda v: max(1, round(v * ratio))  # noqa: E731
+        every = max(min(10, self.densify_every), scale(self.densify_every))
+        start = max(min(50, self.densify_from), scale(self.densify_from))
+        reset = max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every))
+        return dataclasses.replace(
+            self, stages=stages, budget=float(budget), densify_from=start, densify_until=scale(self.densify_until),
+            densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
+        )
+
     def with_views(self, views: int) -> "MVGSConfig":
         """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""
         last = self.stages[-1].views
@@ -257,6 +327,7 @@ class MVGSConfig:
         d = dataclasses.asdict(self)
         d["stages"] = [dataclasses.asdict(s) for s in self.stages]
         d["crd_window"] = list(self.crd_window)
+        d["view_cost"] = list(self.view_cost)
         return d
 
     @classmethod
@@ -265,4 +336,6 @@ class MVGSConfig:
         d["stages"] = tuple(Stage(**s) for s in d["stages"])
         if isinstance(d.get("background"), list):
             d["background"] = tuple(d["background"])
+        if "view_cost" in d:
+            d["view_cost"] = tuple(d["view_cost"])
         return cls(**d)

@@ -37,34 +37,57 @@ def view_bytes(primitives: int, height: int, width: int) -> int:
 @dataclass(frozen=True)
 class StagePosition:
     """Where a global step (1-based) falls: the stage, its index, the step within the stage
-    (1-based), and the clock the schedules see."""
+    (1-based), and the clock the schedules see: `clock` (an int, what the model's schedules get)
+    and the clock's value before and after this step (`before` < `after`; a step advances it by
+    1, or by its work on the budget clock), for the "every k" triggers."""
 
     index: int
     stage: Stage
     local_step: int
     clock: int
     first_in_stage: bool
+    before: float = 0.0
+    after: float = 0.0
+
+    def crosses(self, every: int) -> bool:
+        """Whether this step's clock interval (before, after] holds a multiple of `every` (for a
+        clock counting steps: clock % every == 0)."""
+        return math.floor(self.after / every + 1e-9) > math.floor(self.before / every + 1e-9)
 
 
 class StagePlan:
-    """A list of stages run back to back; the model carries over from one to the next."""
+    """A list of stages run back to back; the model carries over from one to the next.
 
-    def __init__(self, stages: Sequence[Stage], restart_per_stage: bool = False):
+    step_work: None (the clocks count steps) or a function giving the work of one step of a
+    stage: the clock then counts work (MVGSConfig.budget).
+    """
+
+    def __init__(self, stages: Sequence[Stage], restart_per_stage: bool = False, step_work=None):
         self.stages = tuple(stages)
         self.restart_per_stage = restart_per_stage
         self.total_steps = sum(s.steps for s in self.stages)
+        self.step_work = step_work
 
     def locate(self, step: int) -> StagePosition:
         if not 1 <= step <= self.total_steps:
             raise ValueError(f"step must be in [1, {self.total_steps}], got {step}")
-        start = 0
+        start, done = 0, 0.0
         for i, stage in enumerate(self.stages):
             if step <= start + stage.steps:
                 local = step - start
+                if self.step_work is not None:
+                    w = self.step_work(stage)
+                    before, after = done + (local - 1) * w, done + local * w
+                    return StagePosition(i, stage, local, int(math.floor(after + 1e-9)), local == 1, before, after)
                 clock = local if self.restart_per_stage else step
-                return StagePosition(i, stage, local, clock, local == 1)
+                return StagePosition(i, stage, local, clock, local == 1, clock - 1, clock)
             start += stage.steps
+            done += stage.steps * self.step_work(stage) if self.step_work is not None else 0.0
         raise AssertionError("unreachable")
+
+    def work_done(self, step: int) -> float:
+        """Work (full-resolution view renders) of steps 1..step (the step count without a work clock)."""
+        return 0.0 if step == 0 else self.locate(step).after if self.step_work is not None else float(step)
 
 
 @dataclass
@@ -116,7 +139,8 @@ class ViewSchedule:
             raise ValueError("scene has no training cameras")
         self.scene = scene
         self.config = config
-        self.plan = StagePlan(config.stages, config.restart_per_stage)
+        self.plan = StagePlan(config.stages, config.restart_per_stage,
+                              config.step_work if config.budget is not None else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
         self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed, times=times,
                                    time_spread=config.time_spread)
@@ -152,10 +176,21 @@ class ViewSchedule:
             step=s, clock=pos.clock, stage=pos.index, factor=pos.stage.factor, views=ids, cameras=cams,
             images=images, backgrounds=self._backgrounds(len(ids)),
             weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
-            densify=collect and pos.clock > cfg.densify_from and pos.clock % cfg.densify_every == 0,
-            reset_opacity=collect and pos.clock % cfg.opacity_reset_every == 0,
+            densify=collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every),
+            reset_opacity=collect and pos.crosses(cfg.opacity_reset_every),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
         )
+
+    @property
+    def work_done(self) -> float:
+        """Work rendered so far, in full-resolution view renders (MVGSConfig.budget's unit):
+        each view at pyramid factor f counts view_cost(f), whichever clock the run is on."""
+        n_train, left, work = len(self.scene.train_cameras), self.step_count, 0.0
+        for stage in self.plan.stages:
+            n = min(left, stage.steps)
+            work += n * self.config.step_work(stage) * min(stage.views, n_train) / stage.views
+            left -= n
+        return work
 
     @property
     def needs_loss_maps(self) -> bool:

@@ -81,3 +81,23 @@ def test_ablation_smoke(tmp_path, monkeypatch):
         assert all(c.grad_threshold_width == width for n, c in configs.items() if n != "paper")
         assert configs["paper"].grad_threshold_width is None
     assert "--threshold-width 800" in table
+
+
+def test_train_3dgs_on_a_budget(tmp_path):
+    """--budget: baseline and MVGS do the same work (full-resolution view renders) through
+    densification and opacity resets; metrics.json says what was spent, in work and CPU time."""
+    example = load_example()
+    runs = {}
+    for preset, views in (("baseline", []), ("default", ["--views", "2"])):
+        out = tmp_path / preset
+        runs[preset] = example.main(["--preset", preset, "--budget", "600", *views, "--resolution-scale", "4",
+                                     "--out", str(out), "--no-progress"])
+        saved = json.loads((out / "metrics.json").read_text())
+        assert saved["budget"] == 600 and saved["cpu_seconds"] > 0 and saved["train_seconds"] > 0
+        # Each stage's step count is rounded to whole steps: within half a step's work per stage.
+        assert saved["work"] == pytest.approx(600, abs=4)
+        assert saved["num_gaussians"] != 4000  # densified / pruned from the 4000 scene points
+    base, mvgs = runs["baseline"], runs["default"]
+    assert base["steps"] == 600 and mvgs["steps"] < 600  # MVGS steps cost more views each
+    with pytest.raises(ValueError, match="--budget must be > 0"):
+        example.main(["--budget", "-3", "--out", str(tmp_path / "bad"), "--no-progress"])

@@ -169,10 +169,12 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
 // surface, or in a small view where hundreds of splats cover each pixel, most of a tile's list
 // is never loaded. Within a batch, each pixel block of kBlock x kBlock pixels gets the batch's
 // Gaussians whose alpha >= 1/255 ellipse box reaches one of its pixel centres: small splats
-// reach few pixels, so the per-pixel loops skip most of the batch. Neither changes the image:
+// reach few pixels, so the per-pixel loops skip most of the batch. kBlock = 1 (a list per
+// pixel) measured fastest: 6 % under 2 x 2 blocks and 13 % under 4 x 4 for 8 views of 128 px
+// and 10k Gaussians, equal for 48 views of 16 px (benchmarks/bench_step.py's scene). Neither changes the image:
 // a Gaussian left out has alpha < 1/255 at the pixel, and a stopped pixel takes nothing more.
 #ifndef MVGS_BLOCK
-#define MVGS_BLOCK 2
+#define MVGS_BLOCK 1
 #endif
 constexpr int64_t kBlock = MVGS_BLOCK;
 constexpr int64_t kBatch = 256;

@@ -1,0 +1,95 @@
+"""The budget clock: a run given a budget of work (full-resolution view renders) instead of a
+step count, with every schedule on that clock (MVGSConfig.with_budget, ViewSchedule)."""
+
+import dataclasses
+import math
+
+import pytest
+
+from mvgs_plugin.config import MVGSConfig, Stage
+from mvgs_plugin.schedule import ViewSchedule
+from mvgs_plugin.testing import synthetic_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_scene(n_train=8, n_test=1, size=16, n_points=20)
+
+
+def plans(scene, config):
+    schedule = ViewSchedule(scene, config)
+    return [schedule.next() for _ in range(config.total_steps)], schedule
+
+
+def test_baseline_on_a_budget_is_the_baseline_on_steps(scene):
+    # A baseline step is one full-resolution view: budget B and B steps are the same run.
+    for b in (300, 1000, 4321):
+        on_budget, on_steps = MVGSConfig.baseline().with_budget(b), MVGSConfig.baseline().with_total_steps(b)
+        assert dataclasses.replace(on_budget, budget=None) == on_steps
+    config = MVGSConfig.baseline().with_budget(400)
+    got, schedule = plans(scene, config)
+    ref, _ = plans(scene, MVGSConfig.baseline().with_total_steps(400))
+    for a, r in zip(got, ref):
+        assert (a.clock, a.densify, a.reset_opacity) == (r.clock, r.densify, r.reset_opacity)
+    assert sum(p.densify for p in got) > 10 and sum(p.reset_opacity for p in got) >= 1
+    assert schedule.work_done == pytest.approx(400)
+
+
+def test_stages_keep_their_share_of_the_work():
+    a, b = 0.1, 0.9
+    config = MVGSConfig.default().with_views(4).with_budget(3000)
+    recipe = MVGSConfig.default().with_views(4)
+    cost = lambda s: s.views * (a + b / s.factor)  # noqa: E731 - the documented view cost
+    recipe_work = [s.steps * cost(s) for s in recipe.stages]
+    for stage, w in zip(config.stages, recipe_work):
+        share = stage.steps * cost(stage) / 3000
+        assert share == pytest.approx(w / sum(recipe_work), abs=cost(stage) / 3000)
+    assert config.total_work == pytest.approx(3000, abs=max(cost(s) for s in config.stages) * len(config.stages))
+    # The clock-valued fields are the 30k-view recipe's, times budget / 30000.
+    assert (config.densify_from, config.densify_until, config.densify_every, config.opacity_reset_every) == (
+        50, 1500, 10, 300)
+    assert config.clock_length == 3000
+
+
+def test_triggers_fire_where_the_work_clock_crosses_their_period(scene):
+    config = MVGSConfig.default(crd=False).with_views(4).with_budget(2000)
+    got, schedule = plans(scene, config)
+    # The work of each step from its stage, walked independently of the schedule.
+    work, bounds = 0.0, []
+    for stage in config.stages:
+        for _ in range(stage.steps):
+            step = stage.views * (0.1 + 0.9 / stage.factor)
+            bounds.append((work, work + step))
+            work += step
+    for plan, (lo, hi) in zip(got, bounds):
+        assert plan.clock == math.floor(hi + 1e-9)
+        crossed = lambda k: math.floor(hi / k + 1e-9) > math.floor(lo / k + 1e-9)  # noqa: E731
+        inside = plan.clock < config.densify_until
+        assert plan.densify == (inside and plan.clock > config.densify_from and crossed(config.densify_every))
+        assert plan.reset_opacity == (inside and crossed(config.opacity_reset_every))
+    dens = [p for p in got if p.densify]
+    # Coarse steps are cheap: the clock passes many periods' worth of views only at full resolution.
+    assert len(dens) == pytest.approx((config.densify_until - config.densify_from) / config.densify_every, abs=2)
+    # Each stage's step count is rounded: the end is within half a step's work per stage.
+    assert got[-1].clock == pytest.approx(2000, abs=sum(s.views * (0.1 + 0.9 / s.factor) for s in config.stages) / 2)
+    # work_done counts what was rendered (at most the 8 training views per step).
+    capped = sum(s.steps * min(s.views, 8) * (0.1 + 0.9 / s.factor) for s in config.stages)
+    assert schedule.work_done == pytest.approx(capped)
+
+
+@pytest.mark.parametrize("bad", [0, -5, float("inf"), float("nan"), True])
+def test_bad_budget_is_refused(bad):
+    with pytest.raises(ValueError, match="budget"):
+        MVGSConfig.default().with_budget(bad)
+
+
+def test_budget_needs_a_continuous_clock():
+    with pytest.raises(ValueError, match="restart_per_stage"):
+        MVGSConfig.paper().with_budget(1000)
+    with pytest.raises(ValueError, match="view_cost"):
+        MVGSConfig(view_cost=(0.5, 0.6))
+
+
+def test_budget_survives_the_config_round_trip():
+    config = MVGSConfig.default().with_views(4).with_budget(1234)
+    assert MVGSConfig.from_dict(config.to_dict()) == config
