@@ -14,7 +14,9 @@ and OUT/runs.json with everything.
 
 Run kinds: "baseline" (plain 3DGS with the default's width-scaled gradient threshold, so that
 only MVGS differs), "baseline-fixed" (3DGS's fixed threshold), "default" (MVGSConfig.default()
-with --views M at full resolution), "default-rules-off" (the same without MVAD and CRD).
+with --views M at full resolution), "default-rules-off" (the same without MVAD and CRD), and two
+candidate recipes: "coarse-mv" (16 / 8 / 4 views at pyramid factors 8 / 4 / 2, one view at full
+resolution) and "pyramid-only" (the same pyramid with one view per step, no MVAD / CRD).
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ RUNS = {
     "baseline-fixed": ["--preset", "baseline"],
     "default": ["--preset", "default"],
     "default-rules-off": ["--preset", "default", "--no-mvad", "--no-crd"],
+    # Candidates for a cost-aware recipe (docs/equal_compute.md): the pyramid's coarse levels
+    # with many (cheap) views, full resolution with one; and the pyramid alone, one view per step.
+    "coarse-mv": ["--preset", "default", "--stages", "8:16:1000,4:8:1000,2:4:1000,1:1:30000"],
+    "pyramid-only": ["--preset", "default", "--no-mvad", "--no-crd", "--stages", "8:1:1000,4:1:1000,2:1:1000,1:1:30000"],
 }
 
 
@@ -52,7 +58,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     torch.manual_seed(seed)
     argv = [*RUNS[kind], "--budget", str(budget), "--seed", str(seed), "--resolution-scale", str(scale)]
     if kind.startswith("default"):
-        argv += ["--views", str(views)]
+        argv += ["--views", str(views)]  # the candidates keep their own stage plans
     if data is not None:
         argv += ["--data", str(data)]
     args = ex.parse_args(argv)
@@ -71,7 +77,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
             curve.append({"cpu": cpu, "step": trainer.step_count, "work": trainer.schedule.work_done,
                           "psnr": trainer.evaluate(factor=scale).psnr})
     result = trainer.evaluate(factor=scale)
-    return {"kind": kind, "budget": budget, "views": views if kind.startswith("default") else 1,
+    return {"kind": kind, "budget": budget, "views": config.stages[-1].views,
             "psnr": result.psnr, "ssim": result.ssim, "gaussians": adapter.num_primitives(),
             "steps": trainer.step_count, "work": trainer.schedule.work_done, "cpu": cpu, "wall": wall,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}
@@ -118,6 +124,7 @@ def write_text(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
     with os.fdopen(fd, "w") as f:
         f.write(text)
+    os.chmod(tmp, 0o644)  # mkstemp makes it 0600: give the file the usual mode
     os.replace(tmp, path)
 
 

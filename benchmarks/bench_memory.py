@@ -3,8 +3,9 @@
 Each configuration runs in its own process on the bundled scene at full resolution: load the
 scene and the 3DGS adapter, run a few warm-up steps, record the resident set size, run the
 measured steps, and report the peak RSS and its growth over the warm state. "chunk = 1" is our
-controller (render and backward one view at a time); "chunk = M" keeps all M graphs alive until
-one backward, as the released MVGS code does.
+controller rendering and backpropagating one view at a time; "chunk = M" keeps all M graphs
+alive until one backward, as the released MVGS code does; "chunk = auto" is the controller's
+default (MVGSConfig.chunk_size=None: as many views per renderer call as fit chunk_memory_mb).
 
     python benchmarks/bench_memory.py
     python benchmarks/bench_memory.py --views 1 4 8 16 --steps 5 --gaussians 100000
@@ -51,7 +52,7 @@ def run_one(views: int, chunk: int, steps: int, threads: int, gaussians: int) ->
         xyz = scene.points.xyz[idx] + 0.01 * scene.extent * torch.randn(gaussians, 3, generator=g)
         scene.points = PointCloud(xyz, scene.points.rgb[idx])
     adapter = GS3DAdapter.from_scene(scene)
-    config = MVGSConfig(stages=(Stage(1, views, steps + 2),), chunk_size=chunk, densify_from=10**6)
+    config = MVGSConfig(stages=(Stage(1, views, steps + 2),), chunk_size=chunk or None, densify_from=10**6)
     trainer = MVGS(adapter, scene, config)
     for _ in range(2):
         trainer.step()
@@ -79,7 +80,7 @@ def main() -> None:
         return
     rows = []
     for views in args.views:
-        for chunk in sorted({1, views}):
+        for chunk in sorted({1, views}) + [0]:  # 0: the default, chunk_size=None
             cmd = [sys.executable, __file__, "--one", f"{views},{chunk}", "--steps", str(args.steps),
                    "--threads", str(args.threads), "--gaussians", str(args.gaussians)]
             out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -91,7 +92,7 @@ def main() -> None:
     print("| views M | chunk | step (s) | peak RSS (MB) | peak / M=1 peak | growth over warm state (MB) |")
     print("|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['views']} | {r['chunk']} | {r['step_s']:.3f} | {r['peak_mb']:.0f} | "
+        print(f"| {r['views']} | {r['chunk'] or 'auto'} | {r['step_s']:.3f} | {r['peak_mb']:.0f} | "
               f"{r['peak_mb'] / base['peak_mb']:.2f} | {r['growth_mb']:.0f} |")
 
 

@@ -81,6 +81,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
                          "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it")
     ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--stages", type=parse_stages, default=None, metavar="F:M:STEPS,...",
+                    help="replace the preset's stage plan: pyramid factor, views per step and recipe steps per "
+                         "stage, e.g. 8:16:1000,4:8:1000,2:4:1000,1:1:30000 (then rescaled by --steps or --budget)")
     ap.add_argument("--mvad", action=argparse.BooleanOptionalAction, default=None,
                     help="multi-view augmented densification on/off (default: as the preset)")
     ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
@@ -98,9 +101,21 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     return ap
 
 
+def parse_stages(text: str) -> tuple:
+    """"F:M:STEPS,..." -> (Stage, ...) for --stages (argparse reports a ValueError as a usage error)."""
+    try:
+        stages = tuple(Stage(*(int(v) for v in part.split(":"))) for part in text.split(","))
+    except (TypeError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(f"--stages must be F:M:STEPS[,F:M:STEPS...] with positive ints, got "
+                                         f"{text!r} ({exc})") from None
+    return stages
+
+
 def config_from_args(args, **preset_overrides) -> MVGSConfig:
     """The MVGSConfig the common CLI asks for: preset, --views, rescaled to --steps (or run on
     --budget), --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
+    if getattr(args, "stages", None):
+        preset_overrides = {**preset_overrides, "stages": args.stages}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
     if args.views is not None:
         config = config.with_views(args.views)

@@ -48,7 +48,9 @@ class MVGSConfig:
         loss); memory grows with it, not with M. None (default): the most views whose
         estimated working memory fits chunk_memory_mb (see schedule.view_bytes: about 128 B per
         Gaussian plus 640 B per pixel per view, measured on the reference renderer), at least 1.
-    chunk_memory_mb: the memory bound of chunk_size=None, in MiB.
+    chunk_memory_mb: the memory bound of chunk_size=None, in MiB. 128 keeps a step's peak memory
+        within 1.25x of a one-view step at 100k Gaussians and 128 px (benchmarks/bench_memory.py)
+        while 10k-Gaussian steps of 8 views at 128 px, or 48 at 16 px, still go in one call.
     lambda_dssim: weight of the SSIM term in (1 - λ) L1 + λ (1 - SSIM).
     densify_from / densify_until / densify_every / opacity_reset_every: the 3DGS clock
         (densify when from < step < until and step % every == 0; reset at multiples of
@@ -109,7 +111,7 @@ class MVGSConfig:
     reduction: str = "sum"
     stats_from: str = "all"
     chunk_size: Optional[int] = None
-    chunk_memory_mb: float = 512.0
+    chunk_memory_mb: float = 128.0
     lambda_dssim: float = 0.2
     densify_from: int = 500
     densify_until: int = 15_000

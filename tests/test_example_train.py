@@ -101,3 +101,16 @@ def test_train_3dgs_on_a_budget(tmp_path):
     assert base["steps"] == 600 and mvgs["steps"] < 600  # MVGS steps cost more views each
     with pytest.raises(ValueError, match="--budget must be > 0"):
         example.main(["--budget", "-3", "--out", str(tmp_path / "bad"), "--no-progress"])
+
+
+def test_stages_option_replaces_the_preset_plan():
+    example = load_example()
+    args = example.parse_args(["--stages", "8:16:1000,1:1:30000", "--budget", "500"])
+    config = example.config_from_args(args)
+    assert [(s.factor, s.views) for s in config.stages] == [(8, 16), (1, 1)]
+    # 1000 recipe steps of 16 views at 1/8 (0.2125 each) against 30000 full-resolution ones.
+    coarse = 1000 * 16 * (0.1 + 0.9 / 8)
+    assert config.stages[0].steps == round(500 * coarse / (coarse + 30000) / (16 * (0.1 + 0.9 / 8)))
+    for bad in ("8:x:10", "8:16", "0:1:10"):
+        with pytest.raises(SystemExit):
+            example.parse_args(["--stages", bad])

@@ -12,7 +12,8 @@
 //
 // Every formula below is the one in projection.py, including its guards for culled Gaussians
 // (a harmless depth of 1, a determinant of 1 where the splat is degenerate), so the gradients
-// equal autograd's on the PyTorch path for any upstream gradient.
+// equal autograd's on the PyTorch path for any upstream gradient, up to rounding (the forward
+// multiplies by one reciprocal of the depth and of the determinant where PyTorch divides).
 
 #include <algorithm>
 #include <atomic>
