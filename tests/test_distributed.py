@@ -415,10 +415,19 @@ def test_conformance_suite_checks_the_distributed_methods():
 def _torchrun(script: str, args: list, out: Path) -> dict:
     import json
 
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(free_port()),
-           str(ROOT / "examples" / script), *args, "--threads", "1", "--no-progress", "--out", str(out)]
-    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True,
-                          timeout=300)
+    def launch():
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port",
+               str(free_port()), str(ROOT / "examples" / script), *args, "--threads", "1", "--no-progress",
+               "--out", str(out)]
+        return subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                              text=True, timeout=300)
+
+    proc = launch()
+    # About 1 run in 5-10 of the Scaffold-GS script (none of the others), a rank aborts in gloo's
+    # teardown with this message and nothing else (SIGABRT; no thread of ours runs at --threads 1;
+    # the pattern of pytorch/pytorch PR 179291). One rerun for exactly that signature only.
+    if proc.returncode != 0 and "terminate called without an active exception" in proc.stderr:
+        proc = launch()
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stderr.count("test PSNR") == 1  # only rank 0 evaluates and reports
     return json.loads((out / "metrics.json").read_text())
