@@ -279,16 +279,19 @@ class MVGSConfig:
         steps[-1] = max(1, total - sum(steps[:-1]))
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
         clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
-        scale = lambda v: max(1, round(v * clock_ratio))  # noqa: E731
-        # Floors keep short runs sane: statistics need some views between densifications, and
-        # opacities need time to recover between resets (the original has 30 densifications per
-        # reset interval).
+        return dataclasses.replace(self, stages=stages, **self._scaled_clocks(clock_ratio))
+
+    def _scaled_clocks(self, ratio: float) -> dict:
+        """Every clock-valued field times `ratio`, with the floors that keep short runs sane:
+        statistics need some views between densifications, and opacities need time to recover
+        between resets (the original has 30 densifications per reset interval)."""
+        scale = lambda v: max(1, round(v * ratio))  # noqa: E731
         every = max(min(10, self.densify_every), scale(self.densify_every))
-        start = max(min(50, self.densify_from), scale(self.densify_from))
-        reset = max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every))
-        return dataclasses.replace(
-            self, stages=stages, densify_from=start, densify_until=scale(self.densify_until),
-            densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
+        return dict(
+            densify_from=max(min(50, self.densify_from), scale(self.densify_from)),
+            densify_until=scale(self.densify_until), densify_every=every,
+            opacity_reset_every=max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every)),
+            prune_large_after=scale(self.prune_large_after),
         )
 
     def with_budget(self, budget: float) -> "MVGSConfig":
@@ -309,15 +312,7 @@ class MVGSConfig:
         work = [s.steps * self.step_work(s) for s in self.stages]
         steps = [max(1, round(budget * w / sum(work) / self.step_work(s))) for s, w in zip(self.stages, work)]
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
-        ratio = budget / 30_000
-        scale = lambda v: max(1, round(v * ratio))  # noqa: E731
-        every = max(min(10, self.densify_every), scale(self.densify_every))
-        start = max(min(50, self.densify_from), scale(self.densify_from))
-        reset = max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every))
-        return dataclasses.replace(
-            self, stages=stages, budget=float(budget), densify_from=start, densify_until=scale(self.densify_until),
-            densify_every=every, opacity_reset_every=reset, prune_large_after=scale(self.prune_large_after),
-        )
+        return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / 30_000))
 
     def with_views(self, views: int) -> "MVGSConfig":
         """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""

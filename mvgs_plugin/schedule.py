@@ -85,9 +85,6 @@ class StagePlan:
             done += stage.steps * self.step_work(stage) if self.step_work is not None else 0.0
         raise AssertionError("unreachable")
 
-    def work_done(self, step: int) -> float:
-        """Work (full-resolution view renders) of steps 1..step (the step count without a work clock)."""
-        return 0.0 if step == 0 else self.locate(step).after if self.step_work is not None else float(step)
 
 
 @dataclass

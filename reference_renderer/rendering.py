@@ -27,14 +27,6 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("cpp", "torch")
 
 
-def all_finite(t: Tensor) -> bool:
-    """Whether every entry of t is finite. One sum first (no mask allocated): a NaN or Inf
-    anywhere makes it non-finite; finite entries that overflow it go to the exact check."""
-    if t.numel() == 0 or bool(torch.isfinite(t.sum())):
-        return True
-    return bool(torch.isfinite(t).all())
-
-
 def available_backends() -> list:
     """Compositing backends that work here, fastest first: "cpp" (compiled on first use, CPU
     tensors) when a C++ compiler is found, and always "torch" (any device)."""
@@ -81,7 +73,7 @@ class _ProjectCpp(torch.autograd.Function):
             z(g_conics, C, N, 3), z(g_depths, C, N), z(g_comp, C, N),
             z(g_colors, C, N, 3) if ctx.has_sh else None)
         for name, g in zip(("means", "quats", "scales", "sh coefficients"), grads):
-            if g is not None and not all_finite(g):
+            if g is not None and not V.all_finite(g):
                 raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the projection backward")
         return (*grads, None, None, None)
 
@@ -126,7 +118,7 @@ class _CompositeCpp(torch.autograd.Function):
         )
         g_bg = (grad_color * trans.unsqueeze(-1)).sum(dim=(1, 2))
         for name, g in (("means2d", g_m), ("conics", g_q), ("opacities", g_o), ("colors", g_c)):
-            if not all_finite(g):
+            if not V.all_finite(g):
                 raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the compositing backward")
         if ctx.absgrad_target is not None:
             ctx.absgrad_target.absgrad = absgrad
@@ -232,7 +224,7 @@ def rasterization(
                                                width, height, tile_size)
     if render_mode in ("ED", "RGB+ED"):
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
-    if not all_finite(img) or not all_finite(alpha):
+    if not V.all_finite(img) or not V.all_finite(alpha):
         raise FloatingPointError("the renderer produced a non-finite pixel; please report this input")
 
     meta = {

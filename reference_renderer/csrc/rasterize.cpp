@@ -173,10 +173,7 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
 // pixel) measured fastest: 6 % under 2 x 2 blocks and 13 % under 4 x 4 for 8 views of 128 px
 // and 10k Gaussians, equal for 48 views of 16 px (benchmarks/bench_step.py's scene). Neither changes the image:
 // a Gaussian left out has alpha < 1/255 at the pixel, and a stopped pixel takes nothing more.
-#ifndef MVGS_BLOCK
-#define MVGS_BLOCK 1
-#endif
-constexpr int64_t kBlock = MVGS_BLOCK;
+constexpr int64_t kBlock = 1;
 constexpr int64_t kBatch = 256;
 
 // Pixel range of a tile and the lists of one batch per pixel block (indices into the batch).
