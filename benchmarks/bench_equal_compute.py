@@ -13,10 +13,16 @@ and OUT/runs.json with everything.
     python benchmarks/bench_equal_compute.py --data path/to/scene --budgets 3000 --runs baseline default
 
 Run kinds: "baseline" (plain 3DGS with the default's width-scaled gradient threshold, so that
-only MVGS differs), "baseline-fixed" (3DGS's fixed threshold), "default" (MVGSConfig.default()
-with --views M at full resolution), "default-rules-off" (the same without MVAD and CRD), and two
-candidate recipes: "coarse-mv" (16 / 8 / 4 views at pyramid factors 8 / 4 / 2, one view at full
-resolution) and "pyramid-only" (the same pyramid with one view per step, no MVAD / CRD).
+only MVGS differs), "baseline-fixed" (3DGS's fixed threshold), "default" (MVGSConfig.default(),
+the cost-aware recipe: coarse-to-fine, one view per step), "multiview" (MVGSConfig.multiview(),
+the former default, with --views M at full resolution), "multiview-rules-off" (the same without
+MVAD and CRD), and the candidates tried for the default (see RUNS and docs/equal_compute.md).
+--clock steps gives every run B steps instead (the equal-steps comparison).
+
+    python benchmarks/bench_equal_compute.py --summary docs/equal_compute/*/runs.json
+
+prints one table over scenes and budgets from earlier runs (each run kind against the baseline
+of the same file and budget).
 """
 
 from __future__ import annotations
@@ -36,15 +42,22 @@ RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-fixed": ["--preset", "baseline"],
     "default": ["--preset", "default"],
-    "default-rules-off": ["--preset", "default", "--no-mvad", "--no-crd"],
-    # Candidates for a cost-aware recipe (docs/equal_compute.md): the pyramid's coarse levels
-    # with many (cheap) views, full resolution with one; and the pyramid alone, one view per step.
-    "coarse-mv": ["--preset", "default", "--stages", "8:16:1000,4:8:1000,2:4:1000,1:1:30000"],
-    "pyramid-only": ["--preset", "default", "--no-mvad", "--no-crd", "--stages", "8:1:1000,4:1:1000,2:1:1000,1:1:30000"],
+    "multiview": ["--preset", "multiview"],
+    "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
+    # Candidates tried for the cost-aware default (docs/equal_compute.md): the pyramid's coarse
+    # levels with many (cheap) views and one at full resolution; the same pyramid with one view
+    # per step; the default's pyramid with as many views per coarse step as cost about one full
+    # view (3 at 1/4, 2 at 1/2), MVAD and CRD on; the default with 2-view steps at full
+    # resolution once densification has ended (the same gradients as accumulating two
+    # consecutive single-view steps).
+    "coarse-mv": ["--preset", "multiview", "--stages", "8:16:1000,4:8:1000,2:4:1000,1:1:30000"],
+    "pyramid-only": ["--preset", "multiview", "--no-mvad", "--no-crd", "--stages", "8:1:1000,4:1:1000,2:1:1000,1:1:30000"],
+    "coarse-mv-1x": ["--preset", "multiview", "--stages", "4:3:3077,2:2:5455,1:1:21000"],
+    "late-mv": ["--preset", "default", "--stages", "4:1:9231,2:1:10909,1:1:6000,1:2:7500"],
 }
 
 
-def train(data, kind: str, budget: float, views: int, points: int, seed: int, scale: int) -> dict:
+def train(data, kind: str, budget: float, views: int, points: int, seed: int, scale: int, clock: str = "budget") -> dict:
     """One run, in this process (one thread): trains on the budget and evaluates at `points`
     evenly spaced points of the step count; returns the final metrics and the curve."""
     import torch
@@ -56,8 +69,9 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
 
     torch.set_num_threads(1)
     torch.manual_seed(seed)
-    argv = [*RUNS[kind], "--budget", str(budget), "--seed", str(seed), "--resolution-scale", str(scale)]
-    if kind.startswith("default"):
+    length = ["--budget", str(budget)] if clock == "budget" else ["--steps", str(int(budget))]
+    argv = [*RUNS[kind], *length, "--seed", str(seed), "--resolution-scale", str(scale)]
+    if kind.startswith("multiview"):
         argv += ["--views", str(views)]  # the candidates keep their own stage plans
     if data is not None:
         argv += ["--data", str(data)]
@@ -77,7 +91,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
             curve.append({"cpu": cpu, "step": trainer.step_count, "work": trainer.schedule.work_done,
                           "psnr": trainer.evaluate(factor=scale).psnr})
     result = trainer.evaluate(factor=scale)
-    return {"kind": kind, "budget": budget, "views": config.stages[-1].views,
+    return {"kind": kind, "budget": budget, "clock": clock, "views": config.stages[-1].views,
             "psnr": result.psnr, "ssim": result.ssim, "gaussians": adapter.num_primitives(),
             "steps": trainer.step_count, "work": trainer.schedule.work_done, "cpu": cpu, "wall": wall,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}
@@ -86,7 +100,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
 def table(rows: list, scene: str) -> str:
     lines = [f"Scene: {scene}. One torch thread per run; CPU = user + sys of the training steps "
              "(evaluation excluded); work in full-resolution view renders.", "",
-             "| budget | run | views/step | steps | work | test PSNR (dB) | vs baseline | test SSIM | vs baseline "
+             f"| {'budget' if rows and rows[0].get('clock', 'budget') == 'budget' else 'steps'} | run | views/step | steps | work | test PSNR (dB) | vs baseline | test SSIM | vs baseline "
              "| Gaussians | CPU (s) | wall (s) |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
@@ -120,6 +134,25 @@ def plot(rows: list, path: Path) -> None:
     plt.close(fig)
 
 
+def summary(paths) -> str:
+    """One markdown table over runs.json files: per scene (the file's folder) and budget, the
+    baseline's numbers and every other run kind's difference to it."""
+    lines = ["| scene | clock | B | baseline PSNR / SSIM | run | PSNR | Δ PSNR | Δ SSIM | Gaussians vs baseline "
+             "| CPU vs baseline | steps |", "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+    for path in paths:
+        rows = json.loads(Path(path).read_text())["runs"]
+        scene = Path(path).parent.name
+        for r in rows:
+            base = next((b for b in rows if b["kind"] == "baseline" and b["budget"] == r["budget"]), None)
+            if base is None or r is base:
+                continue
+            lines.append(f"| {scene} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
+                         f"{base['ssim']:.3f} | {r['kind']} | {r['psnr']:.2f} | {r['psnr'] - base['psnr']:+.2f} "
+                         f"| {r['ssim'] - base['ssim']:+.3f} | {r['gaussians'] / base['gaussians']:.2f}x "
+                         f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_text(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
     with os.fdopen(fd, "w") as f:
@@ -133,19 +166,28 @@ def main(argv=None) -> list:
     ap.add_argument("--data", type=Path, default=None, help="scene folder (default: the bundled tabletop)")
     ap.add_argument("--budgets", type=float, nargs="+", default=[1000, 3000])
     ap.add_argument("--runs", nargs="+", default=["baseline", "default"], choices=sorted(RUNS))
-    ap.add_argument("--views", type=int, default=4, help="M at full resolution for the MVGS runs")
+    ap.add_argument("--views", type=int, default=4, help="M at full resolution for the multiview runs")
+    ap.add_argument("--clock", choices=["budget", "steps"], default="budget",
+                    help="budget: each run gets --budgets B of work (equal compute); steps: each run makes "
+                         "B steps (equal steps, the recipes' work differs)")
     ap.add_argument("--points", type=int, default=8, help="evaluations along each run")
     ap.add_argument("--resolution-scale", type=int, default=1)
     ap.add_argument("--processes", type=int, default=2, help="runs side by side (one thread each)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "equal_compute")
+    ap.add_argument("--summary", type=Path, nargs="+", default=None, metavar="RUNS_JSON",
+                    help="print one table from these runs.json files and exit (no training)")
     args = ap.parse_args(argv)
+    if args.summary:
+        text = summary(args.summary)
+        print(text)
+        return text
     if any(not b > 0 for b in args.budgets):
         ap.error(f"--budgets must be > 0, got {args.budgets}")
     if args.out.exists() and not args.out.is_dir():
         ap.error(f"--out {args.out} exists and is not a folder")
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale)
+    jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock)
             for b in args.budgets for kind in args.runs]
     # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each.
     with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:

@@ -5,7 +5,7 @@ plane_scene, analytic images) against the bundled tabletop (Mitsuba), same recip
     python benchmarks/bench_gaussian_budget.py --steps 200 --widths 800 0
 
 Both train at 64 x 64 (the plane's images; the tabletop's 128 px at pyramid factor x 2) from
---points initial points with MVGSConfig.default() (M = 4) compressed to --steps, for every
+--points initial points with MVGSConfig.multiview() (M = 4) compressed to --steps, for every
 threshold policy in --widths (800: β = 2e-4 meant for 800 px images and scaled to the rendered
 width, our default; 0: β fixed, as 3DGS and the released MVGS) and with MVGS's two densification
 rules (MVAD, CRD) on and off. A run that trains longer than --max-minutes stops and is marked.
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def train(scene, factor: int, steps: int, width: float, rules: bool, seed: int, max_seconds: float):
     """Returns (Gaussians, test PSNR, steps run, training seconds)."""
-    cfg = MVGSConfig.default(seed=seed, grad_threshold_width=width or None, mvad=rules, crd=rules)
+    cfg = MVGSConfig.multiview(seed=seed, grad_threshold_width=width or None, mvad=rules, crd=rules)
     cfg = cfg.with_total_steps(steps).with_views(4)
     cfg = dataclasses.replace(cfg, stages=tuple(Stage(s.factor * factor, s.views, s.steps) for s in cfg.stages))
     torch.manual_seed(seed)
@@ -73,7 +73,7 @@ def main(argv=None):
                 rows.append(f"| {name} | {policy} | {'on' if rules else 'off'} | {n} | {p:.2f} | {done}{stopped} "
                             f"| {sec:.0f} |")
                 print(rows[-1], flush=True)
-    print(f"\n{args.steps} steps, MVGSConfig.default(), M = 4, 64 x 64, {torch.get_num_threads()} thread(s)\n")
+    print(f"\n{args.steps} steps, MVGSConfig.multiview(), M = 4, 64 x 64, {torch.get_num_threads()} thread(s)\n")
     print("\n".join(rows))
 
 

@@ -13,7 +13,7 @@ Variants (our implementations of each rule, with their guards):
     +CIG (= default)   ... plus the coarse-to-fine pyramid: our default preset
     paper              the released behaviour (MVGS_METHOD.md)
     baseline, equal time   plain 3DGS trained for as many steps as fit in the full run's time
-All but paper scale the gradient threshold to the rendered image width as MVGSConfig.default()
+All but paper scale the gradient threshold to the rendered image width as MVGSConfig.multiview()
 does (--threshold-width, 0 for 3DGS's fixed threshold), so they differ only by MVGS's parts.
 Each variant runs in its own process (its own peak memory). Writes OUT/ablation.md (test
 PSNR/SSIM/LPIPS, wall time, Gaussians, peak RSS, controller overhead (its own time: sampling,
@@ -44,7 +44,7 @@ from train_3dgs import BUNDLED, load_scene, model_config  # noqa: E402
 from adapters.gs3d import GS3DAdapter  # noqa: E402
 from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
 
-DEFAULT_WIDTH = MVGSConfig.default().grad_threshold_width
+DEFAULT_WIDTH = MVGSConfig.multiview().grad_threshold_width
 
 
 def variants(steps: int, views: int, seed: int, threshold_width: Optional[float] = DEFAULT_WIDTH) -> dict:
@@ -55,7 +55,7 @@ def variants(steps: int, views: int, seed: int, threshold_width: Optional[float]
     mvrl = dataclasses.replace(base, stages=(Stage(1, views, steps),), preset="custom")
     crd = dataclasses.replace(mvrl, crd=True)
     mvad = dataclasses.replace(crd, mvad=True)
-    full = MVGSConfig.default(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps).with_views(views)
+    full = MVGSConfig.multiview(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps).with_views(views)
     paper = MVGSConfig.paper(seed=seed).with_total_steps(steps).with_views(views)
     return {"baseline": base, "+MVRL": mvrl, "+CRD": crd, "+MVAD": mvad, "+CIG (= default)": full, "paper": paper}
 
@@ -212,7 +212,7 @@ def main(argv=None) -> dict:
                     help="torch threads per variant (0: torch's default); 1 is steadier on a shared machine")
     ap.add_argument("--threshold-width", type=float, default=DEFAULT_WIDTH,
                     help="image width the gradient threshold is meant for, for every variant but paper "
-                         f"(0: never scaled, as 3DGS; default {DEFAULT_WIDTH:g}, as MVGSConfig.default())")
+                         f"(0: never scaled, as 3DGS; default {DEFAULT_WIDTH:g}, as MVGSConfig.multiview())")
     ap.add_argument("--curve-points", type=int, default=6, help="test evaluations along the PSNR-vs-time curves")
     ap.add_argument("--max-minutes", type=float, default=30.0, help="stop a variant that trains longer than this")
     ap.add_argument("--no-equal-time", action="store_true",

@@ -3,7 +3,7 @@
     python examples/train_3dgs.py                                   # bundled scene, default preset
     python examples/train_3dgs.py --preset baseline --steps 2000 --out out/baseline
     python examples/train_3dgs.py --data path/to/colmap_or_nerf --preset paper --views 8
-    python examples/train_3dgs.py --preset default --no-crd --no-mvad     # MVRL + CIG only
+    python examples/train_3dgs.py --preset multiview --views 4 --no-crd --no-mvad   # MVRL + CIG only
     python examples/train_3dgs.py --preset baseline --budget 1000        # a budget of work, not steps
     torchrun --nproc-per-node 2 examples/train_3dgs.py --views 8 --threads 1   # views sharded over 2 processes
 
@@ -74,7 +74,10 @@ def write_json(path: Path, data: dict) -> None:
 
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
-    ap.add_argument("--preset", choices=["baseline", "paper", "default"], default="default")
+    ap.add_argument("--preset", choices=["baseline", "paper", "default", "multiview"], default="default",
+                    help="default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
+                         "pyramid level with MVAD and CRD (wins at equal steps); paper: the released code; "
+                         "baseline: plain 3DGS")
     ap.add_argument("--views", type=int, default=None, help="views per step M at full resolution (coarser stages scale)")
     ap.add_argument("--steps", type=int, default=3000, help="total steps (the preset's schedule is rescaled to it)")
     ap.add_argument("--budget", type=float, default=None,

@@ -3,7 +3,7 @@
 
     python examples/scenes/make_scene.py --variant moving --out /work/scenes/moving   # the scene
     python examples/train_4dgs.py --data /work/scenes/moving --preset baseline --steps 600 --out out/4dgs
-    python examples/train_4dgs.py --data /work/scenes/moving --preset default --views 4 --steps 600
+    python examples/train_4dgs.py --data /work/scenes/moving --preset multiview --views 4 --steps 600
     torchrun --nproc-per-node 2 examples/train_4dgs.py --data /work/scenes/moving --views 8 --threads 1
 
 Same CLI contract as train_3dgs.py (plus the 4DGS options below). Writes OUT/metrics.json (psnr,

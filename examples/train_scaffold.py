@@ -2,7 +2,7 @@
 baseline, and evaluate it.
 
     python examples/train_scaffold.py --preset baseline --steps 300 --resolution-scale 2 --out out/sc_base
-    python examples/train_scaffold.py --preset default --views 4 --steps 300 --resolution-scale 2 --out out/sc_mvgs
+    python examples/train_scaffold.py --preset multiview --views 4 --steps 300 --resolution-scale 2 --out out/sc_mvgs
     python examples/train_scaffold.py --data /work/scenes/reflective --voxel-size 0.02
     torchrun --nproc-per-node 2 examples/train_scaffold.py --views 8 --threads 1   # views over 2 processes
 

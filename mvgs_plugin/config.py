@@ -5,9 +5,13 @@
 - ``MVGSConfig.paper()``: the released MVGS behaviour (MVGS_METHOD.md): stages {8,4,2,1} with
   M {48,24,12,8}; schedules restart at every stage and opacities are reset at each hand-off;
   densification statistics from the last view of a step only.
-- ``MVGSConfig.default()``: the paper's method with our fixes: one continuous schedule, no reset
-  at hand-offs, statistics from all views of the step, a gradient threshold scaled to the image
-  width.
+- ``MVGSConfig.multiview()``: the paper's method with our fixes: one continuous schedule, no
+  reset at hand-offs, statistics from all views of the step, a gradient threshold scaled to the
+  image width. It beats the baseline at equal steps and loses at equal compute
+  (docs/equal_compute.md).
+- ``MVGSConfig.default()``: the cost-aware recipe, chosen at equal compute on the budget clock:
+  cross-intrinsic guidance as a coarse-to-fine warm-up (10 / 20 / 70 % of the work at 1/4, 1/2
+  and full resolution), one view per step, the width-scaled threshold.
 
 Every deviation from the paper is a named field. Step counts follow the original 30k-step
 recipe; ``with_total_steps(n)`` rescales every step-valued field for short runs.
@@ -34,6 +38,26 @@ class Stage:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"Stage.{name} must be a positive int, got {v!r}")
+
+
+# The default's stage plan: (pyramid factor, views per step, share of the work).
+DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((4, 1, 0.10), (2, 1, 0.20), (1, 1, 0.70))
+
+
+def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[float, float] = (0.1, 0.9)
+                       ) -> Tuple[Stage, ...]:
+    """A stage plan from (factor, views, share of the work) triples: each stage gets the steps
+    that make its share of `total_work` full-resolution view renders (a view at factor f costs
+    a + b * f_min / f, see MVGSConfig.view_cost), at least one. with_budget() keeps the shares."""
+    shares = tuple(shares)
+    if not shares or any(len(t) != 3 for t in shares):
+        raise ValueError(f"shares must be (factor, views, share) triples, got {shares!r}")
+    total = sum(t[2] for t in shares)
+    if not all(isinstance(t[2], (int, float)) and t[2] > 0 for t in shares) or not math.isclose(total, 1.0):
+        raise ValueError(f"shares must be > 0 and sum to 1, got {[t[2] for t in shares]}")
+    a, b = view_cost
+    finest = min(t[0] for t in shares)
+    return tuple(Stage(f, m, max(1, round(total_work * w / (m * (a + b * finest / f))))) for f, m, w in shares)
 
 
 @dataclass
@@ -236,18 +260,31 @@ class MVGSConfig:
         })
 
     @classmethod
-    def default(cls, **overrides) -> "MVGSConfig":
-        """The paper's method with our fixes: continuous schedule, statistics from all views,
-        MVAD about the scene centre, CRD with its guards and a cap, and β = 2e-4 meant for
-        800 px wide images (NeRF-synthetic's, where 3DGS set it), scaled to the width of every
-        pyramid level (grad_threshold_width)."""
+    def multiview(cls, **overrides) -> "MVGSConfig":
+        """The paper's method with our fixes (the default before the equal-compute study):
+        continuous schedule, statistics from all views, MVAD about the scene centre, CRD with
+        its guards and a cap, and β = 2e-4 meant for 800 px wide images (NeRF-synthetic's,
+        where 3DGS set it), scaled to the width of every pyramid level (grad_threshold_width).
+        M views at every level: it wins at equal steps and loses at equal compute."""
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
-        return cls(**{"stages": stages, "preset": "default", "mvad": True, "crd": True,
+        return cls(**{"stages": stages, "preset": "multiview", "mvad": True, "crd": True,
+                      "grad_threshold_width": 800.0, **overrides})
+
+    @classmethod
+    def default(cls, **overrides) -> "MVGSConfig":
+        """The cost-aware recipe, chosen at equal compute (docs/equal_compute.md): the image
+        pyramid as a coarse-to-fine warm-up, DEFAULT_SHARES of the work (10 % at 1/4
+        resolution, 20 % at 1/2, 70 % at full), one view per step, β scaled to the width as in
+        multiview(). Multi-view steps, MVAD and CRD are off: at equal work they cost optimizer
+        steps and did not pay back on any scene measured (MVAD and CRD act on pairs of views, so
+        with one view per step they have nothing to act on; with_views(M) turns M views back on
+        at every level)."""
+        return cls(**{"stages": stages_from_shares(DEFAULT_SHARES), "preset": "default",
                       "grad_threshold_width": 800.0, **overrides})
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "MVGSConfig":
-        makers = {"baseline": cls.baseline, "paper": cls.paper, "default": cls.default}
+        makers = {"baseline": cls.baseline, "paper": cls.paper, "default": cls.default, "multiview": cls.multiview}
         if name not in makers:
             raise ValueError(f"preset must be one of {sorted(makers)}, got {name!r}")
         return makers[name](**overrides)

@@ -37,8 +37,8 @@ def test_baseline_on_a_budget_is_the_baseline_on_steps(scene):
 
 def test_stages_keep_their_share_of_the_work():
     a, b = 0.1, 0.9
-    config = MVGSConfig.default().with_views(4).with_budget(3000)
-    recipe = MVGSConfig.default().with_views(4)
+    config = MVGSConfig.multiview().with_views(4).with_budget(3000)
+    recipe = MVGSConfig.multiview().with_views(4)
     cost = lambda s: s.views * (a + b / s.factor)  # noqa: E731 - the documented view cost
     recipe_work = [s.steps * cost(s) for s in recipe.stages]
     for stage, w in zip(config.stages, recipe_work):
@@ -52,7 +52,7 @@ def test_stages_keep_their_share_of_the_work():
 
 
 def test_triggers_fire_where_the_work_clock_crosses_their_period(scene):
-    config = MVGSConfig.default(crd=False).with_views(4).with_budget(2000)
+    config = MVGSConfig.multiview(crd=False).with_views(4).with_budget(2000)
     got, schedule = plans(scene, config)
     # The work of each step from its stage, walked independently of the schedule.
     work, bounds = 0.0, []
@@ -91,5 +91,40 @@ def test_budget_needs_a_continuous_clock():
 
 
 def test_budget_survives_the_config_round_trip():
-    config = MVGSConfig.default().with_views(4).with_budget(1234)
+    config = MVGSConfig.multiview().with_views(4).with_budget(1234)
     assert MVGSConfig.from_dict(config.to_dict()) == config
+
+
+def test_stages_from_shares_gives_each_stage_its_share_of_the_work():
+    from mvgs_plugin.config import stages_from_shares
+
+    shares = ((8, 5, 0.05), (4, 3, 0.15), (2, 2, 0.3), (1, 1, 0.5))
+    stages = stages_from_shares(shares, total_work=30_000)
+    assert [(s.factor, s.views) for s in stages] == [(f, m) for f, m, _ in shares]
+    for stage, (f, m, w) in zip(stages, shares):
+        per_step = m * (0.1 + 0.9 / f)  # the documented view cost, finest factor 1
+        assert stage.steps * per_step == pytest.approx(w * 30_000, abs=per_step / 2)
+    # Factors are relative to the finest stage (a run at --resolution-scale 2 doubles them all).
+    doubled = stages_from_shares(tuple((2 * f, m, w) for f, m, w in shares))
+    assert [s.steps for s in doubled] == [s.steps for s in stages]
+    for bad in ((), ((4, 1, 0.5), (1, 1, 0.6)), ((4, 1, 0.0), (1, 1, 1.0)), ((4, 1),)):
+        with pytest.raises(ValueError, match="shares"):
+            stages_from_shares(bad)
+
+
+@pytest.mark.parametrize("budget", [1000, 3000, 10_000])
+def test_default_is_coarse_to_fine_with_one_view_and_keeps_its_shares_on_any_budget(budget):
+    config = MVGSConfig.default().with_budget(budget)
+    assert [(s.factor, s.views) for s in config.stages] == [(4, 1), (2, 1), (1, 1)]
+    assert not config.mvad and not config.crd and config.grad_threshold_width == 800
+    work = [s.steps * (0.1 + 0.9 / s.factor) for s in config.stages]
+    assert [w / budget for w in work] == pytest.approx([0.1, 0.2, 0.7], abs=1e-3)
+    # Coarse steps are cheap: the run makes more optimizer steps than a baseline on the budget.
+    assert config.total_steps == pytest.approx(budget * (0.1 / 0.325 + 0.2 / 0.55 + 0.7), rel=1e-3)
+    # Full resolution starts at 30 % of the budget, before densification ends (at 50 %).
+    assert (work[0] + work[1]) / budget == pytest.approx(0.3, abs=1e-3)
+    assert config.densify_until / budget == pytest.approx(0.5, abs=1e-3)
+    multiview = MVGSConfig.multiview().with_views(4)
+    assert [(s.factor, s.views) for s in multiview.stages] == [(8, 24), (4, 12), (2, 6), (1, 4)]
+    assert multiview.mvad and multiview.crd
+    assert MVGSConfig.from_preset("multiview") == MVGSConfig.multiview()

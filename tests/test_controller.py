@@ -244,7 +244,7 @@ def test_conformance_suite_catches_a_broken_adapter(scene):
         check_adapter(lambda s: Misaligned.from_scene(s, GS3DConfig()), scene)
 
 
-@pytest.mark.parametrize("preset", ["default", "paper"])
+@pytest.mark.parametrize("preset", ["multiview", "paper"])
 def test_mvad_and_crd_reach_the_adapter(scene, preset):
     config = MVGSConfig.from_preset(preset, stages=(Stage(1, 6, 4),), densify_from=1, densify_every=2,
                                     restart_per_stage=False, opacity_reset_at_handoff=False)
@@ -260,11 +260,11 @@ def test_mvad_and_crd_reach_the_adapter(scene, preset):
     # Six views on a ring around the scene: some pair is far apart, so the threshold halves
     # (default() first scales β from 800 px images to the scene's width; paper() never does).
     width = scene.train_cameras[0].width
-    beta = config.grad_threshold * (800 / width if preset == "default" else 1.0)
+    beta = config.grad_threshold * (800 / width if preset == "multiview" else 1.0)
     assert ctx.grad_threshold == pytest.approx(beta / 2) == info.threshold and info.mvad_fired
     assert ctx.boxes is not None and ctx.boxes.dim() == 3 and ctx.boxes.shape[1:] == (2, 3)
     assert info.boxes == ctx.boxes.shape[0]
-    if preset == "default":
+    if preset == "multiview":
         assert ctx.max_new_from_boxes == math.ceil(0.05 * n_before)
         pos = trainer.adapter.positions()
         assert (ctx.boxes[:, 0] >= pos.min(0).values.double() - 1e-3).all()  # clipped to the model's bounds

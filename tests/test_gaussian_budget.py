@@ -30,7 +30,7 @@ POINTS = 300
 
 
 def _train(name: str) -> tuple[int, float]:
-    """MVGSConfig.default() (MVAD + CRD) compressed to STEPS, M = 4, on "plane" (64 px images)
+    """MVGSConfig.multiview() (MVAD + CRD) compressed to STEPS, M = 4, on "plane" (64 px images)
     or "tabletop" (128 px images, every pyramid factor doubled: 64 px as well), one torch
     thread. Returns (final Gaussians, test PSNR)."""
     torch.set_num_threads(1)
@@ -41,7 +41,7 @@ def _train(name: str) -> tuple[int, float]:
         keep = torch.randperm(len(scene.points.xyz), generator=torch.Generator().manual_seed(0))[:POINTS]
         scene.points = PointCloud(scene.points.xyz[keep], scene.points.rgb[keep])
     assert scene.train_cameras[0].width == 64 * factor
-    cfg = MVGSConfig.default(seed=0).with_total_steps(STEPS).with_views(4)
+    cfg = MVGSConfig.multiview(seed=0).with_total_steps(STEPS).with_views(4)
     cfg = dataclasses.replace(cfg, stages=tuple(Stage(s.factor * factor, s.views, s.steps) for s in cfg.stages))
     torch.manual_seed(0)
     adapter = GS3DAdapter.from_scene(scene, GS3DConfig(seed=0, position_lr_max_steps=STEPS,

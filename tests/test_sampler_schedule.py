@@ -72,14 +72,14 @@ def test_presets_follow_the_method_notes():
     paper = MVGSConfig.paper()
     assert [(s.factor, s.views, s.steps) for s in paper.stages] == [(8, 48, 3000), (4, 24, 3000), (2, 12, 3000), (1, 8, 30000)]
     assert paper.stats_from == "last" and paper.restart_per_stage and paper.opacity_reset_at_handoff
-    ours = MVGSConfig.default()
+    ours = MVGSConfig.multiview()
     assert [s.factor for s in ours.stages] == [8, 4, 2, 1]
     assert ours.stats_from == "all" and not ours.restart_per_stage and not ours.opacity_reset_at_handoff
     assert MVGSConfig.from_dict(ours.to_dict()) == ours
 
 
 def test_with_total_steps_keeps_proportions():
-    c = MVGSConfig.default().with_total_steps(3900)
+    c = MVGSConfig.multiview().with_total_steps(3900)
     assert c.total_steps == 3900
     assert [s.steps for s in c.stages] == [300, 300, 300, 3000]
     # continuous clock: 39k -> 3.9k is a factor 10
@@ -101,7 +101,7 @@ def test_short_runs_let_the_model_settle_before_densifying():
 
 
 def test_with_views():
-    c = MVGSConfig.default().with_views(4)
+    c = MVGSConfig.multiview().with_views(4)
     assert [s.views for s in c.stages] == [24, 12, 6, 4]
 
 

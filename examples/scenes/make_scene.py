@@ -32,11 +32,24 @@ Variants (``--variant``):
 * ``moving``: D-NeRF layout. The objects translate and rotate with time; every frame has a
   ``time`` in [0, 1] that runs along the rig, so test views are unseen (camera, time) pairs;
   ``transforms_val.json`` equals test. Its sparse points lie on the static ground only.
+* ``forward``: forward-facing (LLFF-like) capture of the default scene in front of a vertical
+  brick back wall (value-noise mottled, behind the objects, so every view sees geometry
+  everywhere, no sky). 32 train + 8 test views on a jittered 8 x 5 grid, 1.4 wide x 0.7 high,
+  3.3-3.6 from the scene, each looking at a point near ``TARGET`` (axes within 9 degrees of
+  their mean: nearly parallel, not an orbit); test views take interleaved grid slots. Sun and
+  sky as default.
+* ``clutter``: a second 360-degree scene: 12 primitives (spheres, yawed cubes, cylinders) of
+  varied sizes scattered on the ground disc without overlap (fixed seed), in diffuse colours,
+  value-noise textures, plastic, rough Cu / Al / Cr and one glass (dielectric) sphere; sun
+  from the other side (azimuth -132 degrees, 35 degrees high). 48 train + 12 test views on two
+  interleaved rings at 8-16 and 20-28 degrees elevation, distance 3.0-3.8, looking at points
+  near ``TARGET``.
 
 Examples::
 
     python examples/scenes/make_scene.py --out examples/scenes/tabletop
     python examples/scenes/make_scene.py --variant moving --out /tmp/moving
+    python examples/scenes/make_scene.py --variant forward --out /tmp/forward --check-projection
     python examples/scenes/make_scene.py --out examples/scenes/tabletop --no-render \\
         --check-projection --check-noise
 """
@@ -52,7 +65,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-VARIANTS = ("default", "reflective", "sparse", "moving")
+VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter")
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
 FOV_X_DEG = 45.0
@@ -61,6 +74,19 @@ TEXTURE_SEED = 1234  # textures are part of the scene, not of the Monte Carlo no
 # Marker points for --check-projection: off-centre on purpose, so a flipped axis shows.
 MARKERS = np.array([[0.9, -0.7, 0.1], [-0.8, 0.6, 0.9], [0.3, 0.9, 0.5]])
 MARKER_RADIUS = 0.03
+
+RIG_SEED = 4321  # camera jitter of the forward and clutter rigs
+
+# forward: the camera patch's centre seen from TARGET, and the back wall behind the objects
+FORWARD_AZ_DEG, FORWARD_ELEV_DEG, FORWARD_DIST = 20.0, 16.0, 3.4
+FORWARD_PATCH = (1.4, 0.7)  # width, height of the camera grid
+WALL_DIST = 1.3  # from the z axis, on the far side from the cameras (objects reach ~1.05)
+WALL_HALF_WIDTH = 3.6
+WALL_Z = (-1.0, 3.0)  # below the floor too: views past the disc's rim still hit the wall
+
+# clutter: primitive layout seed and the sun (azimuth, elevation) in radians
+CLUTTER_SEED = 2024
+CLUTTER_SUN = (math.radians(-132.0), math.radians(35.0))
 
 
 # ----------------------------------------------------------------------------- cameras
@@ -153,6 +179,57 @@ def rig_sparse(n_train: int, n_test: int) -> tuple[list[np.ndarray], list[np.nda
     return train, test
 
 
+def forward_axes() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors of the forward rig: ``back`` from TARGET to the patch centre, and the
+    patch's ``right`` and ``up`` (image right / up of a camera at the centre)."""
+    a, e = math.radians(FORWARD_AZ_DEG), math.radians(FORWARD_ELEV_DEG)
+    back = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    right = np.cross(-back, [0.0, 0.0, 1.0])
+    right = right / np.linalg.norm(right)
+    up = np.cross(right, -back)
+    return back, right, up
+
+
+def rig_forward(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """LLFF-like (centre, look-at) pairs: a jittered grid on a plane facing the scene, row by
+    row from the top left. Each camera looks at a point near TARGET: 0.4 of its own offset in
+    the patch plus a small jitter, so the axes converge only far behind TARGET (nearly
+    parallel, within about 9 degrees of the mean) instead of orbiting it."""
+    rows = max(1, round((1 + math.sqrt(1 + 8 * n_total)) / 4))  # cols - 1 ~ 2 (rows - 1)
+    cols = math.ceil(n_total / rows)
+    back, right, up = forward_axes()
+    width, height = FORWARD_PATCH
+    rng = np.random.default_rng(RIG_SEED)
+    rig = []
+    for k in range(n_total):
+        r, c = divmod(k, cols)
+        in_row = min(cols, n_total - r * cols)  # a short last row spreads over the width
+        x = (c / (in_row - 1) - 0.5) * width if in_row > 1 else 0.0
+        y = (0.5 - r / (rows - 1)) * height if rows > 1 else 0.0
+        jit = rng.uniform(-1.0, 1.0, 6)
+        x, y = x + 0.03 * jit[0], y + 0.03 * jit[1]
+        offset = x * right + y * up
+        centre = TARGET + (FORWARD_DIST + 0.12 * jit[2]) * back + offset
+        rig.append((centre, TARGET + 0.4 * offset + 0.06 * jit[3:]))
+    return rig
+
+
+def rig_rings(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Two interleaved low rings around TARGET (even slots 8-16, odd 20-28 degrees up),
+    distance 3.0-3.8, each camera looking at TARGET plus a small jitter."""
+    rng = np.random.default_rng(RIG_SEED + 1)
+    rig = []
+    for k in range(n_total):
+        az = 2 * math.pi * k / n_total + 0.3
+        base = 12.0 if k % 2 == 0 else 24.0
+        elev = math.radians(base + 8.0 * (radical_inverse(k // 2, 3) - 0.5))
+        dist = 3.0 + 0.8 * radical_inverse(k, 5)
+        centre = TARGET + dist * np.array([math.cos(elev) * math.cos(az),
+                                           math.cos(elev) * math.sin(az), math.sin(elev)])
+        rig.append((centre, TARGET + rng.uniform(-0.08, 0.08, 3)))
+    return rig
+
+
 def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
     K = intrinsics(size)
     views: list[View] = []
@@ -166,12 +243,18 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
     n_total = n_train + n_test
     slots = pick_test_slots(n_total, n_test)
     counts = {"train": 0, "test": 0}
-    for k, c in enumerate(rig_dense(n_total)):
+    if variant == "forward":
+        rig = rig_forward(n_total)
+    elif variant == "clutter":
+        rig = rig_rings(n_total)
+    else:
+        rig = [(c, TARGET) for c in rig_dense(n_total)]
+    for k, (c, look) in enumerate(rig):
         split = "test" if k in slots else "train"
         # Moving scene: time runs along the rig, so a test view gets a time between the times
         # of its train neighbours, at a camera no train view has: an unseen (camera, time) pair.
         t = k / max(n_total - 1, 1) if variant == "moving" else 0.0
-        views.append(View(split, counts[split], look_at_w2c(c, TARGET), K, size, size, t))
+        views.append(View(split, counts[split], look_at_w2c(c, look), K, size, size, t))
         counts[split] += 1
     return views
 
@@ -221,8 +304,58 @@ def box_texture(res: int = 256) -> np.ndarray:
     return tex.astype(np.float32)
 
 
-def sky_texture(height: int = 128) -> np.ndarray:
-    """Equirectangular sky in Mitsuba's envmap frame (row 0 = local +y, i.e. the zenith)."""
+def wall_texture(res: int = 512) -> np.ndarray:
+    """Staggered bricks with light mortar, mottled by value noise (the forward back wall).
+
+    Image rows run along the wall's height: 18 courses of 16 bricks, about 0.45 x 0.22 world
+    units each on the 7.2 x 4 wall, mortar about 0.025 wide (one pixel at 128 px).
+    """
+    rng = np.random.default_rng(TEXTURE_SEED + 2)
+    rows, cols = 18, 16
+    t = (np.arange(res) + 0.5) / res
+    row = np.floor(t * rows).astype(int)  # [res]: brick course of each image row
+    uc = t[None, :] * cols + 0.5 * (row % 2)[:, None]  # [res, res]: staggered by half a brick
+    col = np.floor(uc).astype(int) % cols
+    palette = np.array([[0.56, 0.22, 0.13], [0.62, 0.30, 0.17], [0.46, 0.18, 0.12],
+                        [0.66, 0.46, 0.32], [0.40, 0.26, 0.20]])
+    choice = rng.integers(0, len(palette), (rows, cols))
+    tint = rng.uniform(0.8, 1.15, (rows, cols))
+    tex = palette[choice[row[:, None], col]] * tint[row[:, None], col][..., None]
+    fu, fv = uc % 1.0, (t * rows) % 1.0
+    mortar = (np.minimum(fu, 1 - fu) < 0.03) | (np.minimum(fv, 1 - fv) < 0.06)[:, None]
+    tex[mortar] = [0.58, 0.56, 0.52]
+    noise = 0.6 * value_noise(res, 16, rng) + 0.4 * value_noise(res, 128, rng)
+    tex = tex * (0.75 + 0.5 * noise)[..., None]
+    return np.clip(tex, 0.0, 0.95).astype(np.float32)
+
+
+def marble_texture(seed: int, a, b, res: int = 256) -> np.ndarray:
+    """Wavy bands between colours ``a`` and ``b``, the waves bent by value noise."""
+    rng = np.random.default_rng(seed)
+    noise = 0.6 * value_noise(res, 4, rng) + 0.3 * value_noise(res, 16, rng) \
+        + 0.1 * value_noise(res, 64, rng)
+    u = (np.arange(res) + 0.5) / res
+    band = (0.5 + 0.5 * np.sin(2 * math.pi * (3 * u[None, :] + 3 * noise))) ** 2
+    tex = np.asarray(a) * (1 - band)[..., None] + np.asarray(b) * band[..., None]
+    return np.clip(tex, 0.0, 0.95).astype(np.float32)
+
+
+def spots_texture(seed: int, a, b, res: int = 256) -> np.ndarray:
+    """Soft-edged blobs of colour ``b`` on ``a`` (thresholded value noise) with fine grain."""
+    rng = np.random.default_rng(seed)
+    noise = 0.7 * value_noise(res, 8, rng) + 0.3 * value_noise(res, 32, rng)
+    m = np.clip((noise - 0.5) * 8 + 0.5, 0, 1)
+    tex = np.asarray(a) * (1 - m)[..., None] + np.asarray(b) * m[..., None]
+    tex = tex * (0.85 + 0.3 * value_noise(res, 128, rng))[..., None]
+    return np.clip(tex, 0.0, 0.95).astype(np.float32)
+
+
+def sky_texture(height: int = 128, glow_phi: float = 0.9) -> np.ndarray:
+    """Equirectangular sky in Mitsuba's envmap frame (row 0 = local +y, i.e. the zenith).
+
+    ``glow_phi`` is the longitude of a broad brightening; with the envmap rotated as in
+    :meth:`SceneBuilder.scene_dict` it faces world azimuth pi/2 - glow_phi.
+    """
     width = 2 * height
     theta = (np.arange(height) + 0.5) / height * math.pi  # 0 at zenith
     phi = (np.arange(width) + 0.5) / width * 2 * math.pi
@@ -233,7 +366,7 @@ def sky_texture(height: int = 128) -> np.ndarray:
     up = np.clip(cos_t, 0, 1) ** 0.5
     sky = horizon * (1 - up) + zenith * up
     # a soft, broad brightening towards the sun's azimuth keeps the lighting asymmetric
-    dphi = (phi - 0.9 + math.pi) % (2 * math.pi) - math.pi
+    dphi = (phi - glow_phi + math.pi) % (2 * math.pi) - math.pi
     glow = 0.35 * np.exp(-dphi ** 2 / 0.8)[None, :, None]
     sky = sky * (1.0 + glow * (cos_t > 0))
     env = np.where(cos_t > 0, sky, ground)
@@ -272,14 +405,100 @@ def objects_at(variant: str, t: float) -> Objects:
     return obj
 
 
-def box_to_world(obj: Objects) -> np.ndarray:
-    """[4, 4] map from Mitsuba's cube [-1, 1]^3 to the world."""
-    a = math.radians(obj.box_yaw_deg)
+def cube_to_world(centre: np.ndarray, half: float, yaw_deg: float) -> np.ndarray:
+    """[4, 4] map from Mitsuba's cube [-1, 1]^3 to a cube of half edge ``half`` turned by
+    ``yaw_deg`` about z."""
+    a = math.radians(yaw_deg)
     R = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
     M = np.eye(4)
-    M[:3, :3] = R * obj.box_half
-    M[:3, 3] = obj.box_centre
+    M[:3, :3] = R * half
+    M[:3, 3] = centre
     return M
+
+
+def box_to_world(obj: Objects) -> np.ndarray:
+    """[4, 4] map from Mitsuba's cube [-1, 1]^3 to the world."""
+    return cube_to_world(obj.box_centre, obj.box_half, obj.box_yaw_deg)
+
+
+def wall_to_world() -> np.ndarray:
+    """[4, 4] map from Mitsuba's rectangle [-1, 1]^2 x {0} (normal +z) to the forward back wall:
+    vertical, its normal pointing (horizontally) at the cameras, WALL_DIST behind the z axis."""
+    back, _, _ = forward_axes()
+    n = np.array([back[0], back[1], 0.0])
+    n = n / np.linalg.norm(n)  # towards the cameras
+    z = np.array([0.0, 0.0, 1.0])
+    r = np.cross(z, n)  # r x z = n: a proper rotation, so the front face looks at the cameras
+    M = np.eye(4)
+    M[:3, 0] = WALL_HALF_WIDTH * r
+    M[:3, 1] = 0.5 * (WALL_Z[1] - WALL_Z[0]) * z
+    M[:3, 2] = n
+    M[:3, 3] = -WALL_DIST * n + 0.5 * (WALL_Z[0] + WALL_Z[1]) * z
+    return M
+
+
+@dataclass
+class Prim:
+    """One primitive of the clutter scene, resting on the ground."""
+
+    kind: str  # "sphere", "cube" or "cylinder"
+    centre: np.ndarray  # sphere / cube centre; the cylinder's base centre (z = 0)
+    size: float  # sphere / cylinder radius, cube half edge
+    material: str
+    height: float = 0.0  # cylinder
+    yaw_deg: float = 0.0  # cube
+
+    @property
+    def footprint(self) -> float:
+        """Radius of a disc around the centre that holds the ground footprint at any yaw."""
+        return self.size * math.sqrt(2.0) if self.kind == "cube" else self.size
+
+    @property
+    def area(self) -> float:
+        if self.kind == "sphere":
+            return 4 * math.pi * self.size ** 2
+        if self.kind == "cube":
+            return 24 * self.size ** 2
+        return 2 * math.pi * self.size * self.height + math.pi * self.size ** 2
+
+
+# (kind, material) of the clutter primitives, in placement (and random draw) order
+CLUTTER_TABLE = (
+    ("sphere", "red"), ("cube", "marble"), ("cylinder", "copper"), ("sphere", "glass"),
+    ("cube", "green_plastic"), ("cylinder", "spots"), ("sphere", "aluminium"), ("cube", "ivory"),
+    ("cylinder", "violet_plastic"), ("sphere", "spots"), ("cube", "chrome"), ("cylinder", "teal"),
+)
+
+
+def clutter_prims() -> list[Prim]:
+    """The clutter layout: sizes and yaws from CLUTTER_SEED, positions by rejection sampling in
+    a disc of radius 1.6 (well inside the ground) with gaps of at least 0.06 between footprints."""
+    rng = np.random.default_rng(CLUTTER_SEED)
+    prims: list[Prim] = []
+    for kind, material in CLUTTER_TABLE:
+        if kind == "sphere":
+            p = Prim(kind, np.zeros(3), float(rng.uniform(0.12, 0.32)), material)
+            lift = p.size
+        elif kind == "cube":
+            p = Prim(kind, np.zeros(3), float(rng.uniform(0.10, 0.24)), material,
+                     yaw_deg=float(rng.uniform(0.0, 90.0)))
+            lift = p.size
+        else:
+            p = Prim(kind, np.zeros(3), float(rng.uniform(0.08, 0.20)), material,
+                     height=float(rng.uniform(0.25, 0.85)))
+            lift = 0.0
+        for _ in range(10000):
+            r = (1.6 - p.footprint) * math.sqrt(rng.random())
+            a = rng.uniform(0.0, 2 * math.pi)
+            xy = np.array([r * math.cos(a), r * math.sin(a)])
+            if all(np.linalg.norm(xy - q.centre[:2]) >= p.footprint + q.footprint + 0.06
+                   for q in prims):
+                break
+        else:
+            raise RuntimeError(f"cannot place clutter primitive {len(prims)}")
+        p.centre = np.array([xy[0], xy[1], lift])
+        prims.append(p)
+    return prims
 
 
 class SceneBuilder:
@@ -290,8 +509,20 @@ class SceneBuilder:
         self.variant = variant
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
-        self.sky = mi.Bitmap(sky_texture())
         self._cache: dict[float, object] = {}
+        if variant == "clutter":
+            # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
+            self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
+            self.clutter_tex = {
+                "marble": mi.Bitmap(marble_texture(TEXTURE_SEED + 3, [0.12, 0.22, 0.55],
+                                                   [0.85, 0.85, 0.8])),
+                "spots": mi.Bitmap(spots_texture(TEXTURE_SEED + 4, [0.8, 0.62, 0.12],
+                                                 [0.25, 0.12, 0.06])),
+            }
+        else:
+            self.sky = mi.Bitmap(sky_texture())
+        if variant == "forward":
+            self.wall_tex = mi.Bitmap(wall_texture())
 
     def ground_mesh(self, bsdf):
         """A flat disc as a triangle fan with planar uv (the texture spans the diameter)."""
@@ -333,6 +564,67 @@ class SceneBuilder:
             "cyl": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.12, 0.3, 0.65]}},
         }
 
+    def clutter_materials(self) -> dict:
+        def diffuse(rgb):
+            return {"type": "diffuse", "reflectance": {"type": "rgb", "value": rgb}}
+
+        def textured(name):
+            return {"type": "diffuse",
+                    "reflectance": {"type": "bitmap", "bitmap": self.clutter_tex[name]}}
+
+        def plastic(rgb):
+            return {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": rgb}}
+
+        return {
+            "ground": {"type": "diffuse",
+                       "reflectance": {"type": "bitmap", "bitmap": self.ground_tex}},
+            "red": diffuse([0.75, 0.22, 0.08]),
+            "ivory": diffuse([0.78, 0.76, 0.68]),
+            "teal": diffuse([0.08, 0.42, 0.45]),
+            "marble": textured("marble"),
+            "spots": textured("spots"),
+            "green_plastic": plastic([0.10, 0.50, 0.15]),
+            "violet_plastic": plastic([0.32, 0.14, 0.58]),
+            "copper": {"type": "roughconductor", "material": "Cu", "alpha": 0.3},
+            "aluminium": {"type": "roughconductor", "material": "Al", "alpha": 0.12},
+            "chrome": {"type": "roughconductor", "material": "Cr", "alpha": 0.45},
+            "glass": {"type": "dielectric", "int_ior": 1.5},
+        }
+
+    def clutter_dict(self) -> dict:
+        """The clutter scene: ground, sky, a sun from CLUTTER_SUN and the primitives."""
+        T = self.mi.ScalarTransform4f
+        mat = self.clutter_materials()
+        az, el = CLUTTER_SUN
+        sun_dir = -np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                             math.sin(el)])  # light travels this way
+        out = {
+            "type": "scene",
+            # a smooth dielectric needs 2 bounces more to show what lies behind it
+            "integrator": {"type": "path", "max_depth": 8},
+            "sky": {"type": "envmap", "bitmap": self.sky, "scale": 1.0,
+                    "to_world": T().rotate([1, 0, 0], 90)},
+            "sun": {"type": "directional", "direction": sun_dir.tolist(),
+                    "irradiance": {"type": "rgb", "value": [2.3, 2.0, 1.7]}},
+            "ground": self.ground_mesh(mat["ground"]),
+        }
+        for i, p in enumerate(clutter_prims()):
+            bsdf = mat[p.material]
+            if p.kind == "sphere":
+                out[f"p{i:02d}"] = {"type": "sphere", "center": p.centre.tolist(),
+                                    "radius": p.size, "bsdf": bsdf}
+            elif p.kind == "cube":
+                out[f"p{i:02d}"] = {"type": "cube", "bsdf": bsdf, "to_world": T(
+                    cube_to_world(p.centre, p.size, p.yaw_deg).tolist())}
+            else:
+                top = p.centre + np.array([0.0, 0.0, p.height])
+                out[f"p{i:02d}"] = {"type": "cylinder", "p0": p.centre.tolist(),
+                                    "p1": top.tolist(), "radius": p.size, "bsdf": bsdf}
+                out[f"p{i:02d}_cap"] = {"type": "disk", "bsdf": bsdf,
+                                        "to_world": T().translate(top.tolist()).scale(
+                                            [p.size, p.size, 1.0])}
+        return out
+
     def scene(self, t: float = 0.0):
         key = t if self.variant == "moving" else 0.0
         if key not in self._cache:
@@ -342,6 +634,8 @@ class SceneBuilder:
         return self._cache[key]
 
     def scene_dict(self, t: float) -> dict:
+        if self.variant == "clutter":
+            return self.clutter_dict()
         mi = self.mi
         T = mi.ScalarTransform4f
         obj = objects_at(self.variant, t)
@@ -360,7 +654,7 @@ class SceneBuilder:
             # No delta sun here: a path tracer cannot find sun -> near-mirror -> diffuse paths
             # except by luck, and those caustic fireflies would need far more samples.
             lights = {"sky": {**lights["sky"], "scale": 1.3}}
-        return {
+        out = {
             "type": "scene",
             "integrator": {"type": "path", "max_depth": 8 if self.variant == "reflective" else 6},
             **lights,
@@ -376,6 +670,11 @@ class SceneBuilder:
                         "to_world": T().translate(top.tolist()).scale(
                             [obj.cyl_radius, obj.cyl_radius, 1.0])},
         }
+        if self.variant == "forward":
+            out["wall"] = {"type": "rectangle", "to_world": T(wall_to_world().tolist()),
+                           "bsdf": {"type": "diffuse", "reflectance": {
+                               "type": "bitmap", "bitmap": self.wall_tex}}}
+        return out
 
 
 def sensor_dict(mi, view: View, spp: int) -> dict:
@@ -460,14 +759,43 @@ def sample_ground(n, rng):
     return np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], 1)
 
 
+def sample_rectangle(n, to_world, rng):
+    """Uniform on Mitsuba's rectangle [-1, 1]^2 x {0} mapped to the world."""
+    p = np.concatenate([rng.uniform(-1, 1, (n, 2)), np.zeros((n, 1))], 1)
+    return p @ to_world[:3, :3].T + to_world[:3, 3]
+
+
+def sample_clutter(n, rng):
+    """35% on the ground, the rest on the clutter primitives by area."""
+    prims = clutter_prims()
+    areas = np.array([p.area for p in prims])
+    n_ground = int(0.35 * n)
+    counts = np.floor((n - n_ground) * areas / areas.sum()).astype(int)
+    parts = [sample_ground(n_ground, rng)]
+    for p, k in zip(prims, counts):
+        if p.kind == "sphere":
+            parts.append(sample_sphere(k, p.centre, p.size, rng))
+        elif p.kind == "cube":
+            parts.append(sample_box(k, cube_to_world(p.centre, p.size, p.yaw_deg), rng))
+        else:
+            parts.append(sample_cylinder(k, p.centre, p.size, p.height, rng))
+    return np.concatenate(parts)
+
+
 def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray:
     """Candidate surface points [n, 3]: 35% on the ground, the rest on objects by area.
 
     The moving variant keeps only the static ground: a 3D point on a moving object has no
-    single position to put in a (static) COLMAP model.
+    single position to put in a (static) COLMAP model. The forward variant first puts 30% on
+    its back wall (most of the ground lies outside its views anyway); clutter has its own
+    objects.
     """
     if variant == "moving":
         return sample_ground(n, rng)
+    if variant == "clutter":
+        return sample_clutter(n, rng)
+    n_wall = int(0.3 * n) if variant == "forward" else 0
+    n = n - n_wall
     obj = objects_at(variant, 0.0)
     cyl_area = 2 * math.pi * obj.cyl_radius * obj.cyl_height + math.pi * obj.cyl_radius ** 2
     areas = np.array([4 * math.pi * obj.ball_radius ** 2, 4 * math.pi * obj.metal_radius ** 2,
@@ -479,6 +807,8 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
              sample_sphere(counts[1], obj.metal_centre, obj.metal_radius, rng),
              sample_box(counts[2], box_to_world(obj), rng),
              sample_cylinder(counts[3], obj.cyl_base, obj.cyl_radius, obj.cyl_height, rng)]
+    if n_wall:
+        parts.append(sample_rectangle(n_wall, wall_to_world(), rng))
     return np.concatenate(parts)
 
 
@@ -722,8 +1052,11 @@ def parse_args(argv=None):
     ap.add_argument("--variant", choices=VARIANTS, default="default",
                     help="scene variant (see the module docstring)")
     ap.add_argument("--n-train", type=int, default=None,
-                    help="train views; None means 48, or 10 for --variant sparse")
-    ap.add_argument("--n-test", type=int, default=12, help="test views, interleaved with train")
+                    help="train views; None means 48, or 10 for --variant sparse, 32 for "
+                         "--variant forward")
+    ap.add_argument("--n-test", type=int, default=None,
+                    help="test views, interleaved with train; None means 12, or 8 for "
+                         "--variant forward")
     ap.add_argument("--size", type=int, default=128, help="image width = height in pixels")
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel")
     ap.add_argument("--seed", type=int, default=0, help="Monte Carlo and point-sampling seed")
@@ -742,7 +1075,9 @@ def parse_args(argv=None):
                     help="render markers through the written cameras; print pixel errors")
     args = ap.parse_args(argv)
     if args.n_train is None:
-        args.n_train = 10 if args.variant == "sparse" else 48
+        args.n_train = {"sparse": 10, "forward": 32}.get(args.variant, 48)
+    if args.n_test is None:
+        args.n_test = 8 if args.variant == "forward" else 12
     if args.max_track == 1 or args.max_track < 0:
         ap.error(f"--max-track must be 0 (unlimited) or >= 2, got {args.max_track}")
     if args.n_train < 2 or args.n_test < 0 or args.size < 8 or args.spp < 1:
