@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from mvgs_plugin.io import new_file_mode
+
 __all__ = ["PlyGaussians", "ply_property_names", "write_gaussian_ply", "read_gaussian_ply",
            "sh_degree_from_rest"]
 
@@ -141,6 +143,7 @@ def write_gaussian_ply(path: PathLike, means, sh0, shN, opacities, scales, quats
             _write_rows(f, rows)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         try:

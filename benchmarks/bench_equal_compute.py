@@ -30,14 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import os
 import resource
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from mvgs_plugin.io import atomic_write_text  # noqa: E402
 RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-fixed": ["--preset", "baseline"],
@@ -137,28 +137,22 @@ def plot(rows: list, path: Path) -> None:
 def summary(paths) -> str:
     """One markdown table over runs.json files: per scene (the file's folder) and budget, the
     baseline's numbers and every other run kind's difference to it."""
-    lines = ["| scene | clock | B | baseline PSNR / SSIM | run | PSNR | Δ PSNR | Δ SSIM | Gaussians vs baseline "
-             "| CPU vs baseline | steps |", "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| scene | seed | clock | B | baseline PSNR / SSIM | run | PSNR | Δ PSNR | Δ SSIM | Gaussians vs baseline "
+             "| CPU vs baseline | steps |", "|---|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
     for path in paths:
-        rows = json.loads(Path(path).read_text())["runs"]
-        scene = Path(path).parent.name
+        saved = json.loads(Path(path).read_text())
+        rows, data = saved["runs"], saved["args"].get("data", "None")
+        scene = "tabletop (bundled)" if data == "None" else Path(data).name
+        seed = saved["args"].get("seed", "0")
         for r in rows:
             base = next((b for b in rows if b["kind"] == "baseline" and b["budget"] == r["budget"]), None)
             if base is None or r is base:
                 continue
-            lines.append(f"| {scene} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
+            lines.append(f"| {scene} | {seed} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
                          f"{base['ssim']:.3f} | {r['kind']} | {r['psnr']:.2f} | {r['psnr'] - base['psnr']:+.2f} "
                          f"| {r['ssim'] - base['ssim']:+.3f} | {r['gaussians'] / base['gaussians']:.2f}x "
                          f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} |")
     return "\n".join(lines) + "\n"
-
-
-def write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)  # mkstemp makes it 0600: give the file the usual mode
-    os.replace(tmp, path)
 
 
 def main(argv=None) -> list:
@@ -193,9 +187,9 @@ def main(argv=None) -> list:
     with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:
         rows = pool.starmap(train, jobs)
     scene = str(args.data or "bundled tabletop")
-    write_text(args.out / "runs.json", json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
+    atomic_write_text(args.out / "runs.json", json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
                                                     "runs": rows}, indent=1))
-    write_text(args.out / "equal_compute.md", table(rows, scene))
+    atomic_write_text(args.out / "equal_compute.md", table(rows, scene))
     plot(rows, args.out / "psnr_vs_cpu.png")
     print(table(rows, scene))
     return rows

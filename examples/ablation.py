@@ -29,10 +29,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import multiprocessing
-import os
 import resource
 import sys
-import tempfile
 from pathlib import Path
 from typing import Optional
 
@@ -43,6 +41,7 @@ from train_3dgs import BUNDLED, load_scene, model_config  # noqa: E402
 
 from adapters.gs3d import GS3DAdapter  # noqa: E402
 from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
+from mvgs_plugin.io import atomic_write_text  # noqa: E402
 
 DEFAULT_WIDTH = MVGSConfig.multiview().grad_threshold_width
 
@@ -119,10 +118,7 @@ def run_isolated(*args) -> dict:
 
 
 def write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    atomic_write_text(path, text)
 
 
 def plots(out: Path, rows: dict) -> None:

@@ -28,10 +28,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import resource
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -42,6 +40,7 @@ from adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.data import load_colmap, load_dnerf, load_nerf_synthetic
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
+from mvgs_plugin.io import atomic_write_text
 
 BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
 
@@ -66,10 +65,7 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None) -> GS3DConfi
 
 def write_json(path: Path, data: dict) -> None:
     """Atomic JSON write: a crash never leaves a half-written metrics file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(data, indent=2))
 
 
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:

@@ -9,6 +9,32 @@ from typing import Any
 import torch
 
 
+def new_file_mode() -> int:
+    """The mode open() gives a new file under the process umask (0o644 under the usual 022).
+    mkstemp creates its temporary files 0o600; every atomic writer here sets this mode on the
+    temporary file before the rename, so a replaced file is as readable as a plainly written one."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write_text(path, text: str) -> None:
+    """Write `text` to `path` atomically (temporary file in the same folder, flushed, renamed)
+    with the usual new-file mode; a crash leaves any previous file intact, never half of one."""
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".partial-", dir=folder)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, new_file_mode())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
 def save_atomic(obj: Any, path: str) -> None:
     """torch.save `obj` to `path` atomically: written to a temporary file in the same folder,
     flushed to disk, then renamed over `path`, so a crash mid-write leaves any previous file
@@ -21,6 +47,7 @@ def save_atomic(obj: Any, path: str) -> None:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
