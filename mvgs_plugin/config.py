@@ -102,6 +102,13 @@ class MVGSConfig:
         densification window and interval, opacity resets, size pruning) counts work: a step of
         M views at pyramid factor f advances it by M * view_cost(f), so a baseline step is 1 and
         a run given budget B does B units of work whatever its recipe.
+    clock_unit: what the clocks count without a budget: "steps" (3DGS; the multi-view presets,
+        whose equal-steps evidence is stated in steps) or "work" (as on a budget: the clock-valued
+        fields are then in full-resolution view renders of the recipe's total_work, and
+        with_total_steps(N) keeps them at the same fractions of the work). default() counts
+        work: its coarse steps are cheap, so 3DGS's step-valued densification window (until
+        step 15000 of 30000) would end before its full-resolution stage begins (at 49 % of the
+        steps, 30 % of the work).
     view_cost: (a, b): the work of one view at pyramid factor f is a + b / f full-resolution
         views (a + b = 1; f relative to the finest stage). Measured with benchmarks/bench_step.py on the reference renderer
         (10k Gaussians, 128 px, one thread; a view in a batched call): 16 px and 32 px views cost
@@ -150,6 +157,7 @@ class MVGSConfig:
     max_views_rule: str = "cap"
     seed: int = 0
     time_spread: str = "random"
+    clock_unit: str = "steps"
     budget: Optional[float] = None
     view_cost: Tuple[float, float] = (0.1, 0.9)
     mvad: bool = False
@@ -206,6 +214,10 @@ class MVGSConfig:
         if b is not None and self.restart_per_stage:
             raise ValueError("budget needs one continuous clock (restart_per_stage=False); the paper() preset "
                              "restarts its schedules at every stage")
+        if self.clock_unit not in ("steps", "work"):
+            raise ValueError(f"clock_unit must be 'steps' or 'work', got {self.clock_unit!r}")
+        if self.clock_unit == "work" and self.restart_per_stage:
+            raise ValueError("clock_unit='work' needs one continuous clock (restart_per_stage=False)")
         self.crd_window = tuple(self.crd_window)
         if len(self.crd_window) != 2 or not all(isinstance(v, int) and v >= 1 for v in self.crd_window):
             raise ValueError(f"crd_window must be (rows, columns) of positive ints, got {self.crd_window!r}")
@@ -233,12 +245,19 @@ class MVGSConfig:
         return sum(s.steps * self.step_work(s) for s in self.stages)
 
     @property
+    def counts_work(self) -> bool:
+        """Whether the clocks count work (a budget, or clock_unit="work") rather than steps."""
+        return self.budget is not None or self.clock_unit == "work"
+
+    @property
     def clock_length(self) -> int:
         """Length of the clock the schedules run on (what the model's learning-rate decay and SH
-        schedule should span): the budget, else the last stage's steps when the clocks restart
-        per stage, else the total steps."""
+        schedule should span): the budget, else the total work when the clock counts work, else
+        the last stage's steps when the clocks restart per stage, else the total steps."""
         if self.budget is not None:
             return max(1, int(round(self.budget)))
+        if self.clock_unit == "work":
+            return max(1, int(round(self.total_work)))
         return self.stages[-1].steps if self.restart_per_stage else self.total_steps
 
     # ---- presets --------------------------------------------------------------------------
@@ -279,7 +298,7 @@ class MVGSConfig:
         steps and did not pay back on any scene measured (MVAD and CRD act on pairs of views, so
         with one view per step they have nothing to act on; with_views(M) turns M views back on
         at every level)."""
-        return cls(**{"stages": stages_from_shares(DEFAULT_SHARES), "preset": "default",
+        return cls(**{"stages": stages_from_shares(DEFAULT_SHARES), "preset": "default", "clock_unit": "work",
                       "grad_threshold_width": 800.0, **overrides})
 
     @classmethod
@@ -315,6 +334,9 @@ class MVGSConfig:
         steps = [max(1, round(s.steps * ratio)) for s in self.stages]
         steps[-1] = max(1, total - sum(steps[:-1]))
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
+        if self.clock_unit == "work":  # the clocks keep their fractions of the work
+            work = sum(n * self.step_work(s) for s, n in zip(stages, steps))
+            return dataclasses.replace(self, stages=stages, **self._scaled_clocks(work / self.total_work))
         clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
         return dataclasses.replace(self, stages=stages, **self._scaled_clocks(clock_ratio))
 

@@ -137,7 +137,7 @@ class ViewSchedule:
         self.scene = scene
         self.config = config
         self.plan = StagePlan(config.stages, config.restart_per_stage,
-                              config.step_work if config.budget is not None else None)
+                              config.step_work if config.counts_work else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
         self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed, times=times,
                                    time_spread=config.time_spread)

@@ -128,3 +128,34 @@ def test_default_is_coarse_to_fine_with_one_view_and_keeps_its_shares_on_any_bud
     assert [(s.factor, s.views) for s in multiview.stages] == [(8, 24), (4, 12), (2, 6), (1, 4)]
     assert multiview.mvad and multiview.crd
     assert MVGSConfig.from_preset("multiview") == MVGSConfig.multiview()
+
+
+@pytest.mark.parametrize("steps", [300, 1000, 7000])
+def test_default_on_steps_keeps_its_clocks_at_the_same_fractions_of_the_work(scene, steps):
+    """With --steps the default's clocks count work too: 3DGS's step-valued window (until step
+    15000 of 30000) would otherwise close before the full-resolution stage opens (at 49 % of
+    the default's steps), and the run would never densify at full resolution."""
+    config = MVGSConfig.default().with_total_steps(steps)
+    assert config.total_steps == steps and config.counts_work and config.budget is None
+    work_of = [s.steps * (0.1 + 0.9 / s.factor) for s in config.stages]
+    total = sum(work_of)
+    assert config.clock_length == round(total)
+    full_res_from = work_of[0] + work_of[1]
+    assert full_res_from / total == pytest.approx(0.3, abs=0.01)
+    assert config.densify_until == max(1, round(15_000 * total / 30_000))
+    got, schedule = plans(scene, config)
+    full = [p for p in got if p.factor == 1]
+    assert sum(p.densify for p in full) >= 1  # densification reaches full resolution
+    assert got[-1].clock == pytest.approx(total, abs=1)
+    # The same run as the default given that work as a budget, up to each stage's rounding.
+    on_budget = MVGSConfig.default().with_budget(total)
+    assert (on_budget.densify_from, on_budget.densify_until, on_budget.densify_every,
+            on_budget.opacity_reset_every) == (config.densify_from, config.densify_until,
+                                               config.densify_every, config.opacity_reset_every)
+    assert all(abs(a.steps - b.steps) <= 1 for a, b in zip(on_budget.stages, config.stages))
+    # The multi-view preset keeps counting steps (its equal-steps evidence is in steps).
+    assert not MVGSConfig.multiview().with_total_steps(steps).counts_work
+    with pytest.raises(ValueError, match="clock_unit"):
+        MVGSConfig(clock_unit="views")
+    with pytest.raises(ValueError, match="clock_unit"):
+        MVGSConfig.paper(clock_unit="work")
