@@ -429,7 +429,7 @@ def test_stratified_sampler_errors_and_the_config_option():
 # ---- training ------------------------------------------------------------------------------------
 def test_mvgs_trains_across_the_stage_switch_with_crd_and_mvad():
     scene = synthetic_scene(n_train=8, size=16, n_points=150, time=True)
-    cfg = MVGSConfig.default(stages=(Stage(2, 3, 6), Stage(1, 3, 10)), time_spread="stratified",
+    cfg = MVGSConfig.multiview(stages=(Stage(2, 3, 6), Stage(1, 3, 10)), time_spread="stratified",
                              densify_from=3, densify_until=16, densify_every=4, opacity_reset_every=100)
     a = GS4DAdapter.from_scene(scene, tiny_config(coarse_steps=6, fine_steps=10, prune_min_count=0))
     infos = []

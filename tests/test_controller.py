@@ -158,13 +158,18 @@ def test_three_line_wrap(scene):
     assert not torch.equal(mvgs.positions()[: single.num_primitives()], single.positions()[: mvgs.num_primitives()])
 
 
-def test_checkpoint_resume_matches_uninterrupted_training(scene, tmp_path):
-    config = MVGSConfig.default(background="random", densify_from=1).with_total_steps(30).with_views(2)
-    cut = 6
-    assert config.densify_from < cut < config.densify_until  # densification happens on both sides of the cut
+@pytest.mark.parametrize("preset,cut", [("multiview", 15), ("default", 15)])
+def test_checkpoint_resume_matches_uninterrupted_training(scene, tmp_path, preset, cut):
+    # multiview counts steps; default counts work (its clocks are in full-resolution views),
+    # and its cut after step 15 is its hand-off from 1/2 to full resolution.
+    config = MVGSConfig.from_preset(preset, background="random", densify_from=1, densify_every=4,
+                                    densify_until=30_000).with_total_steps(30).with_views(2)
     full = MVGS(make(scene), scene, config)
     torch.manual_seed(7)
-    full.fit(progress=False)
+    infos = []
+    full.fit(progress=False, callback=infos.append)
+    # densification happens on both sides of the cut
+    assert any(i.densify is not None for i in infos[:cut]) and any(i.densify is not None for i in infos[cut:])
 
     first = MVGS(make(scene), scene, config)
     torch.manual_seed(7)

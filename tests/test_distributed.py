@@ -57,7 +57,7 @@ def make_trainer(config, dtype, distributed=None):
 
 # M = 5 over 2 ranks (3 + 2 views), chunks of 2 split between the ranks, random backgrounds,
 # MVAD + CRD on, a low threshold so clone and split fire at the densification of steps 2 and 4.
-SUMMED = MVGSConfig.default(stages=(Stage(2, 5, 2), Stage(1, 5, 2)), chunk_size=2, densify_from=1,
+SUMMED = MVGSConfig.multiview(stages=(Stage(2, 5, 2), Stage(1, 5, 2)), chunk_size=2, densify_from=1,
                             densify_every=2, densify_until=100, opacity_reset_every=1000, grad_threshold=1e-5,
                             background="random")
 # The released code's variant: statistics from the last view only, mean reduction, and a stage with
@@ -67,7 +67,7 @@ LAST_MEAN = MVGSConfig.paper(stages=(Stage(2, 3, 2), Stage(1, 1, 2)), reduction=
                              restart_per_stage=False, opacity_reset_at_handoff=False)
 # float32, several densifications, an opacity reset at step 6 and a checkpoint at step 5 (between
 # two densifications, so the statistics in it are partial on each rank).
-LONG = MVGSConfig.default(stages=(Stage(2, 4, 3), Stage(1, 4, 5)), densify_from=1, densify_every=2,
+LONG = MVGSConfig.multiview(stages=(Stage(2, 4, 3), Stage(1, 4, 5)), densify_from=1, densify_every=2,
                           densify_until=100, opacity_reset_every=6, grad_threshold=1e-5, background="random")
 CUT = 5
 
