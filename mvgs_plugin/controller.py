@@ -340,4 +340,18 @@ class MVGS:
             self.distributed.barrier("checkpoint", self.step_count)
 
     def load_checkpoint(self, path: str) -> None:
-        self.load_state_dict(torch.load(path, weights_only=False))
+        """Load a save_checkpoint() file. It is read with torch.load(weights_only=True): tensors
+        and plain containers only, so a crafted file cannot run code on load (a pickle that
+        would is refused with an error naming the file)."""
+        try:
+            state = torch.load(path, weights_only=True)
+        except FileNotFoundError:
+            raise
+        except Exception as exc:  # unpickling refused, truncated or foreign file
+            raise ValueError(f"cannot load checkpoint {path!r}: not a checkpoint written by save_checkpoint, or "
+                             f"damaged ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from exc
+        missing = {"config", "schedule", "torch_rng", "adapter"} - (set(state) if isinstance(state, dict) else set())
+        if missing:
+            raise ValueError(f"cannot load checkpoint {path!r}: missing {sorted(missing)} (expected a dict written "
+                             "by save_checkpoint)")
+        self.load_state_dict(state)

@@ -344,3 +344,36 @@ def test_step_timing_splits_the_adapter_loss_and_controller_time(scene, monkeypa
     assert parts <= info.seconds
     assert info.controller_seconds == pytest.approx(info.seconds - parts, abs=1e-12)
     assert info.controller_seconds < pause  # none of the sleeps landed in the controller's share
+
+
+class _RunsCodeOnLoad:
+    """Unpickling this calls open(marker, "w"): what a crafted checkpoint could do."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_checkpoint_that_would_run_code_is_refused_without_side_effect(scene, tmp_path):
+    trainer = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(10))
+    trainer.step()
+    good = tmp_path / "good.pt"
+    trainer.save_checkpoint(str(good))
+    state = torch.load(good, weights_only=True)  # what save_checkpoint writes is weights-only loadable
+    marker = tmp_path / "pwned"
+    state["adapter"]["payload"] = _RunsCodeOnLoad(marker)
+    bad = tmp_path / "bad.pt"
+    torch.save(state, bad)
+    with pytest.raises(ValueError, match=r"cannot load checkpoint .*bad\.pt"):
+        trainer.load_checkpoint(str(bad))
+    assert not marker.exists()  # nothing ran
+    torch.save({"config": {}}, tmp_path / "foreign.pt")
+    with pytest.raises(ValueError, match=r"missing \['adapter', 'schedule', 'torch_rng'\]"):
+        trainer.load_checkpoint(str(tmp_path / "foreign.pt"))
+    (tmp_path / "truncated.pt").write_bytes(good.read_bytes()[:100])
+    with pytest.raises(ValueError, match="truncated.pt"):
+        trainer.load_checkpoint(str(tmp_path / "truncated.pt"))
+    trainer.load_checkpoint(str(good))
+    assert trainer.step_count == 1
