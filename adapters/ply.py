@@ -17,7 +17,6 @@ Functions here work on tensors and arrays only; they know nothing about adapters
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, List, Union
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mvgs_plugin.io import new_file_mode
+from mvgs_plugin.io import write_atomic
 
 __all__ = ["PlyGaussians", "ply_property_names", "write_gaussian_ply", "read_gaussian_ply",
            "sh_degree_from_rest"]
@@ -128,29 +127,18 @@ def write_gaussian_ply(path: PathLike, means, sh0, shN, opacities, scales, quats
         means [N, 3]; sh0 [N, 1, 3]; shN [N, K', 3]; opacities [N] (logits); scales [N, 3]
         (logs); quats [N, 4] (w-x-y-z) -- tensors or arrays, converted to float32.
 
-    The file is written to a temporary file in the destination folder and moved into place with
-    ``os.replace``, so readers never see a half-written file and a failed write leaves any
-    previous file at ``path`` untouched.
+    Written with mvgs_plugin.io.write_atomic: readers never see a half-written file, a failed
+    write leaves any previous file at ``path`` untouched, and partials of killed writers go.
     """
     path = Path(path)
     rows, degree = _as_rows(means, sh0, shN, opacities, scales, quats)
     names = ply_property_names(degree)
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(_header(rows.shape[0], names))
-            _write_rows(f, rows)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+
+    def write(f):
+        f.write(_header(rows.shape[0], names))
+        _write_rows(f, rows)
+
+    write_atomic(path, write, binary=True)
 
 
 def _vertex_element(path: Path, ply):

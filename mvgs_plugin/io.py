@@ -18,14 +18,52 @@ def new_file_mode() -> int:
     return 0o666 & ~mask
 
 
-def _write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: bool = False) -> None:
+def _partial_prefix(path) -> str:
+    """Temporary files of `path` are named .<name>.partial-<pid>-<random>: the target and the
+    writing process can be read back from the name (see remove_stale_partials)."""
+    return f".{os.path.basename(path)}.partial-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_partials(path) -> list:
+    """Delete the temporary files a killed writer of `path` left behind: those whose writing
+    process (on this machine) no longer exists. A writer that is still running keeps its file.
+    Returns the removed paths."""
+    folder = os.path.dirname(os.path.abspath(path))
+    prefix = _partial_prefix(path)
+    removed = []
+    for name in os.listdir(folder):
+        if not name.startswith(prefix):
+            continue
+        pid = name[len(prefix):].split("-", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            try:
+                os.unlink(os.path.join(folder, name))
+                removed.append(os.path.join(folder, name))
+            except FileNotFoundError:  # another writer cleaned it first
+                pass
+    return removed
+
+
+def write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: bool = False) -> None:
     """Call `write(file)` on a temporary file in `path`'s folder, flush it to disk, give it the
     usual new-file mode and rename it over `path`: a crash leaves any previous file intact and
-    never half of one; the temporary file is removed on failure."""
+    never half of one; the temporary file is removed on failure, and the ones a killed earlier
+    writer of the same path left are removed first (remove_stale_partials)."""
     folder = os.path.dirname(os.path.abspath(path))
     if make_folder:
         os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".partial-", dir=folder)
+    remove_stale_partials(path)
+    fd, tmp = tempfile.mkstemp(prefix=f"{_partial_prefix(path)}{os.getpid()}-", dir=folder)
     try:
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
@@ -39,12 +77,12 @@ def _write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder:
 
 
 def atomic_write_text(path, text: str) -> None:
-    """Write `text` to `path` atomically, with the usual new-file mode (see _write_atomic)."""
-    _write_atomic(path, lambda f: f.write(text), binary=False)
+    """Write `text` to `path` atomically, with the usual new-file mode (see write_atomic)."""
+    write_atomic(path, lambda f: f.write(text), binary=False)
 
 
 def save_atomic(obj: Any, path: str) -> None:
     """torch.save `obj` to `path` atomically: written to a temporary file in the same folder,
     flushed to disk, then renamed over `path`, so a crash mid-write leaves any previous file
     intact and never a half-written one. The folder is created if needed."""
-    _write_atomic(path, lambda f: torch.save(obj, f), binary=True, make_folder=True)
+    write_atomic(path, lambda f: torch.save(obj, f), binary=True, make_folder=True)

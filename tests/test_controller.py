@@ -315,6 +315,39 @@ def test_a_failed_checkpoint_write_keeps_the_previous_file(scene, tmp_path, monk
     assert fresh.step_count == 1
 
 
+def test_a_killed_save_leaves_no_partial_after_the_next_save(scene, tmp_path):
+    """A writer killed mid-save (SIGKILL: no cleanup runs) leaves its temporary file; the next
+    save of the same path removes it. A partial whose writer is still running is kept."""
+    import signal
+    import subprocess
+    import sys
+
+    path = tmp_path / "ckpt.pt"
+    killed = subprocess.run([sys.executable, "-c", (
+        "import os, signal, tempfile, sys\n"
+        "from mvgs_plugin.io import _partial_prefix\n"
+        f"p = {str(path)!r}\n"
+        "fd, tmp = tempfile.mkstemp(prefix=f'{_partial_prefix(p)}{os.getpid()}-', dir=os.path.dirname(p))\n"
+        "os.write(fd, b'x' * 4096)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n")])
+    assert killed.returncode == -signal.SIGKILL
+    stale = [p.name for p in tmp_path.iterdir()]
+    assert len(stale) == 1 and stale[0].startswith(".ckpt.pt.partial-")
+    running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        alive = tmp_path / f".ckpt.pt.partial-{running.pid}-abcd"
+        alive.write_bytes(b"still being written")
+        other = tmp_path / ".other.pt.partial-999999999-abcd"  # another target's: not ours to judge
+        other.write_bytes(b"x")
+        trainer = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(4))
+        trainer.step()
+        trainer.save_checkpoint(str(path))
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["ckpt.pt", alive.name, other.name])
+    finally:
+        running.kill()
+        running.wait()
+
+
 def test_step_timing_splits_the_adapter_loss_and_controller_time(scene, monkeypatch):
     """Time spent in the adapter's statistics, densification and optimizer step, and in the
     loss, is not counted as the controller's own (StepInfo.controller_seconds)."""
