@@ -321,9 +321,18 @@ class MVGS:
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
             raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages}")
-        self.schedule.load_state_dict(state["schedule"])
-        torch.set_rng_state(state["torch_rng"])
-        self.adapter.load_state_dict(state["adapter"])
+        # All or nothing: if any part fails to load, the trainer is put back as it was (a caller
+        # who catches the error and trains on must not get a half-restored run).
+        backup = (self.schedule.state_dict(), torch.get_rng_state(), self.adapter.state_dict())
+        try:
+            self.schedule.load_state_dict(state["schedule"])
+            torch.set_rng_state(state["torch_rng"])
+            self.adapter.load_state_dict(state["adapter"])
+        except BaseException:
+            self.schedule.load_state_dict(backup[0])
+            torch.set_rng_state(backup[1])
+            self.adapter.load_state_dict(backup[2])
+            raise
         if self.distributed is not None and not self.distributed.is_main:
             stats = self.adapter.statistics()
             self.adapter.load_statistics({name: torch.zeros_like(t) if how == "sum" else t.clone()

@@ -315,6 +315,34 @@ def test_a_failed_checkpoint_write_keeps_the_previous_file(scene, tmp_path, monk
     assert fresh.step_count == 1
 
 
+def test_a_failed_load_leaves_the_trainer_as_it_was(scene, tmp_path):
+    """The schedule and RNG state load before the adapter's; when the adapter's part fails, the
+    trainer must go on exactly as if no load had been tried."""
+    config = MVGSConfig.baseline().with_total_steps(12)
+    donor = MVGS(make(scene), scene, config)
+    donor.fit(steps=5, progress=False)
+    state = donor.state_dict()
+    state["adapter"]["params"]["means"] = state["adapter"]["params"]["means"][:3]  # wrong row count
+    torch.save(state, tmp_path / "bad.pt")
+
+    torch.manual_seed(3)
+    reference = MVGS(make(scene), scene, config)
+    reference.fit(steps=2, progress=False)
+    ref_state = torch.get_rng_state()
+    reference.fit(progress=False)
+
+    torch.manual_seed(3)
+    trainer = MVGS(make(scene), scene, config)
+    trainer.fit(steps=2, progress=False)
+    torch.set_rng_state(ref_state)
+    with pytest.raises(Exception):
+        trainer.load_checkpoint(str(tmp_path / "bad.pt"))
+    assert trainer.step_count == 2 and torch.equal(torch.get_rng_state(), ref_state)
+    trainer.fit(progress=False)
+    assert trainer.step_count == 12
+    assert torch.equal(trainer.adapter.positions(), reference.adapter.positions())
+
+
 def test_a_killed_save_leaves_no_partial_after_the_next_save(scene, tmp_path):
     """A writer killed mid-save (SIGKILL: no cleanup runs) leaves its temporary file; the next
     save of the same path removes it. A partial whose writer is still running is kept."""
