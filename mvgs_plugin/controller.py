@@ -24,7 +24,7 @@ from .camera import Camera
 from .config import MVGSConfig
 from .densify import loss_map
 from .distributed import Collective, require_support
-from .io import save_atomic
+from .io import load_checked, save_checked
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
 from .protocol import Adapter, DensifyReport
@@ -339,21 +339,23 @@ class MVGS:
                                           for name, (t, how) in stats.items()})
 
     def save_checkpoint(self, path: str) -> None:
-        """Controller, adapter, optimizer and sampler state in one file, written atomically: a
-        crash mid-write leaves the previous checkpoint intact. Distributed: call it on every rank;
-        rank 0 writes, the others wait until the file is there."""
+        """Controller, adapter, optimizer and sampler state in one file, written atomically (a
+        crash mid-write leaves the previous checkpoint intact) with a checksum of its payload
+        (io.save_checked). Distributed: call it on every rank; rank 0 writes, the others wait
+        until the file is there."""
         state = self.state_dict()
         if self.is_main:
-            save_atomic(state, path)
+            save_checked(state, path)
         if self.distributed is not None:
             self.distributed.barrier("checkpoint", self.step_count)
 
     def load_checkpoint(self, path: str) -> None:
         """Load a save_checkpoint() file. It is read with torch.load(weights_only=True): tensors
         and plain containers only, so a crafted file cannot run code on load (a pickle that
-        would is refused with an error naming the file)."""
+        would is refused with an error naming the file); its checksum is verified (a damaged
+        file is refused); loading is all or nothing (load_state_dict)."""
         try:
-            state = torch.load(path, weights_only=True)
+            state = load_checked(path)
         except FileNotFoundError:
             raise
         except Exception as exc:  # unpickling refused, truncated or foreign file

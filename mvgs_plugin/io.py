@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import tempfile
 from typing import Any, Callable
@@ -86,3 +88,29 @@ def save_atomic(obj: Any, path: str) -> None:
     flushed to disk, then renamed over `path`, so a crash mid-write leaves any previous file
     intact and never a half-written one. The folder is created if needed."""
     write_atomic(path, lambda f: torch.save(obj, f), binary=True, make_folder=True)
+
+
+CHECKED_FORMAT = "mvgs-checked-1"
+
+
+def save_checked(obj: Any, path: str) -> None:
+    """save_atomic with a SHA-256 of the payload: the file is a torch.save of {"format",
+    "sha256", "payload": the bytes of torch.save(obj)}, so load_checked can tell a damaged file
+    (a flipped bit would otherwise load silently) and the file still opens with torch.load."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    payload = buf.getvalue()
+    save_atomic({"format": CHECKED_FORMAT, "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}, path)
+
+
+def load_checked(path: str) -> Any:
+    """Load a save_checked() file with torch.load(weights_only=True) (no code runs on load) and
+    verify its checksum; a file without the wrapper (older checkpoints) loads as it is. Raises
+    ValueError naming the file when the checksum does not match."""
+    outer = torch.load(path, weights_only=True)
+    if not (isinstance(outer, dict) and outer.get("format") == CHECKED_FORMAT):
+        return outer
+    payload = outer.get("payload")
+    if not isinstance(payload, bytes) or hashlib.sha256(payload).hexdigest() != outer.get("sha256"):
+        raise ValueError(f"{path}: checksum mismatch, the file is damaged (sha256 recorded {outer.get('sha256')!r})")
+    return torch.load(io.BytesIO(payload), weights_only=True)

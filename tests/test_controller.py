@@ -343,6 +343,25 @@ def test_a_failed_load_leaves_the_trainer_as_it_was(scene, tmp_path):
     assert torch.equal(trainer.adapter.positions(), reference.adapter.positions())
 
 
+def test_a_flipped_bit_in_a_checkpoint_is_refused(scene, tmp_path):
+    trainer = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(10))
+    trainer.step()
+    good = tmp_path / "good.pt"
+    trainer.save_checkpoint(str(good))
+    data = good.read_bytes()
+    rng = torch.Generator().manual_seed(0)
+    for k in range(25):  # anywhere in the file: the zip structure, the header or the payload
+        pos = int(torch.randint(len(data), (1,), generator=rng))
+        flipped = bytearray(data)
+        flipped[pos] ^= 1 << int(torch.randint(8, (1,), generator=rng))
+        bad = tmp_path / f"flip{k}.pt"
+        bad.write_bytes(bytes(flipped))
+        with pytest.raises(ValueError, match=f"flip{k}.pt"):
+            trainer.load_checkpoint(str(bad))
+        assert trainer.step_count == 1
+    trainer.load_checkpoint(str(good))
+
+
 def test_a_killed_save_leaves_no_partial_after_the_next_save(scene, tmp_path):
     """A writer killed mid-save (SIGKILL: no cleanup runs) leaves its temporary file; the next
     save of the same path removes it. A partial whose writer is still running is kept."""
@@ -422,7 +441,9 @@ def test_checkpoint_that_would_run_code_is_refused_without_side_effect(scene, tm
     trainer.step()
     good = tmp_path / "good.pt"
     trainer.save_checkpoint(str(good))
-    state = torch.load(good, weights_only=True)  # what save_checkpoint writes is weights-only loadable
+    from mvgs_plugin.io import load_checked
+
+    state = load_checked(str(good))  # what save_checkpoint writes is weights-only loadable
     marker = tmp_path / "pwned"
     state["adapter"]["payload"] = _RunsCodeOnLoad(marker)
     bad = tmp_path / "bad.pt"

@@ -24,6 +24,7 @@ import torch.multiprocessing as mp
 from adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.distributed import Collective, abort_on_error, backend_for, init_from_env, require_support, shard
+from mvgs_plugin.io import load_checked
 from mvgs_plugin.testing import check_adapter, check_distributed_support, synthetic_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -314,7 +315,7 @@ def test_ranks_stay_identical_and_rank0_checkpoint_resumes_in_one_process(traine
     # process's state after the same steps (float32: one ulp-level sum order, 1e-5 relative) ...
     single = make_trainer(LONG, torch.float32)
     run(single, CUT)
-    state = torch.load(tmp_path / "ckpt.pt", weights_only=False)
+    state = load_checked(str(tmp_path / "ckpt.pt"))
     assert state["schedule"]["step"] == CUT
     for k, t in single.adapter.statistics().items():
         assert t[0].abs().sum() > 0, "the checkpoint must fall between two densifications"
@@ -373,7 +374,7 @@ def test_train_3dgs_under_torchrun(tmp_path):
 
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["world_size"] == 2 and metrics["steps"] == 4
-    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    state = load_checked(str(out / "checkpoint.pt"))
     example = _load_example()
     scene = example.load_scene(example.BUNDLED)
     config = MVGSConfig.from_dict(state["config"])
