@@ -191,6 +191,14 @@ class MVGSConfig:
                 continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive int{' or None' if name == 'chunk_size' else ''}, got {v!r}")
+        for name in ("densify_from", "densify_until", "prune_large_after", "seed"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"{name} must be an int >= 0, got {v!r}")
+        t = self.mvad_tau
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < float("inf"):
+            raise ValueError(f"mvad_tau must be a finite discrepancy > 0 (a chord on the unit sphere is at most 2), "
+                             f"got {t!r}")
         m = self.chunk_memory_mb
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 < m < float("inf"):
             raise ValueError(f"chunk_memory_mb must be a finite number of MiB > 0, got {m!r}")
