@@ -97,6 +97,11 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}
 
 
+def baseline_of(rows: list, r: dict):
+    """The baseline run of `rows` at r's budget, or None."""
+    return next((b for b in rows if b["kind"] == "baseline" and b["budget"] == r["budget"]), None)
+
+
 def table(rows: list, scene: str) -> str:
     lines = [f"Scene: {scene}. One torch thread per run; CPU = user + sys of the training steps "
              "(evaluation excluded); work in full-resolution view renders.", "",
@@ -104,7 +109,7 @@ def table(rows: list, scene: str) -> str:
              "| Gaussians | CPU (s) | wall (s) |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        base = next((b for b in rows if b["kind"] == "baseline" and b["budget"] == r["budget"]), None)
+        base = baseline_of(rows, r)
         d_psnr = "" if base is None or r is base else f"{r['psnr'] - base['psnr']:+.2f}"
         d_ssim = "" if base is None or r is base else f"{r['ssim'] - base['ssim']:+.3f}"
         lines.append(f"| {r['budget']:g} | {r['kind']} | {r['views']} | {r['steps']} | {r['work']:.0f} "
@@ -145,7 +150,7 @@ def summary(paths) -> str:
         scene = "tabletop (bundled)" if data == "None" else Path(data).name
         seed = saved["args"].get("seed", "0")
         for r in rows:
-            base = next((b for b in rows if b["kind"] == "baseline" and b["budget"] == r["budget"]), None)
+            base = baseline_of(rows, r)
             if base is None or r is base:
                 continue
             lines.append(f"| {scene} | {seed} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "

@@ -10,7 +10,8 @@ Variants (our implementations of each rule, with their guards):
     +MVRL              M views per step, summed loss, full resolution, no extra densification
     +CRD               ... plus cross-ray densification
     +MVAD              ... plus multi-view augmented densification
-    +CIG (= default)   ... plus the coarse-to-fine pyramid: our default preset
+    +CIG (= default)   ... plus the coarse-to-fine pyramid: the multiview preset (the default before
+                       the equal-compute study)
     paper              the released behaviour (MVGS_METHOD.md)
     baseline, equal time   plain 3DGS trained for as many steps as fit in the full run's time
 All but paper scale the gradient threshold to the rendered image width as MVGSConfig.multiview()
@@ -115,10 +116,6 @@ def run_isolated(*args) -> dict:
     ctx = multiprocessing.get_context("spawn")
     with ctx.Pool(1) as pool:
         return pool.apply(run, args)
-
-
-def write_text(path: Path, text: str) -> None:
-    atomic_write_text(path, text)
 
 
 def plots(out: Path, rows: dict) -> None:
@@ -229,7 +226,7 @@ def main(argv=None) -> dict:
         print(f"{name} ...", file=sys.stderr, flush=True)
         rows[name] = run_isolated(args.data, config, args.seed, args.resolution_scale, curve_every,
                                   args.max_minutes * 60, args.threads)
-        write_text(args.out / "ablation.md", table(rows, args))  # a stopped run keeps what it has
+        atomic_write_text(args.out / "ablation.md", table(rows, args))  # a stopped run keeps what it has
     if not args.no_equal_time and "baseline" in rows and FULL in rows:
         n = equal_time_steps(rows, args.steps)
         config = MVGSConfig.baseline(seed=args.seed, grad_threshold_width=width).with_total_steps(n)
@@ -238,7 +235,7 @@ def main(argv=None) -> dict:
             args.data, config, args.seed, args.resolution_scale, max(1, n // args.curve_points), args.max_minutes * 60,
             args.threads)
     text = table(rows, args)
-    write_text(args.out / "ablation.md", text)
+    atomic_write_text(args.out / "ablation.md", text)
     plots(args.out, rows)
     print(text)
     return rows

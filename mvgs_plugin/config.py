@@ -185,16 +185,15 @@ class MVGSConfig:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        for name in ("chunk_size", "densify_every", "opacity_reset_every"):
+        lowest = {"chunk_size": 1, "densify_every": 1, "opacity_reset_every": 1,
+                  "densify_from": 0, "densify_until": 0, "prune_large_after": 0, "seed": 0}
+        for name, low in lowest.items():
             v = getattr(self, name)
             if name == "chunk_size" and v is None:
                 continue
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive int{' or None' if name == 'chunk_size' else ''}, got {v!r}")
-        for name in ("densify_from", "densify_until", "prune_large_after", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                what = "a positive int" if low == 1 else "an int >= 0"
+                raise ValueError(f"{name} must be {what}{' or None' if name == 'chunk_size' else ''}, got {v!r}")
         t = self.mvad_tau
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < float("inf"):
             raise ValueError(f"mvad_tau must be a finite discrepancy > 0 (a chord on the unit sphere is at most 2), "

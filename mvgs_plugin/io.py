@@ -5,19 +5,10 @@ from __future__ import annotations
 import hashlib
 import io
 import os
-import tempfile
+import secrets
 from typing import Any, Callable
 
 import torch
-
-
-def new_file_mode() -> int:
-    """The mode open() gives a new file under the process umask (0o644 under the usual 022).
-    mkstemp creates its temporary files 0o600; every atomic writer here sets this mode on the
-    temporary file before the rename, so a replaced file is as readable as a plainly written one."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
 
 
 def _partial_prefix(path) -> str:
@@ -57,21 +48,28 @@ def remove_stale_partials(path) -> list:
 
 
 def write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: bool = False) -> None:
-    """Call `write(file)` on a temporary file in `path`'s folder, flush it to disk, give it the
-    usual new-file mode and rename it over `path`: a crash leaves any previous file intact and
+    """Call `write(file)` on a temporary file in `path`'s folder (with the usual new-file mode),
+    flush it to disk and rename it over `path`: a crash leaves any previous file intact and
     never half of one; the temporary file is removed on failure, and the ones a killed earlier
     writer of the same path left are removed first (remove_stale_partials)."""
     folder = os.path.dirname(os.path.abspath(path))
     if make_folder:
         os.makedirs(folder, exist_ok=True)
     remove_stale_partials(path)
-    fd, tmp = tempfile.mkstemp(prefix=f"{_partial_prefix(path)}{os.getpid()}-", dir=folder)
+    # Created with mode 0o666 under the process umask, as open() would make the file (mkstemp's
+    # 0o600 would leave metrics, PLYs and checkpoints unreadable to others after the rename).
+    while True:
+        tmp = os.path.join(folder, f"{_partial_prefix(path)}{os.getpid()}-{secrets.token_hex(4)}")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:
+            continue
     try:
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from adapters.ply import write_gaussian_ply
-from mvgs_plugin.io import atomic_write_text, new_file_mode, save_atomic
+from mvgs_plugin.io import atomic_write_text, save_atomic
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import train_3dgs  # noqa: E402
@@ -26,7 +26,7 @@ def test_atomic_writers_use_the_plain_new_file_mode(tmp_path):
         with open(plain, "w") as f:
             f.write("x")
         expected = _mode(plain)
-        assert expected == 0o640 == new_file_mode()
+        assert expected == 0o640
         atomic_write_text(tmp_path / "a.md", "hello")
         save_atomic({"w": torch.ones(2)}, str(tmp_path / "b.pt"))
         n = 3
