@@ -209,7 +209,7 @@ def launch(args, run: Callable) -> dict:
         return run(args, None)
     with abort_on_error():  # an error ends this rank at once; the others' next collective then fails
         metrics = run(args, dist)
-    torch.distributed.destroy_process_group()
+        dist.close()  # every rank waits for rank 0's evaluation and writes, then all leave together
     return metrics
 
 

@@ -181,7 +181,7 @@ class Collective:
         return f"Collective(rank={self.rank}, world_size={self.world_size}, backend={self.backend!r})"
 
     # ---- plumbing ---------------------------------------------------------------------------
-    def _call(self, what: str, step: int, fn: Callable[[], T]) -> T:
+    def _call(self, what: str, step: Optional[int], fn: Callable[[], T]) -> T:
         """Run a collective; a backend failure (peer gone, timeout) becomes a DistributedError that
         says which collective, at which step, on which rank."""
         try:
@@ -190,16 +190,26 @@ class Collective:
             raise
         except Exception as exc:  # gloo / NCCL report peer loss and timeouts as RuntimeError subclasses
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            at = "" if step is None else f" of step {step}"
             raise DistributedError(
-                f"rank {self.rank}/{self.world_size}: the {what} collective of step {step} failed: another "
+                f"rank {self.rank}/{self.world_size}: the {what} collective{at} failed: another "
                 f"rank exited or did not answer within {self.timeout:g} s ({type(exc).__name__}: {detail})"
             ) from exc
 
-    def barrier(self, what: str, step: int = 0) -> None:
+    def barrier(self, what: str, step: Optional[int] = 0) -> None:
         """Wait for every rank (with the group's timeout)."""
         # A tiny all_reduce rather than dist.barrier(): it obeys the timeout on every backend.
         flag = torch.ones(1, device=self.device)
         self._call(what, step, lambda: dist.all_reduce(flag, group=self.group))
+
+    def close(self) -> None:
+        """Leave the process group together: wait until every rank got here (rank 0 may still be
+        evaluating and writing; the wait obeys the group's timeout), then destroy the group.
+        A rank that tears its group down and exits while a peer still works can abort in gloo's
+        worker threads ("terminate called without an active exception"); ending together avoids it."""
+        self.barrier("finish", None)
+        if self.group is None:
+            dist.destroy_process_group()
 
     # ---- per step ---------------------------------------------------------------------------
     def exchange_status(self, step: int, error: Optional[BaseException], loss: float, num_primitives: int,

@@ -140,7 +140,11 @@ def scenario_stall(coll, out):
 
 def scenario_training(coll, out):
     """The two successful scenarios in one launch (process start-up dominates their time)."""
-    return {"equivalence": scenario_equivalence(coll, out), "long": scenario_long(coll, out)}
+    result = {"equivalence": scenario_equivalence(coll, out), "long": scenario_long(coll, out)}
+    if coll.rank == 0:
+        time.sleep(1.0)  # rank 0 still evaluating and writing after training, as in the examples
+    result["closing_at"] = time.monotonic()  # CLOCK_MONOTONIC: one clock for every process on the machine
+    return result
 
 
 SCENARIOS = {f.__name__[len("scenario_"):]: f for f in
@@ -154,9 +158,11 @@ def _worker(rank, world, port, name, out, timeout):
             torch.set_num_threads(1)
             dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world,
                                     timeout=datetime.timedelta(seconds=timeout))
-            result = SCENARIOS[name](Collective(timeout=timeout), out)
+            coll = Collective(timeout=timeout)
+            result = SCENARIOS[name](coll, out)
             torch.save(result, out / f"rank{rank}.pt")
-            dist.destroy_process_group()
+            coll.close()
+            (out / f"rank{rank}.closed").write_text(str(time.monotonic()))
         except BaseException as exc:
             if STEP_STARTED[0] is not None:
                 (out / f"rank{rank}.elapsed").write_text(str(time.monotonic() - STEP_STARTED[0]))
@@ -329,6 +335,15 @@ def test_ranks_stay_identical_and_rank0_checkpoint_resumes_in_one_process(traine
     assert [s[2] for s in steps] == [s[2] for s in per_rank[0]["steps"]]
     for k, p in resumed.adapter.params.items():
         assert max_rel(per_rank[0]["final"]["params"][k], p.detach()) <= 1e-4, k
+
+
+def test_ranks_leave_the_group_together(trained):
+    """Collective.close() holds rank 1 until rank 0 (which works 1 s longer after training, as
+    the examples' rank 0 evaluates and writes) reaches it too; only then do both tear down."""
+    per_rank, folder = trained
+    closed = [float((folder / f"rank{r}.closed").read_text()) for r in range(2)]
+    assert per_rank[1]["closing_at"] + 0.9 <= per_rank[0]["closing_at"]  # rank 1 got there first
+    assert closed[1] >= per_rank[0]["closing_at"], (closed, per_rank[0]["closing_at"])
 
 
 def test_a_rank_that_raises_stops_every_rank_with_its_message(tmp_path):
