@@ -79,12 +79,24 @@ def check_scalar(name: str, v, lo: float = -math.inf, lo_open: bool = False) -> 
     return float(v)
 
 
+# Quaternions are normalised with this floor on the norm (projection.py, project.cpp): below it
+# the division would not normalise (a wrong rotation, silently), so such rows are refused.
+QUAT_NORM_FLOOR = 1e-12
+# near_plane below this puts 1 / z^2 of the projection's Jacobian beyond float32 (1/1e-10^2 = 1e20
+# times a focal of up to 1e18 still fits).
+NEAR_PLANE_FLOOR = 1e-10
+
+
 def check_quats(quats: Tensor) -> None:
-    norms = quats.detach().norm(dim=-1)
-    zero = norms == 0
-    if bool(zero.any()):
-        i = int(zero.nonzero()[0, 0])
-        raise ValueError(f"quats must be non-zero (they are normalised), got [0,0,0,0] at row {i}")
+    q = quats.detach()
+    # the largest component first: the norm of a tiny float32 quaternion would underflow to 0
+    big = q.abs().amax(dim=-1, keepdim=True)
+    norms = (q / big.clamp_min(torch.finfo(q.dtype).tiny)).norm(dim=-1) * big.squeeze(-1)
+    small = ~(norms >= QUAT_NORM_FLOOR)
+    if bool(small.any()):
+        i = int(small.nonzero()[0, 0])
+        raise ValueError(f"quats must have a norm >= {QUAT_NORM_FLOOR:g} (they are normalised), got norm "
+                         f"{float(norms[i]):.3g} at row {i}: {q[i].tolist()}")
 
 
 def check_scales(scales: Tensor) -> None:
@@ -109,6 +121,12 @@ def check_viewmats(viewmats: Tensor) -> None:
             f"viewmats[{c}] must be a rigid world-to-camera transform (orthonormal rotation block), "
             f"got R R^T - I with max abs {err[c].item():.3g}"
         )
+    det = torch.linalg.det(rot.to(torch.float64))
+    bad = det < 0
+    if bool(bad.any()):
+        c = int(bad.nonzero()[0, 0])
+        raise ValueError(f"viewmats[{c}] rotation block has det {float(det[c]):.6g}: a reflection, not a rotation "
+                         "(one camera axis flipped? OpenGL cameras need y and z negated, not one of them)")
 
 
 def check_Ks(Ks: Tensor) -> None:

@@ -65,6 +65,12 @@ class Projection:
     valid: Tensor
 
 
+# Splats whose 2D determinant (pixels^4) is at or below this are culled: the conic 1/det and its
+# gradient 1/det^2 would overflow float64 (a standard deviation under 1e-37 px: no pixel centre
+# sees it).
+DET_FLOOR = 1e-150
+
+
 def project(
     means: Tensor,
     quats: Tensor,
@@ -83,7 +89,40 @@ def project(
 
     Args:
         means: [N, 3]; quats: [N, 4] w-x-y-z; scales: [N, 3]; viewmats: [C, 4, 4]; Ks: [C, 3, 3].
+
+    The arithmetic runs in float64 whatever the inputs' dtype, and the results come back in it:
+    in float32 the 2D covariance's determinant overflows for footprints beyond ~4e9 px (a scale
+    of 1e10, or a focal of 1e30, was culled) and cancels for long thin needles (a conic 40 %
+    off at 3000 px), and its gradients met 0 * inf = NaN. A splat whose float32 results are not
+    finite (a footprint so small its conic overflows, a centre beyond float32's range) is
+    culled; a huge one's conic underflows to 0, its exact limit (alpha = opacity everywhere).
     """
+    if means.dtype == torch.float64:
+        return _project64(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                          tile_size, radius_clip)
+    d = lambda x: x.to(torch.float64)  # noqa: E731  (differentiable: gradients come back cast)
+    p = _project64(d(means), d(quats), d(scales), d(viewmats), d(Ks), width, height, near_plane, far_plane,
+                   eps2d, tile_size, radius_clip)
+    return narrow(p, means.dtype)
+
+
+def narrow(p: Projection, dtype: torch.dtype) -> Projection:
+    """A float64 Projection in `dtype`, culling the splats whose values do not fit in it."""
+    means2d, conics = p.means2d.to(dtype), p.conics.to(dtype)
+    depths, comp = p.depths.to(dtype), p.compensation.to(dtype)
+    fine = torch.isfinite(means2d).all(-1) & torch.isfinite(conics).all(-1) & torch.isfinite(comp)
+    if bool(fine.all()):
+        return Projection(means2d, conics, depths, comp, p.radii, p.rects, p.valid)
+    valid = p.valid & fine
+    zero = torch.zeros((), dtype=dtype, device=means2d.device)
+    return Projection(torch.where(fine[..., None], means2d, zero), torch.where(fine[..., None], conics, zero), depths,
+                      torch.where(fine, comp, zero), torch.where(valid, p.radii, torch.zeros_like(p.radii)),
+                      torch.where(valid[..., None], p.rects, torch.zeros_like(p.rects)), valid)
+
+
+def _project64(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+               near_plane: float, far_plane: float, eps2d: float, tile_size: int, radius_clip: float) -> Projection:
+    """project() in the inputs' dtype (float64 from project())."""
     # Products of 3-vectors and 3x3 blocks are written as broadcast-and-sum: batched matmuls of
     # tiny matrices cost far more per element on the CPU.
     R, t = viewmats[:, None, :3, :3], viewmats[:, None, :3, 3]  # [C,1,3,3], [C,1,3]
@@ -110,7 +149,7 @@ def project(
     a_raw, b, c_raw = (jw0 * s0).sum(-1), (jw0 * s1).sum(-1), (jw1 * s1).sum(-1)
     a, c = a_raw + eps2d, c_raw + eps2d
     det = a * c - b * b
-    ok = in_depth & (det > 0) & torch.isfinite(det)
+    ok = in_depth & (det > DET_FLOOR) & torch.isfinite(det)
     det_s = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
     # The floor keeps sqrt's derivative finite for degenerate (flat) splats.

@@ -88,6 +88,8 @@ def _project(means, quats, scales, colors, viewmats, Ks, width, height, near_pla
     fuse_sh = sh_degree is not None and colors.dim() == 3 and render_mode != "D" and render_mode != "ED"
     settings = (width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, float(radius_clip),
                 sh_degree if fuse_sh else None)
+    # the kernel computes the geometry in double and culls what does not fit the model's dtype,
+    # as projection.project does (csrc/project.cpp, forward)
     out = _ProjectCpp.apply(means, quats, scales, colors if fuse_sh else None, viewmats, Ks, settings)
     means2d, conics, depths, comp, rgb, radii, rects, valid = out
     return Projection(means2d, conics, depths, comp, radii, rects, valid), (rgb if fuse_sh else None)
@@ -123,6 +125,21 @@ class _CompositeCpp(torch.autograd.Function):
         if ctx.absgrad_target is not None:
             ctx.absgrad_target.absgrad = absgrad
         return g_m, g_q, g_o, g_c, g_bg, None, None, None, None, None, None
+
+
+def _guard(t: Tensor, name: str) -> Tensor:
+    """t itself, or (when it requires grad) an alias whose backward hook raises
+    FloatingPointError naming `name` if the gradient this call sends it is not finite."""
+    if not t.requires_grad:
+        return t
+    alias = t.view_as(t)
+
+    def check(grad: Optional[Tensor]) -> None:
+        if grad is not None and not V.all_finite(grad):
+            raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the renderer's backward")
+
+    alias.register_hook(check)
+    return alias
 
 
 def rasterization(
@@ -192,6 +209,12 @@ def rasterization(
     if absgrad and backend != "cpp":
         raise ValueError("absgrad=True needs backend 'cpp' (the PyTorch path has no per-pixel gradients)")
 
+    # Every differentiable input's gradient is checked in backward (the compiled kernels check
+    # their own too; autograd's PyTorch path would otherwise hand a NaN on silently).
+    means, quats, scales, opacities, colors, viewmats, Ks = (
+        _guard(t, name) for t, name in ((means, "means"), (quats, "quats"), (scales, "scales"),
+                                        (opacities, "opacities"), (colors, "colors"), (viewmats, "viewmats"),
+                                        (Ks, "Ks")))
     proj, rgb = _project(means, quats, scales, colors, viewmats, Ks, width, height, near_plane, far_plane,
                          eps2d, tile_size, radius_clip, sh_degree, render_mode, backend)
     feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C, rgb)
@@ -312,7 +335,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     V.check_positive_int("width", width)
     V.check_positive_int("height", height)
     V.check_positive_int("tile_size", tile_size)
-    near = V.check_scalar("near_plane", near_plane, 0.0, lo_open=True)
+    near = V.check_scalar("near_plane", near_plane, V.NEAR_PLANE_FLOOR)
     if V.check_scalar("far_plane", far_plane) <= near:
         raise ValueError(f"far_plane must be > near_plane={near_plane}, got {far_plane!r}")
     V.check_scalar("radius_clip", radius_clip, 0.0)

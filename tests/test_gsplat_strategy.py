@@ -92,7 +92,11 @@ def test_default_strategy_grows_splits_and_prunes_as_expected(backend):
     run_steps(probe, params, optimizers, probe.initialize_state(scene_scale=1.0), 2, backend, record)
     avg = mean_ndc_grad(record)
     visible = avg > 0
-    threshold = float(avg[visible].median())
+    # halfway between the two middle gradients: no Gaussian sits on the threshold, where the
+    # strategy's own float sums and this test's could round to different sides
+    middle = avg[visible].sort().values
+    k = middle.numel() // 2
+    threshold = float(0.5 * (middle[k - 1] + middle[k]))
 
     # The real run: refine at step 1 (after two accumulated steps).
     params, optimizers = make_params()

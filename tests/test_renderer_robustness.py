@@ -236,7 +236,7 @@ BAD_INPUTS = [
     ("projective viewmat", dict(viewmats=torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]], dtype=F64)), ValueError, r"last row must be \[0,0,0,1\]"),
     ("width", dict(width=0), ValueError, r"width must be a positive int, got 0"),
     ("height float", dict(height=32.0), ValueError, r"height must be a positive int, got 32.0"),
-    ("near", dict(near_plane=0.0), ValueError, r"near_plane must be > 0"),
+    ("near", dict(near_plane=0.0), ValueError, r"near_plane must be >= 1e-10"),
     ("far", dict(far_plane=0.001), ValueError, r"far_plane must be > near_plane"),
     ("eps2d", dict(eps2d=-0.1), ValueError, r"eps2d must be >= 0"),
     ("sh degree", dict(sh_degree=4, colors=torch.zeros(2, 25, 3, dtype=F64)), ValueError, r"sh_degree must be None or 0..3, got 4"),

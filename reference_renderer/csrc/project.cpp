@@ -20,6 +20,7 @@
 #include <cmath>
 #include <cstdint>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -155,12 +156,13 @@ template <typename T>
 struct Cam {
     T R[9], t[3], fx, fy, cx, cy, lo_x, hi_x, lo_y, hi_y, center[3];
 
-    void load(const T* viewmat, const T* K, int64_t width, int64_t height) {
+    template <typename U>
+    void load(const U* viewmat, const U* K, int64_t width, int64_t height) {
         for (int i = 0; i < 3; ++i) {
-            for (int j = 0; j < 3; ++j) R[i * 3 + j] = viewmat[i * 4 + j];
-            t[i] = viewmat[i * 4 + 3];
+            for (int j = 0; j < 3; ++j) R[i * 3 + j] = T(viewmat[i * 4 + j]);
+            t[i] = T(viewmat[i * 4 + 3]);
         }
-        fx = K[0]; fy = K[4]; cx = K[2]; cy = K[5];
+        fx = T(K[0]); fy = T(K[4]); cx = T(K[2]); cy = T(K[5]);
         const T tan_x = T(0.5) * T(width) / fx, tan_y = T(0.5) * T(height) / fy;
         lo_x = -(cx / fx + T(0.3) * tan_x); hi_x = (T(width) - cx) / fx + T(0.3) * tan_x;
         lo_y = -(cy / fy + T(0.3) * tan_y); hi_y = (T(height) - cy) / fy + T(0.3) * tan_y;
@@ -174,9 +176,10 @@ struct Settings {
     double near_plane, far_plane, eps2d, radius_clip;
 };
 
-template <typename T>
-std::vector<Cam<T>> load_cameras(const Settings& s, const T* viewmats, const T* Ks) {
-    std::vector<Cam<T>> cams(s.C);
+// The cameras in precision G (the model's T for colours, double for the geometry).
+template <typename G, typename T>
+std::vector<Cam<G>> load_cameras(const Settings& s, const T* viewmats, const T* Ks) {
+    std::vector<Cam<G>> cams(s.C);
     for (int64_t c = 0; c < s.C; ++c) cams[c].load(viewmats + c * 16, Ks + c * 9, s.width, s.height);
     return cams;
 }
@@ -210,7 +213,11 @@ struct Pair {
         a = a_raw + T(s.eps2d);
         c = c_raw + T(s.eps2d);
         det = a * c - b * b;
-        ok = in_depth && det > T(0) && std::isfinite(det);
+        // Below the floor the conic 1/det and its backward's 1/det^2 would overflow: such a splat
+        // (a standard deviation under 1e-37 px in double) is culled. Pairs are computed in
+        // double (see forward), so the float floor only guards a direct Pair<float>.
+        const T det_floor = std::is_same<T, float>::value ? T(1e-18) : T(1e-150);
+        ok = in_depth && det > det_floor && std::isfinite(det);
         det_s = ok ? det : T(1);
     }
 };
@@ -237,10 +244,13 @@ template <typename T>
 struct GaussianBlock {
     T qn[kGaussians][4], qnorm[kGaussians], R[kGaussians][9], cov[kGaussians][6];
 
-    void load(int64_t n0, int64_t n1, const T* quats, const T* scales) {
+    template <typename U>
+    void load(int64_t n0, int64_t n1, const U* quats, const U* scales) {
         for (int64_t n = n0; n < n1; ++n) {
             const int64_t i = n - n0;
-            gaussian_cov(quats + n * 4, scales + n * 3, qn[i], qnorm[i], R[i], cov[i]);
+            const T q[4] = {T(quats[n * 4]), T(quats[n * 4 + 1]), T(quats[n * 4 + 2]), T(quats[n * 4 + 3])};
+            const T sc[3] = {T(scales[n * 3]), T(scales[n * 3 + 1]), T(scales[n * 3 + 2])};
+            gaussian_cov(q, sc, qn[i], qnorm[i], R[i], cov[i]);
         }
     }
 };
@@ -319,41 +329,54 @@ template <typename T>
 void forward(const Settings& s, const T* means, const T* quats, const T* scales, const T* sh,
              const T* viewmats, const T* Ks, T* means2d, T* conics, T* depths, T* comp, T* colors,
              int32_t* radii, int32_t* rects, uint8_t* valid, int n_threads) {
-    const std::vector<Cam<T>> cams = load_cameras(s, viewmats, Ks);
+    // The geometry (covariance, Jacobian, 2D covariance, its determinant and inverse) runs in
+    // double whatever T is: in float the determinant overflows for footprints beyond ~4e9 px,
+    // cancels for long thin needles and underflows for tiny splats, and its gradients met
+    // 0 * inf. Results are stored in T; a splat whose stored values do not fit T (a conic that
+    // overflows, a centre beyond T's range) is culled. Colours (SH) stay in T.
+    using G = double;
+    const std::vector<Cam<T>> cams = load_cameras<T>(s, viewmats, Ks);
+    const std::vector<Cam<G>> gcams = load_cameras<G>(s, viewmats, Ks);
     const int64_t tiles_x = (s.width + s.tile - 1) / s.tile, tiles_y = (s.height + s.tile - 1) / s.tile;
     const int n_basis = s.sh_degree >= 0 ? int((s.sh_degree + 1) * (s.sh_degree + 1)) : 0;
     // Dividing by a power of two is exact as a product, so the common T = 16 avoids 4 divisions.
     const bool tile_pow2 = (s.tile & (s.tile - 1)) == 0;
     const double inv_tile = 1.0 / double(s.tile);
     parallel_blocks(s.N, kGaussians, n_threads, [&](int64_t n0, int64_t n1) {
-        GaussianBlock<T> blk;
+        GaussianBlock<G> blk;
         blk.load(n0, n1, quats, scales);
         // Cameras outside, Gaussians inside: each output row is written sequentially.
         for (int64_t c = 0; c < s.C; ++c) {
             const Cam<T>& cam = cams[c];
+            const Cam<G>& gcam = gcams[c];
             for (int64_t n = n0; n < n1; ++n) {
-                const T* cov = blk.cov[n - n0];
+                const G* cov = blk.cov[n - n0];
                 const T* mean = means + n * 3;
-                Pair<T> q;
-                q.compute(cam, mean, cov, s);
+                const G gmean[3] = {G(mean[0]), G(mean[1]), G(mean[2])};
+                Pair<G> q;
+                q.compute(gcam, gmean, cov, s);
                 const int64_t g = c * s.N + n;
-                means2d[g * 2] = cam.fx * q.p[0] * q.inv_zs + cam.cx;
-                means2d[g * 2 + 1] = cam.fy * q.p[1] * q.inv_zs + cam.cy;
-                const T inv_det = T(1) / q.det_s;
-                conics[g * 3] = q.c * inv_det;
-                conics[g * 3 + 1] = -q.b * inv_det;
-                conics[g * 3 + 2] = q.a * inv_det;
-                depths[g] = q.p[2];
-                const T det_raw = q.ok ? q.a_raw * q.c_raw - q.b * q.b : T(0);
-                comp[g] = std::sqrt(std::max(det_raw * inv_det, T(1e-12)));
+                const G u = gcam.fx * q.p[0] * q.inv_zs + gcam.cx, v = gcam.fy * q.p[1] * q.inv_zs + gcam.cy;
+                const G inv_det = G(1) / q.det_s;
+                const G det_raw = q.ok ? q.a_raw * q.c_raw - q.b * q.b : G(0);
+                const T out2[2] = {T(u), T(v)};
+                const T outq[3] = {T(q.c * inv_det), T(-q.b * inv_det), T(q.a * inv_det)};
+                const T outc = T(std::sqrt(std::max(det_raw * inv_det, G(1e-12))));
+                const bool fits = std::isfinite(out2[0]) && std::isfinite(out2[1]) && std::isfinite(outq[0]) &&
+                                  std::isfinite(outq[1]) && std::isfinite(outq[2]) && std::isfinite(outc);
+                means2d[g * 2] = fits ? out2[0] : T(0);  // as projection.narrow: zeros where culled
+                means2d[g * 2 + 1] = fits ? out2[1] : T(0);
+                for (int k = 0; k < 3; ++k) conics[g * 3 + k] = fits ? outq[k] : T(0);
+                comp[g] = fits ? outc : T(0);
+                depths[g] = T(q.p[2]);
                 // Radius and tiles (no gradient), in the order of operations of projection.py.
-                const T mid = T(0.5) * (q.a + q.c);
-                const T lam = mid + std::sqrt(std::max(mid * mid - q.det, T(0.1)));
-                T radius = std::ceil(T(3) * std::sqrt(lam));
-                bool ok = q.ok && std::isfinite(radius) && radius > T(s.radius_clip);
-                radius = ok ? std::min(radius, T(1 << 30)) : T(0);
+                const G mid = G(0.5) * (q.a + q.c);
+                const G lam = mid + std::sqrt(std::max(mid * mid - q.det, G(0.1)));
+                G radius = std::ceil(G(3) * std::sqrt(lam));
+                bool ok = q.ok && fits && std::isfinite(radius) && radius > G(s.radius_clip);
+                radius = ok ? std::min(radius, G(1 << 30)) : G(0);
                 int32_t* r = rects + g * 4;
-                const double u = double(means2d[g * 2]), v = double(means2d[g * 2 + 1]), rr = double(radius);
+                const double rr = double(radius);
                 auto rng = [&](double center, int64_t n_t, int32_t* out) {
                     const double T_ = double(s.tile);
                     double lo = tile_pow2 ? std::floor((center - rr) * inv_tile) : std::floor((center - rr) / T_);
@@ -396,91 +419,98 @@ void backward(const Settings& s, const T* means, const T* quats, const T* scales
               const T* viewmats, const T* Ks, const T* g_means2d, const T* g_conics, const T* g_depths,
               const T* g_comp, const T* g_colors, T* d_means, T* d_quats, T* d_scales, T* d_sh,
               int n_threads) {
-    const std::vector<Cam<T>> cams = load_cameras(s, viewmats, Ks);
+    using G = double;  // the geometry in double, as in forward
+    const std::vector<Cam<T>> cams = load_cameras<T>(s, viewmats, Ks);
+    const std::vector<Cam<G>> gcams = load_cameras<G>(s, viewmats, Ks);
     const int n_basis = s.sh_degree >= 0 ? int((s.sh_degree + 1) * (s.sh_degree + 1)) : 0;
     parallel_blocks(s.N, kGaussians, n_threads, [&](int64_t n0, int64_t n1) {
-        GaussianBlock<T> blk;
+        GaussianBlock<G> blk;
         blk.load(n0, n1, quats, scales);
-        T dmeans[kGaussians][3] = {}, dcovs[kGaussians][6] = {};
+        G dmeans[kGaussians][3] = {}, dcovs[kGaussians][6] = {};
         // Cameras outside, Gaussians inside (rows read sequentially); each Gaussian's gradient
         // still adds up over the cameras in camera order, in this one thread.
         for (int64_t c = 0; c < s.C; ++c) {
             for (int64_t n = n0; n < n1; ++n) {
-                const T* cov = blk.cov[n - n0];
+                const G* cov = blk.cov[n - n0];
                 const T* mean = means + n * 3;
-                T* dm = dmeans[n - n0];
-                T* dcov = dcovs[n - n0];
+                G* dm = dmeans[n - n0];
+                G* dcov = dcovs[n - n0];
                 T* dsh = d_sh ? d_sh + n * s.K * 3 : nullptr;
                 const int64_t g = c * s.N + n;
-                const T gu = g_means2d[g * 2], gv = g_means2d[g * 2 + 1];
-                const T gq0 = g_conics[g * 3], gq1 = g_conics[g * 3 + 1], gq2 = g_conics[g * 3 + 2];
-                const T gd = g_depths[g], gcp = g_comp[g];
-                const bool geo = gu != T(0) || gv != T(0) || gq0 != T(0) || gq1 != T(0) || gq2 != T(0) ||
-                                 gd != T(0) || gcp != T(0);
-                const Cam<T>& cam = cams[c];
+                const G gu = g_means2d[g * 2], gv = g_means2d[g * 2 + 1];
+                const G gq0 = g_conics[g * 3], gq1 = g_conics[g * 3 + 1], gq2 = g_conics[g * 3 + 2];
+                const G gd = g_depths[g], gcp = g_comp[g];
+                const bool geo = gu != G(0) || gv != G(0) || gq0 != G(0) || gq1 != G(0) || gq2 != G(0) ||
+                                 gd != G(0) || gcp != G(0);
+                const Cam<T>& tcam = cams[c];
                 if (n_basis) {
                     const T* gc = g_colors + g * 3;
-                    if (gc[0] != T(0) || gc[1] != T(0) || gc[2] != T(0))
-                        sh_backward(int(s.sh_degree), n_basis, cam, mean, sh + n * s.K * 3, gc, dsh, dm);
+                    if (gc[0] != T(0) || gc[1] != T(0) || gc[2] != T(0)) {
+                        T dmc[3] = {T(0), T(0), T(0)};  // the colour's share of the mean's gradient, in T
+                        sh_backward(int(s.sh_degree), n_basis, tcam, mean, sh + n * s.K * 3, gc, dsh, dmc);
+                        for (int j = 0; j < 3; ++j) dm[j] += G(dmc[j]);
+                    }
                 }
                 if (!geo) continue;  // culled, occluded or unused: nothing reaches this pair
-                Pair<T> q;
-                q.compute(cam, mean, cov, s);
-                T dp[3] = {0, 0, gd}, dzs = 0;
+                const Cam<G>& cam = gcams[c];
+                const G gmean[3] = {G(mean[0]), G(mean[1]), G(mean[2])};
+                Pair<G> q;
+                q.compute(cam, gmean, cov, s);
+                G dp[3] = {0, 0, gd}, dzs = 0;
                 // means2d = (fx x / zs + cx, fy y / zs + cy)
                 dp[0] += gu * cam.fx / q.zs;
                 dp[1] += gv * cam.fy / q.zs;
                 dzs -= (gu * cam.fx * q.p[0] + gv * cam.fy * q.p[1]) / (q.zs * q.zs);
                 // conics = (c, -b, a) / det_s
-                T da = gq2 / q.det_s, db = -gq1 / q.det_s, dc = gq0 / q.det_s;
+                G da = gq2 / q.det_s, db = -gq1 / q.det_s, dc = gq0 / q.det_s;
                 if (q.ok) {
-                    const T ddet = -(gq0 * q.c - gq1 * q.b + gq2 * q.a) / (q.det_s * q.det_s);
+                    const G ddet = -(gq0 * q.c - gq1 * q.b + gq2 * q.a) / (q.det_s * q.det_s);
                     da += ddet * q.c;
                     dc += ddet * q.a;
-                    db -= T(2) * ddet * q.b;
+                    db -= G(2) * ddet * q.b;
                 }
-                T da_raw = 0, dc_raw = 0;
-                if (q.ok && gcp != T(0)) {  // compensation = sqrt(max(det_raw / det, 1e-12))
-                    const T det_raw = q.a_raw * q.c_raw - q.b * q.b;
-                    const T r = det_raw / q.det_s;
-                    if (r >= T(1e-12)) {
-                        const T dr = gcp * T(0.5) / std::sqrt(r);
-                        const T ddet_raw = dr / q.det_s, ddet = -dr * det_raw / (q.det_s * q.det_s);
+                G da_raw = 0, dc_raw = 0;
+                if (q.ok && gcp != G(0)) {  // compensation = sqrt(max(det_raw / det, 1e-12))
+                    const G det_raw = q.a_raw * q.c_raw - q.b * q.b;
+                    const G r = det_raw / q.det_s;
+                    if (r >= G(1e-12)) {
+                        const G dr = gcp * G(0.5) / std::sqrt(r);
+                        const G ddet_raw = dr / q.det_s, ddet = -dr * det_raw / (q.det_s * q.det_s);
                         da_raw += ddet_raw * q.c_raw;
                         dc_raw += ddet_raw * q.a_raw;
-                        db -= T(2) * ddet_raw * q.b;
+                        db -= G(2) * ddet_raw * q.b;
                         da += ddet * q.c;
                         dc += ddet * q.a;
-                        db -= T(2) * ddet * q.b;
+                        db -= G(2) * ddet * q.b;
                     }
                 }
                 da += da_raw;
                 dc += dc_raw;
                 // a = jw0^T S jw0, b = jw0^T S jw1, c = jw1^T S jw1 (S symmetric)
-                const T* j0 = q.jw0;
-                const T* j1 = q.jw1;
+                const G* j0 = q.jw0;
+                const G* j1 = q.jw1;
                 dcov[0] += da * j0[0] * j0[0] + db * j0[0] * j1[0] + dc * j1[0] * j1[0];
                 dcov[3] += da * j0[1] * j0[1] + db * j0[1] * j1[1] + dc * j1[1] * j1[1];
                 dcov[5] += da * j0[2] * j0[2] + db * j0[2] * j1[2] + dc * j1[2] * j1[2];
-                dcov[1] += T(2) * da * j0[0] * j0[1] + db * (j0[0] * j1[1] + j1[0] * j0[1]) + T(2) * dc * j1[0] * j1[1];
-                dcov[2] += T(2) * da * j0[0] * j0[2] + db * (j0[0] * j1[2] + j1[0] * j0[2]) + T(2) * dc * j1[0] * j1[2];
-                dcov[4] += T(2) * da * j0[1] * j0[2] + db * (j0[1] * j1[2] + j1[1] * j0[2]) + T(2) * dc * j1[1] * j1[2];
-                T dj0[3], dj1[3];
+                dcov[1] += G(2) * da * j0[0] * j0[1] + db * (j0[0] * j1[1] + j1[0] * j0[1]) + G(2) * dc * j1[0] * j1[1];
+                dcov[2] += G(2) * da * j0[0] * j0[2] + db * (j0[0] * j1[2] + j1[0] * j0[2]) + G(2) * dc * j1[0] * j1[2];
+                dcov[4] += G(2) * da * j0[1] * j0[2] + db * (j0[1] * j1[2] + j1[1] * j0[2]) + G(2) * dc * j1[1] * j1[2];
+                G dj0[3], dj1[3];
                 for (int i = 0; i < 3; ++i) {
-                    dj0[i] = T(2) * da * q.s0[i] + db * q.s1[i];
-                    dj1[i] = db * q.s0[i] + T(2) * dc * q.s1[i];
+                    dj0[i] = G(2) * da * q.s0[i] + db * q.s1[i];
+                    dj1[i] = db * q.s0[i] + G(2) * dc * q.s1[i];
                 }
                 // jw0 = (fx / zs) R0 - (fx xz / zs) R2; jw1 likewise with fy, yz, R1
-                T dA0 = 0, dB0 = 0, dA1 = 0, dB1 = 0;
+                G dA0 = 0, dB0 = 0, dA1 = 0, dB1 = 0;
                 for (int j = 0; j < 3; ++j) {
                     dA0 += dj0[j] * cam.R[j];
                     dB0 -= dj0[j] * cam.R[6 + j];
                     dA1 += dj1[j] * cam.R[3 + j];
                     dB1 -= dj1[j] * cam.R[6 + j];
                 }
-                const T zs2 = q.zs * q.zs;
+                const G zs2 = q.zs * q.zs;
                 dzs -= (dA0 * cam.fx + dB0 * cam.fx * q.xz + dA1 * cam.fy + dB1 * cam.fy * q.yz) / zs2;
-                const T dxz = dB0 * cam.fx / q.zs, dyz = dB1 * cam.fy / q.zs;
+                const G dxz = dB0 * cam.fx / q.zs, dyz = dB1 * cam.fy / q.zs;
                 // x/z and y/z clamps pass the gradient inside [lo, hi] (torch.clamp's rule)
                 if (q.raw_xz >= cam.lo_x && q.raw_xz <= cam.hi_x) {
                     dp[0] += dxz / q.zs;
@@ -497,9 +527,12 @@ void backward(const Settings& s, const T* means, const T* quats, const T* scales
         }
         for (int64_t n = n0; n < n1; ++n) {
             const int64_t i = n - n0;
-            for (int j = 0; j < 3; ++j) d_means[n * 3 + j] = dmeans[i][j];
-            cov_backward(blk.qn[i], blk.qnorm[i], blk.R[i], scales + n * 3, dcovs[i], d_quats + n * 4,
-                         d_scales + n * 3);
+            for (int j = 0; j < 3; ++j) d_means[n * 3 + j] = T(dmeans[i][j]);
+            const G scale[3] = {G(scales[n * 3]), G(scales[n * 3 + 1]), G(scales[n * 3 + 2])};
+            G dq[4], ds[3];
+            cov_backward(blk.qn[i], blk.qnorm[i], blk.R[i], scale, dcovs[i], dq, ds);
+            for (int k = 0; k < 4; ++k) d_quats[n * 4 + k] = T(dq[k]);
+            for (int k = 0; k < 3; ++k) d_scales[n * 3 + k] = T(ds[k]);
         }
     });
 }

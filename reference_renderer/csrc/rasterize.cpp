@@ -158,7 +158,7 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
     dx = q[0] - px;
     dy = q[1] - py;
     const T sigma = T(0.5) * (q[2] * dx * dx + q[4] * dy * dy) + q[3] * dx * dy;
-    if (sigma < T(0) || sigma > q[6]) return false;
+    if (!(sigma >= T(0) && sigma <= q[6])) return false;  // written so that a NaN sigma is skipped too
     raw = q[5] * std::exp(-sigma);
     alpha = std::min(Consts<T>::alpha_max, raw);
     return alpha >= Consts<T>::alpha_min;
