@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.data.init import InitRegion, random_init_points
 from mvgs_plugin.densify import check_boxes
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
@@ -47,6 +49,13 @@ _STATE_FORMAT = "mvgs-gs3d/1"
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
 # Elements per temporary distance matrix in kNN and box tests (2^24 float64 = 128 MB).
 _CHUNK_ELEMS = 1 << 24
+LOG = logging.getLogger("mvgs_plugin")
+# After an optimizer step a log-scale above this, or a mean farther than this many scene extents
+# from the model's median position, means a diverging run: exp(80) ~ 5.5e34 is near float32's limit (3.4e38, so the
+# 2D covariance would overflow), and at 1e4 extents a Gaussian's parallax between the training
+# cameras is below 1e-4 rad while float32 spacing there is ~1e-3 extent.
+MAX_LOG_SCALE = 80.0
+MAX_MEAN_EXTENTS = 1e4
 
 
 @dataclass
@@ -57,11 +66,14 @@ class GS3DConfig:
         sh_degree: maximum SH degree (0..3).
         sh_degree_interval: the active degree is min(sh_degree, step // interval).
         init_opacity: opacity of every initial Gaussian.
-        random_init: number of points drawn when the scene has no point cloud: uniform in the
-            cube scene.center ± half size, colours uniform in [0, 1]. The original 3DGS draws
-            100k points in [-1.3, 1.3]^3 for NeRF-synthetic (with near-grey colours); 10k suits
-            the CPU renderer.
-        random_init_half_size: half size of that cube; None = scene.extent.
+        random_init: number of points drawn when the scene has no point cloud, where the
+            cameras look (mvgs_plugin.data.init.init_region: the cube scene.center ± extent for
+            rigs around the scene, the training frusta for forward-facing rigs; logged to the
+            "mvgs_plugin" logger), colours uniform in [0, 1]. The original 3DGS draws 100k
+            points in [-1.3, 1.3]^3 for NeRF-synthetic (with near-grey colours); 10k suits the
+            CPU renderer.
+        random_init_half_size: None (init_region decides), or the half size of a cube about
+            scene.center to use instead.
         seed: seeds the adapter's own generator (random init, split samples); its state is part
             of state_dict(), so a resumed run draws the same samples.
     Learning rates (Adam, eps = adam_eps):
@@ -312,6 +324,7 @@ class GS3DAdapter:
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
+        self._mean_reference: Optional[Tensor] = None  # see optimizer_step
         self.active_sh_degree = _check_int("active_sh_degree", active_sh_degree, 0,
                                            self.config.sh_degree)
         self._build(raw)
@@ -421,9 +434,9 @@ class GS3DAdapter:
 
         SH DC from the point colours, higher bands 0; isotropic scales sqrt(mean squared distance
         to the 3 nearest other points), floored at 1e-7 before the square root; identity
-        rotations; opacity config.init_opacity. Without points: config.random_init points
-        uniform in the cube scene.center ± (random_init_half_size or scene.extent), colours
-        uniform in [0, 1] (drawn from a generator seeded with config.seed).
+        rotations; opacity config.init_opacity. Without points: config.random_init points where the
+        cameras look (see GS3DConfig.random_init), colours uniform in [0, 1] (drawn from a
+        generator seeded with config.seed).
         """
         config = GS3DConfig() if config is None else config
         points = getattr(scene, "points", None)
@@ -447,11 +460,18 @@ class GS3DAdapter:
     @staticmethod
     def _random_points(scene, config: GS3DConfig) -> Tuple[Tensor, Tensor]:
         gen = torch.Generator().manual_seed(config.seed)
-        half = config.random_init_half_size or float(scene.extent)
-        center = torch.as_tensor(scene.center, dtype=torch.float64)
-        u = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
-        xyz = center + (2.0 * u - 1.0) * half
-        rgb = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
+        cameras = getattr(scene, "train_cameras", None)
+        if config.random_init_half_size is not None or not cameras:  # the user's cube, or no cameras to ask
+            center = torch.as_tensor(scene.center, dtype=torch.float64)
+            half = config.random_init_half_size or float(scene.extent)
+            why = "config.random_init_half_size" if config.random_init_half_size else "no cameras: scene.extent"
+            region = InitRegion("cube", f"random init: cube centre ± {half:g} ({why})", center=center, half=half)
+            xyz = region.sample(config.random_init, gen)
+            rgb = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
+            LOG.info("%s", region.description)
+            return xyz, rgb
+        xyz, rgb, description = random_init_points(scene, config.random_init, gen)
+        LOG.info("%s", description)
         return xyz, rgb
 
     @classmethod
@@ -808,7 +828,24 @@ class GS3DAdapter:
         return {name: p.grad for name, p in self.params.items()}
 
     def optimizer_step(self) -> None:
+        """Adam on every group, then a check of what the renderer will take: a scale whose
+        exp overflows (log-scale > MAX_LOG_SCALE) or a mean beyond MAX_MEAN_EXTENTS scene
+        extents raises FloatingPointError naming the group (a diverging learning rate)."""
         self.optimizer.step()
+        with torch.no_grad():
+            top = float(self.params["scales"].max()) if self.params["scales"].numel() else 0.0
+            if top > MAX_LOG_SCALE:  # NaN passes here: the controller's finiteness check names it
+                raise FloatingPointError(f"group 'scales': a log-scale reached {top:.4g} (> {MAX_LOG_SCALE}, "
+                                         f"scale {math.exp(min(top, 700)):.3g}); the learning rate diverges")
+            means = self.params["means"]
+            if means.numel():
+                if self._mean_reference is None:  # the model's median at its first step here (not saved)
+                    self._mean_reference = means.median(dim=0).values.clone()
+                far = float((means - self._mean_reference).abs().max())
+                if far > MAX_MEAN_EXTENTS * self.scene_extent:
+                    raise FloatingPointError(
+                        f"group 'means': a mean moved {far:.4g} from the model's median, beyond {MAX_MEAN_EXTENTS:g} "
+                        f"scene extents ({self.scene_extent:.4g}); the learning rate diverges")
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
@@ -859,6 +896,7 @@ class GS3DAdapter:
                 raise ValueError(f"stats[{key!r}] must be [{n}], got {list(state['stats'][key].shape)}")
         self.scene_extent = float(state["scene_extent"])
         self._step = int(state["step"])
+        self._mean_reference = None
         self.active_sh_degree = int(state["active_sh_degree"])
         self._build(raw)
         self.optimizer.load_state_dict(state["optimizer"])

@@ -176,13 +176,18 @@ def read_gaussian_ply(path: PathLike) -> PlyGaussians:
     """Read a 3DGS PLY (ours or another tool's: properties are found by name, in any order and
     any numeric type; normals and extra properties are ignored).
 
-    Raises ValueError naming the first missing property or an f_rest count that matches no SH
-    degree.
+    Raises ValueError naming the file and what is wrong: not a PLY, a missing property, an
+    f_rest count that matches no SH degree, no vertices, NaN or Inf values, zero quaternions.
     """
     from plyfile import PlyData  # local: only reading needs plyfile
 
     path = Path(path)
-    ply = PlyData.read(str(path))
+    if not path.is_file():
+        raise FileNotFoundError(f"PLY file not found: {path}")
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as err:  # plyfile raises PlyHeaderParseError, PlyElementParseError, ValueError, ...
+        raise ValueError(f"{path}: not a readable PLY file ({type(err).__name__}: {err})") from None
     vertex = _vertex_element(path, ply)
     data = vertex.data
     found = list(data.dtype.names or ())
@@ -199,6 +204,19 @@ def read_gaussian_ply(path: PathLike) -> PlyGaussians:
     opacities = col("opacity")
     scales = np.stack([col(f"scale_{i}") for i in range(3)], axis=1)
     quats = np.stack([col(f"rot_{i}") for i in range(4)], axis=1)
+    if n == 0:
+        raise ValueError(f"{path}: the vertex element is empty (0 Gaussians)")
+    used = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0",
+            "rot_1", "rot_2", "rot_3"] + [f"f_rest_{i}" for i in range(n_rest)]
+    for name in used:
+        bad = ~np.isfinite(np.asarray(data[name], dtype=np.float64))
+        if bad.any():
+            raise ValueError(f"{path}: property {name!r} holds {int(bad.sum())} NaN or Inf values (first: row "
+                             f"{int(np.argmax(bad))})")
+    flat = np.linalg.norm(quats.astype(np.float64), axis=1) < 1e-12
+    if flat.any():
+        raise ValueError(f"{path}: {int(flat.sum())} rows have a zero rotation quaternion rot_0..3 (first: row "
+                         f"{int(np.argmax(flat))}); a rotation needs a quaternion of non-zero norm")
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
     return PlyGaussians(means=t(means), sh0=t(sh0), shN=t(shN), opacities=t(opacities),
                         scales=t(scales), quats=t(quats))

@@ -28,6 +28,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
 import resource
 import sys
 import time
@@ -48,7 +50,14 @@ BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
 def load_scene(path: Path):
     """COLMAP (sparse/ or sparse/0) or NeRF-synthetic / D-NeRF (transforms_train.json)."""
     if (path / "transforms_train.json").exists():
-        frames = json.loads((path / "transforms_train.json").read_text()).get("frames", [])
+        file = path / "transforms_train.json"
+        try:
+            meta = json.loads(file.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{file}: not readable JSON: {err}") from None
+        frames = meta.get("frames") if isinstance(meta, dict) else None
+        frames = frames if isinstance(frames, list) else []  # the loader names what is missing
+        frames = [f for f in frames if isinstance(f, dict)]
         return load_dnerf(path) if frames and "time" in frames[0] else load_nerf_synthetic(path)
     if (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
         return load_colmap(path)
@@ -68,18 +77,62 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2))
 
 
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: an int >= low (argparse turns the error into a usage message)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {value}")
+        return value
+    return parse
+
+
+def float_above(low: float, inclusive: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float > low (>= low when inclusive)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value >= low if inclusive else value > low)):
+            raise argparse.ArgumentTypeError(f"expected a finite number {'>=' if inclusive else '>'} {low:g}, "
+                                             f"got {text!r}")
+        return value
+    return parse
+
+
+def check_out(out: Path) -> None:
+    """Refuse an output folder that cannot be one, before any work: an existing file, a path
+    under a file, or a folder (or its nearest existing parent) this process cannot write."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is an existing file, expected a folder (new or existing)")
+    probe = out
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise ValueError(f"--out {out}: {probe} is a file, so the folder cannot be created under it")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: {probe} is not writable by this user")
+
+
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=["baseline", "paper", "default", "multiview"], default="default",
                     help="default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
                          "pyramid level with MVAD and CRD (wins at equal steps); paper: the released code; "
                          "baseline: plain 3DGS")
-    ap.add_argument("--views", type=int, default=None, help="views per step M at full resolution (coarser stages scale)")
-    ap.add_argument("--steps", type=int, default=3000, help="total steps (the preset's schedule is rescaled to it)")
-    ap.add_argument("--budget", type=float, default=None,
+    ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale)")
+    ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")
+    ap.add_argument("--budget", type=float_above(0), default=None,
                     help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
                          "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it")
-    ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--stages", type=parse_stages, default=None, metavar="F:M:STEPS,...",
                     help="replace the preset's stage plan: pyramid factor, views per step and recipe steps per "
                          "stage, e.g. 8:16:1000,4:8:1000,2:4:1000,1:1:30000 (then rescaled by --steps or --budget)")
@@ -87,15 +140,15 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="multi-view augmented densification on/off (default: as the preset)")
     ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
                     help="cross-ray densification on/off (default: as the preset)")
-    ap.add_argument("--threshold-width", type=float, default=None,
+    ap.add_argument("--threshold-width", type=float_above(0, inclusive=True), default=None,
                     help="image width in pixels the gradient threshold is meant for; it is scaled to the "
                          "rendered width (0: never scaled, as 3DGS; default: as the preset, 800 for default)")
-    ap.add_argument("--max-gaussians", type=int, default=None)
+    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None)
     ap.add_argument("--out", type=Path, default=Path(out))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0)
+    ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--dist-timeout", type=float, default=DEFAULT_TIMEOUT,
+    ap.add_argument("--dist-timeout", type=float_above(0), default=DEFAULT_TIMEOUT,
                     help="under torchrun: seconds a rank waits for the others before stopping with an error")
     return ap
 
@@ -201,6 +254,7 @@ def launch(args, run: Callable) -> dict:
     """run(args, dist) in one process (dist None), or on every rank when torchrun started more
     than one (dist a Collective; the training script itself is unchanged). Every train_*.py
     example starts this way."""
+    check_out(args.out)
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, launch, load_scene, metrics_record, model_config,
+    common_args, config_from_args, int_at_least, launch, load_scene, metrics_record, model_config,
     train_and_evaluate, write_json,
 )
 
@@ -48,7 +48,7 @@ def parse_args(argv=None):
                     help="share of the steps in the static coarse stage (default 3000/23000, the original's)")
     ap.add_argument("--time-spread", choices=["random", "stratified"], default="stratified",
                     help="how the M views of a step spread over time (MVGSConfig.time_spread)")
-    ap.add_argument("--init-random", type=int, default=0,
+    ap.add_argument("--init-random", type=int_at_least(0), default=0,
                     help="extra random initial points (the scene's points may miss the moving objects)")
     ap.add_argument("--init-box", type=float, nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                     help="box of the extra random points (default: the scene points' box widened to a cube)")

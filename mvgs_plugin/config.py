@@ -114,6 +114,11 @@ class MVGSConfig:
         (10k Gaussians, 128 px, one thread; a view in a batched call): 16 px and 32 px views cost
         0.23 and 0.34 of a 128 px one and a 1 x 1 px view 0.10, so work shrinks as 1 / f (splats
         keep a footprint of a few pixels however small the image), not as the pixel count 1 / f^2.
+    divergence_factor: stop with FloatingPointError when a step's loss per view exceeds this
+        many times its running level (an exponential average of the past steps' losses, decay
+        0.9, floored at 0.01; it starts again in every process); None: never. Normal runs stay
+        below 10x (opacity resets, stage hand-offs); a learning rate of 1e3 on the colours gives
+        360x at its first step.
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -157,6 +162,7 @@ class MVGSConfig:
     max_views_rule: str = "cap"
     seed: int = 0
     time_spread: str = "random"
+    divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
     view_cost: Tuple[float, float] = (0.1, 0.9)
@@ -215,6 +221,9 @@ class MVGSConfig:
         if len(self.view_cost) != 2 or not all(0.0 <= v < float("inf") for v in self.view_cost) or not math.isclose(
                 sum(self.view_cost), 1.0):
             raise ValueError(f"view_cost must be (a, b) with a, b >= 0 and a + b = 1, got {self.view_cost!r}")
+        d = self.divergence_factor
+        if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not 1 < d < float("inf")):
+            raise ValueError(f"divergence_factor must be None or a finite number > 1, got {d!r}")
         b = self.budget
         if b is not None and (isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 < b < float("inf")):
             raise ValueError(f"budget must be None or a finite number of full-resolution views > 0, got {b!r}")

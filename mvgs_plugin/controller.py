@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence
 
@@ -29,6 +30,27 @@ from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
 from .protocol import Adapter, DensifyReport
 from .schedule import ViewSchedule
+
+# MVGSConfig fields a resumed run may change (speed, memory and guards, not what it trains)
+RUNTIME_FIELDS = ("chunk_size", "chunk_memory_mb", "divergence_factor")
+
+
+def config_differences(saved: MVGSConfig, current: MVGSConfig) -> List[tuple]:
+    """(field, saved value, current value) for every field but RUNTIME_FIELDS that differs,
+    the preset's name included."""
+    a, b = saved.to_dict(), current.to_dict()
+    return [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b))
+            if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
+
+
+# The running loss level of MVGSConfig.divergence_factor: an exponential average with this decay
+# of the steps that passed the check (a diverging step never raises it), from the first step on,
+# and never below _LEVEL_FLOOR: a photometric loss per view of images in [0, 1] stays below 1,
+# so with the default factor 100 a loss above 1 is always caught and one near-perfect view
+# cannot make the next ordinary one look like an explosion.
+_LEVEL_DECAY = 0.9
+_LEVEL_WARMUP = 1
+_LEVEL_FLOOR = 0.01
 
 
 @dataclass
@@ -101,6 +123,7 @@ class MVGS:
                                 f"got {type(distributed).__name__}")
             require_support(adapter)
         self.distributed = distributed
+        self._loss_level = (0.0, 0)  # running loss per view and how many steps it has seen
 
     @property
     def is_main(self) -> bool:
@@ -155,7 +178,12 @@ class MVGS:
             t0 = time.perf_counter()
             if plan.reset_opacity:
                 adapter.reset_opacity()
-        adapter.optimizer_step()
+        self._check_loss(plan, total)
+        try:
+            adapter.optimizer_step()
+        except FloatingPointError as exc:
+            raise FloatingPointError(f"step {plan.step}: after the optimizer step, {exc}") from exc
+        self._check_parameters(plan)
         adapter.zero_grad()
         times["adapter"] += time.perf_counter() - t0
         return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
@@ -214,8 +242,9 @@ class MVGS:
         dist.all_reduce_gradients(adapter, plan.step)
         if maps is not None:
             ref = adapter.positions()
-            maps = dist.gather_loss_maps(maps, len(plan.views), plan.cameras[0].height, plan.cameras[0].width,
-                                         ref.dtype, ref.device, plan.step)
+            sizes = [(c.height, c.width) for c in plan.cameras]
+            maps = dist.gather_loss_maps(maps, len(plan.views), max(h for h, _ in sizes), max(w for _, w in sizes),
+                                         ref.dtype, ref.device, plan.step, sizes)
         if plan.densify:
             dist.all_reduce_statistics(adapter, plan.step)
         return total, maps
@@ -224,11 +253,15 @@ class MVGS:
     def _chunks(plan, mine: Sequence[int]):
         """(positions, collect statistics?) per chunk of the plan, restricted to this rank's
         positions (all of them in one process): a chunk split between ranks renders its part
-        on each."""
+        on each. A chunk whose cameras differ in size (a scene with images of mixed sizes) is
+        rendered as one part per size, in order of first appearance."""
         held = set(mine)
         for chunk, collect in zip(plan.chunks, plan.stats):
-            part = [i for i in chunk if i in held]
-            if part:
+            by_size: Dict[tuple, List[int]] = {}
+            for i in chunk:
+                if i in held:
+                    by_size.setdefault((plan.cameras[i].width, plan.cameras[i].height), []).append(i)
+            for part in by_size.values():
                 yield part, collect
 
     def _check_gradients(self, plan) -> None:
@@ -243,6 +276,34 @@ class MVGS:
                     f"step {plan.step}: {bad} non-finite gradient entries in group {name!r} after views "
                     f"{[c.name for c in plan.cameras]}; stopping before the optimizer step"
                 )
+
+    def _check_loss(self, plan, total: float) -> None:
+        """Stops a diverging run: the loss per view against its running level (see
+        MVGSConfig.divergence_factor). The level starts again in every process (not saved)."""
+        factor = self.config.divergence_factor
+        per_view = total / (plan.weight * len(plan.views))
+        level, seen = self._loss_level
+        level = max(level, _LEVEL_FLOOR)
+        if factor is not None and seen >= _LEVEL_WARMUP and per_view > factor * level:
+            raise FloatingPointError(
+                f"step {plan.step}: the loss per view is {per_view:.4g}, {per_view / level:.3g} times its running "
+                f"level {level:.4g} (> divergence_factor {factor:g}): the run diverges (a learning rate too high?); "
+                "stopping before the optimizer step")
+        old = self._loss_level[0]
+        self._loss_level = (per_view if seen == 0 else _LEVEL_DECAY * old + (1 - _LEVEL_DECAY) * per_view, seen + 1)
+
+    def _check_parameters(self, plan) -> None:
+        """Every trainable tensor finite after the optimizer step (adapters with
+        gradient_parameters(); one sum per group, the exact count only when it is not)."""
+        if not hasattr(self.adapter, "gradient_parameters"):
+            return
+        for name, p in self.adapter.gradient_parameters().items():
+            with torch.no_grad():
+                if p.numel() == 0 or bool(torch.isfinite(p.sum())) or bool(torch.isfinite(p).all()):
+                    continue
+                bad = int((~torch.isfinite(p)).sum())
+            raise FloatingPointError(f"step {plan.step}: {bad} non-finite values in group {name!r} after the "
+                                     "optimizer step: the run diverges (a learning rate too high?)")
 
     # ---- the whole run --------------------------------------------------------------------
     def fit(self, steps: Optional[int] = None, callback: Optional[Callable[[StepInfo], None]] = None,
@@ -314,13 +375,25 @@ class MVGS:
             "adapter": adapter_state,
         }
 
-    def load_state_dict(self, state: Dict) -> None:
-        """Restore a state_dict(). Distributed: every rank loads the same state; the summed
-        statistics stay on rank 0 only (the others start from zero), so the next densification
-        sums them once."""
+    def load_state_dict(self, state: Dict, strict: bool = True) -> None:
+        """Restore a state_dict(). The checkpoint's config must be this run's (preset, seed,
+        stages, rules, schedules: every MVGSConfig field but RUNTIME_FIELDS, which only change
+        speed or guards): strict refuses a difference with a ValueError naming each field, its
+        saved and its current value; strict=False keeps this run's values and warns naming
+        them. Stages must match either way. Distributed: every rank loads the same state; the
+        summed statistics stay on rank 0 only (the others start from zero), so the next
+        densification sums them once."""
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
             raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages}")
+        differ = config_differences(saved, self.config)
+        if differ:
+            said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in differ)
+            if strict:
+                raise ValueError(f"the checkpoint was made by another run's config ({said}); build the trainer with "
+                                 "the checkpoint's config (MVGSConfig.from_dict(state['config'])), or pass "
+                                 "strict=False to keep this run's values")
+            warnings.warn(f"checkpoint config differs, this run's values are kept: {said}", stacklevel=2)
         # All or nothing: if any part fails to load, the trainer is put back as it was (a caller
         # who catches the error and trains on must not get a half-restored run).
         backup = (self.schedule.state_dict(), torch.get_rng_state(), self.adapter.state_dict())
@@ -349,11 +422,12 @@ class MVGS:
         if self.distributed is not None:
             self.distributed.barrier("checkpoint", self.step_count)
 
-    def load_checkpoint(self, path: str) -> None:
+    def load_checkpoint(self, path: str, strict: bool = True) -> None:
         """Load a save_checkpoint() file. It is read with torch.load(weights_only=True): tensors
         and plain containers only, so a crafted file cannot run code on load (a pickle that
         would is refused with an error naming the file); its checksum is verified (a damaged
-        file is refused); loading is all or nothing (load_state_dict)."""
+        file is refused); loading is all or nothing (load_state_dict, which also says what
+        `strict` does about a checkpoint of another config)."""
         try:
             state = load_checked(path)
         except FileNotFoundError:
@@ -365,4 +439,7 @@ class MVGS:
         if missing:
             raise ValueError(f"cannot load checkpoint {path!r}: missing {sorted(missing)} (expected a dict written "
                              "by save_checkpoint)")
-        self.load_state_dict(state)
+        try:
+            self.load_state_dict(state, strict)
+        except ValueError as exc:
+            raise ValueError(f"cannot load checkpoint {path!r}: {exc}") from exc

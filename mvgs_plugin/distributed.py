@@ -305,20 +305,23 @@ class Collective:
         adapter.load_statistics(self.reduce_statistics(adapter, step))
 
     def gather_loss_maps(self, local: Sequence[Tensor], m: int, height: int, width: int, dtype: torch.dtype,
-                         device, step: int = 0) -> List[Tensor]:
+                         device, step: int = 0, sizes: Optional[Sequence[tuple]] = None) -> List[Tensor]:
         """All M per-view loss maps [H', W'] of the step, in the step's view order, on every rank;
-        `local` are this rank's (in the order of its positions)."""
+        `local` are this rank's (in the order of its positions). Views of mixed sizes: pass the
+        largest height and width and `sizes`, each view's (H', W') in step order; the maps travel
+        zero-padded and come back cropped."""
         mine = self.positions(m)
         if len(local) != len(mine):
             raise ValueError(f"rank {self.rank} holds {len(mine)} views of the step but gave {len(local)} loss maps")
         rows = len(shard(m, 0, self.world_size))  # rank 0 holds the most
         buf = torch.zeros(rows, height, width, dtype=dtype, device=device)
         for j, t in enumerate(local):
-            buf[j] = t
+            buf[j, :t.shape[0], :t.shape[1]] = t
         parts = [torch.empty_like(buf) for _ in range(self.world_size)]
         self._call("loss maps", step, lambda: dist.all_gather(parts, buf, group=self.group))
         maps: List[Optional[Tensor]] = [None] * m
         for r in range(self.world_size):
             for j, pos in enumerate(shard(m, r, self.world_size)):
-                maps[pos] = parts[r][j]
+                h, w = (height, width) if sizes is None else sizes[pos]
+                maps[pos] = parts[r][j, :h, :w]
         return maps  # type: ignore[return-value]

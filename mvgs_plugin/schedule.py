@@ -225,7 +225,11 @@ class ViewSchedule:
             h, w = cfg.crd_window
             if cfg.crd_window_per_level:
                 h, w = max(1, round(h / plan.factor)), max(1, round(w / plan.factor))
-            windows = best_windows(torch.stack(list(loss_maps)), (h, w))
+            maps = list(loss_maps)
+            if len({tuple(m.shape) for m in maps}) == 1:
+                windows = best_windows(torch.stack(maps), (h, w))
+            else:  # images of mixed sizes: one view at a time
+                windows = torch.cat([best_windows(m[None], (h, w)) for m in maps])
             max_miss = None if cfg.crd_max_miss is None else cfg.crd_max_miss * float(self.scene.extent)
             boxes, _ = cross_ray_boxes(plan.cameras, windows, cfg.crd_forward_only, max_miss,
                                        cfg.crd_min_angle_deg, bounds if cfg.crd_clip else None,

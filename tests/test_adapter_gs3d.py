@@ -147,7 +147,12 @@ def test_knn_is_exact_on_clustered_points(chunk, window):
 
 def test_random_init_without_points():
     scene = cube_scene(None)
-    a = GS3DAdapter.from_scene(scene, GS3DConfig(random_init=500))
+    # this rig's cameras all look one way: without a cube size the points go where they look
+    # (tests/test_forward_init.py); random_init_half_size asks for the 3DGS cube
+    ahead = GS3DAdapter.from_scene(scene, GS3DConfig(random_init=500))
+    depth = torch.stack([c.project(ahead.positions().double())[1] for c in scene.train_cameras])
+    assert ahead.num_primitives() == 500 and float(depth.max(0).values.min()) > 0  # in front of a camera
+    a = GS3DAdapter.from_scene(scene, GS3DConfig(random_init=500, random_init_half_size=scene.extent))
     assert a.num_primitives() == 500
     off = (a.positions().double() - scene.center).abs()
     assert float(off.max()) <= scene.extent

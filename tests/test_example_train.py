@@ -102,8 +102,9 @@ def test_train_3dgs_on_a_budget(tmp_path):
     # The default's coarse-to-fine warm-up (10 / 20 % of the work at 1/4 and 1/2 resolution)
     # makes cheap steps: 60 / 0.325 + 120 / 0.55 + 420 full-resolution ones.
     assert default["steps"] == pytest.approx(60 / 0.325 + 120 / 0.55 + 420, abs=2)
-    with pytest.raises(ValueError, match="--budget must be > 0"):
+    with pytest.raises(SystemExit) as err:  # argparse's usage error, before any work
         example.main(["--budget", "-3", "--out", str(tmp_path / "bad"), "--no-progress"])
+    assert err.value.code == 2 and not (tmp_path / "bad").exists()
 
 
 def test_stages_option_replaces_the_preset_plan():

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import posixpath
+import struct
+import warnings
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -12,7 +14,7 @@ import torch
 from ..camera import Camera
 from .scene import PointCloud, Scene
 
-__all__ = ["load_colmap", "find_colmap_model", "normalize_name"]
+__all__ = ["load_colmap", "find_colmap_model", "normalize_name", "check_inside"]
 
 _MODEL_FILES = ("cameras.bin", "cameras.txt")
 
@@ -21,6 +23,17 @@ def normalize_name(name: str) -> str:
     """'/'-separated relative image name without './' or '..' detours ("train/r_000.png")."""
     n = posixpath.normpath(str(name).replace("\\", "/"))
     return n[2:] if n.startswith("./") else n
+
+
+def check_inside(name: str, folder: Path, where: str) -> str:
+    """``name`` (normalised) if it stays inside ``folder``; a ValueError naming it otherwise.
+    Image names that climb out ("../x.png") or are absolute would read files the scene folder
+    does not hold (a copied or shared scene then trains on whatever lies there)."""
+    drive = len(name) > 2 and name[0].isalpha() and name[1] == ":" and name[2] == "/"  # "C:/x" (normalised)
+    if posixpath.isabs(name) or name == ".." or name.startswith("../") or drive:
+        raise ValueError(f"{where}: image path {name!r} leaves the folder {folder}; image paths must be "
+                         "relative and inside it (copy or link the images into the folder)")
+    return name
 
 
 def find_colmap_model(path: Path) -> Path:
@@ -32,6 +45,84 @@ def find_colmap_model(path: Path) -> Path:
             return folder
     raise FileNotFoundError(
         "no COLMAP model (cameras.bin or cameras.txt) in " + ", ".join(str(t) for t in tried))
+
+
+# The fewest bytes one record of each binary model file takes (COLMAP's binary layout):
+# cameras: id int32, model int32, width, height uint64, >= 3 float64 params;
+# images: id uint32, qvec 4 + tvec 3 float64, camera id uint32, name >= its NUL, uint64 count;
+# points3D: id uint64, xyz 3 float64, rgb 3 uint8, error float64, track length uint64.
+_MIN_RECORD_BYTES = {"cameras.bin": 4 + 4 + 8 + 8 + 3 * 8, "images.bin": 4 + 7 * 8 + 4 + 1 + 8,
+                     "points3D.bin": 8 + 3 * 8 + 3 + 8 + 8}
+# Parameters per COLMAP camera model id (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV,
+# OPENCV_FISHEYE, FULL_OPENCV, FOV, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE,
+# RAD_TAN_THIN_PRISM_FISHEYE)
+_CAMERA_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16}
+
+
+class _Reader:
+    """Bounds-checked walk over a binary model file (nothing is allocated from its counts)."""
+
+    def __init__(self, file: Path):
+        self.file, self.data, self.at = file, file.read_bytes(), 0
+
+    def take(self, n: int, what: str) -> memoryview:
+        if n < 0 or self.at + n > len(self.data):
+            raise ValueError(f"{self.file}: truncated or corrupt: {what} needs {n} bytes at offset {self.at}, "
+                             f"the file has {len(self.data)}")
+        out = memoryview(self.data)[self.at:self.at + n]
+        self.at += n
+        return out
+
+    def u64(self, what: str) -> int:
+        return struct.unpack("<Q", self.take(8, what))[0]
+
+    def name(self, what: str) -> None:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise ValueError(f"{self.file}: truncated or corrupt: {what} has no terminating NUL")
+        self.at = end + 1
+
+    def done(self) -> None:
+        if self.at != len(self.data):
+            raise ValueError(f"{self.file}: corrupt: {len(self.data) - self.at} bytes after the last record "
+                             f"(the records end at offset {self.at})")
+
+
+def check_binary_counts(model_dir: Path) -> None:
+    """Walk the binary model files record by record, checking every count against the bytes
+    that are there, before pycolmap reads them: a corrupt or crafted count (2^40 points, a
+    track length from the middle of a truncated file) would make the reader allocate until it
+    fails, and a file cut short by a few bytes would load its last record from nothing. The
+    error names the file. Text models and files this layout does not cover are left to pycolmap."""
+    for name, least in _MIN_RECORD_BYTES.items():
+        file = Path(model_dir) / name
+        if not file.is_file():
+            continue
+        size = file.stat().st_size
+        with open(file, "rb") as f:
+            head = f.read(8)
+        if len(head) < 8:
+            raise ValueError(f"{file}: {size} bytes, too short to hold its record count (8 bytes)")
+        count = int.from_bytes(head, "little")
+        if count * least > size - 8:
+            raise ValueError(f"{file} declares {count} records, which take at least {count * least} bytes, but "
+                             f"the file has {size}: it is truncated or corrupt")
+        r = _Reader(file)
+        r.u64("the record count")
+        for i in range(count):
+            if name == "points3D.bin":
+                r.take(43, f"point {i}")
+                r.take(8 * r.u64(f"point {i}'s track length"), f"point {i}'s track")
+            elif name == "images.bin":
+                r.take(64, f"image {i}")
+                r.name(f"image {i}'s name")
+                r.take(24 * r.u64(f"image {i}'s 2D point count"), f"image {i}'s 2D points")
+            else:
+                model = struct.unpack("<i", r.take(8, f"camera {i}")[4:8])[0]
+                if model not in _CAMERA_PARAMS:
+                    return  # a model this walk does not know: pycolmap decides (the file is tiny)
+                r.take(16 + 8 * _CAMERA_PARAMS[model], f"camera {i}")
+        r.done()
 
 
 def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
@@ -82,9 +173,11 @@ def _split(names: Sequence[str], test_every: Optional[int], test_names: Optional
     return {n for i, n in enumerate(names) if i % test_every == 0}
 
 
-def _points(rec) -> Optional[PointCloud]:
+def _points(rec, model_dir: Path) -> Optional[PointCloud]:
     pts = list(rec.points3D.values())
     if not pts:
+        warnings.warn(f"the COLMAP model in {model_dir} holds 0 3D points: the scene has no point cloud (models "
+                      "initialise randomly, where the cameras look)", stacklevel=3)
         return None
     xyz = np.array([p.xyz for p in pts], dtype=np.float64)
     rgb = np.array([p.color for p in pts], dtype=np.float64) / 255.0
@@ -120,6 +213,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
 
     import pycolmap
 
+    check_binary_counts(model_dir)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
@@ -130,7 +224,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         # unregistered images have no pose to train with ("registered" before pycolmap 3.12)
         if not getattr(image, "has_pose", getattr(image, "registered", True)):
             continue
-        name = normalize_name(image.name)
+        name = check_inside(normalize_name(image.name), images_dir, f"{model_dir}: image {image_id}")
         cam = rec.cameras[image.camera_id]
         try:
             camera = Camera(uid=int(image_id), name=name, K=_intrinsics(cam, name, model_dir),
@@ -156,5 +250,5 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         if not files[c.uid].is_file():
             raise FileNotFoundError(f"image {c.name!r} of {model_dir} not found at {files[c.uid]} "
                                     "(set images_dir to the folder the model's names are relative to)")
-    return Scene(train_cams, test_cams, files, points=_points(rec), background=background,
+    return Scene(train_cams, test_cams, files, points=_points(rec, model_dir), background=background,
                  source=path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -11,7 +12,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from .colmap import normalize_name
+from .colmap import check_inside, normalize_name
 from .images import check_background, image_size
 from .scene import PointCloud, Scene
 
@@ -44,7 +45,8 @@ def _read_json(file: Path) -> list[dict]:
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise ValueError(f"{file}: frame {i} must be an object, got {type(frame).__name__}")
-        out.append({**shared, **frame})  # per-frame keys (fl_x, w, ...) win over top-level ones
+        # per-frame keys (fl_x, w, ...) win over top-level ones; _OWN remembers which were the frame's
+        out.append({**shared, **frame, _OWN: frozenset(frame)})
     return out
 
 
@@ -57,27 +59,56 @@ def _number(frame: dict, key: str, where: str) -> Optional[float]:
     return float(v)
 
 
+_OWN = "\0own keys"  # not a JSON key anyone writes
+_STALE = ("do the json's intrinsics belong to this image? (images resized after the json was written "
+          "keep the old fl_x/fl_y/cx/cy: scale them with the images, or drop them and keep camera_angle_x)")
+# fl_x and camera_angle_x may both be given; they must agree to this relative tolerance
+_FOCAL_AGREEMENT = 0.01
+# a principal point further than this share of the size from the centre is used, with a warning
+_OFF_CENTRE = 0.2
+
+
+def _focal(frame: dict, axis: str, size: int, where: str) -> Optional[float]:
+    """fl_<axis>, or the focal camera_angle_<axis> implies for an image `size` pixels across;
+    both given at the same level (both top-level, or both in the frame): they must agree (a
+    resized image with stale fl_* is caught here)."""
+    fl = _number(frame, f"fl_{axis}", where)
+    angle = _number(frame, f"camera_angle_{axis}", where)
+    if angle is not None and not 0 < angle < math.pi:
+        raise ValueError(f"{where}: camera_angle_{axis} must be in (0, pi), got {angle}")
+    from_angle = None if angle is None else 0.5 * size / math.tan(0.5 * angle)
+    if fl is not None and not fl > 0:
+        raise ValueError(f"{where}: fl_{axis} must be > 0, got {fl}")
+    own = frame.get(_OWN, frozenset())
+    same_level = (f"fl_{axis}" in own) == (f"camera_angle_{axis}" in own)  # a frame's fl_x overrides a shared angle
+    if fl is not None and from_angle is not None and same_level and abs(fl / from_angle - 1.0) > _FOCAL_AGREEMENT:
+        fits = fl * 2.0 * math.tan(0.5 * angle)
+        raise ValueError(f"{where}: fl_{axis}={fl:g} but camera_angle_{axis}={angle:g} gives {from_angle:g} for "
+                         f"this image, {size} px across (fl_{axis} fits an image {fits:.0f} px across); {_STALE}")
+    return fl if fl is not None else from_angle
+
+
 def _intrinsics(frame: dict, width: int, height: int, where: str) -> np.ndarray:
-    """K [3,3] from fl_x/fl_y/cx/cy or camera_angle_x/_y; cx, cy default to W/2, H/2."""
-    fx = _number(frame, "fl_x", where)
+    """K [3,3] from fl_x/fl_y/cx/cy or camera_angle_x/_y; cx, cy default to W/2, H/2. Values
+    that cannot belong to an image of this size (a principal point outside it, fl_x against
+    camera_angle_x) are refused; a principal point far from the centre is used with a warning."""
+    fx = _focal(frame, "x", width, where)
     if fx is None:
-        ax = _number(frame, "camera_angle_x", where)
-        if ax is None:
-            raise ValueError(f"{where}: needs 'camera_angle_x' or 'fl_x'")
-        if not 0 < ax < math.pi:
-            raise ValueError(f"{where}: camera_angle_x must be in (0, pi), got {ax}")
-        fx = 0.5 * width / math.tan(0.5 * ax)
-    fy = _number(frame, "fl_y", where)
-    if fy is None:
-        ay = _number(frame, "camera_angle_y", where)
-        if ay is not None and not 0 < ay < math.pi:
-            raise ValueError(f"{where}: camera_angle_y must be in (0, pi), got {ay}")
-        fy = fx if ay is None else 0.5 * height / math.tan(0.5 * ay)
-    cx = _number(frame, "cx", where)
-    cy = _number(frame, "cy", where)
-    cx = 0.5 * width if cx is None else cx
-    cy = 0.5 * height if cy is None else cy
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        raise ValueError(f"{where}: needs 'camera_angle_x' or 'fl_x'")
+    fy = _focal(frame, "y", height, where)
+    fy = fx if fy is None else fy
+    centre = []
+    for key, size in (("cx", width), ("cy", height)):
+        c = _number(frame, key, where)
+        if c is None:
+            c = 0.5 * size
+        elif not 0 < c < size:
+            raise ValueError(f"{where}: {key}={c:g} lies outside the image ({width}x{height} px); {_STALE}")
+        elif abs(c - 0.5 * size) > _OFF_CENTRE * size:
+            warnings.warn(f"{where}: {key}={c:g} is {abs(c - 0.5 * size) / size:.0%} of the image size from its "
+                          f"centre {0.5 * size:g} ({width}x{height} px); used as given, but {_STALE}", stacklevel=4)
+        centre.append(c)
+    return np.array([[fx, 0.0, centre[0]], [0.0, fy, centre[1]], [0.0, 0.0, 1.0]])
 
 
 def _world_to_camera(frame: dict, where: str) -> np.ndarray:
@@ -104,7 +135,7 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool,
     if not isinstance(fp, str) or not fp.strip():
         raise ValueError(f"{where}: missing 'file_path'")
     rel = fp if Path(fp).suffix else fp + ".png"  # Blender scenes omit the extension
-    name = normalize_name(rel)
+    name = check_inside(normalize_name(rel), root, where)
     file = root / name
     where = f"{where} ({name})"
     width, height = image_size(file)  # FileNotFoundError names the file
@@ -178,6 +209,10 @@ def _load_blender(path, background, with_time: bool) -> Scene:
         splits[split] = cams
     ply = root / "points3d.ply"
     points = read_points_ply(ply) if ply.is_file() else None
+    if points is not None and len(points) == 0:
+        warnings.warn(f"{ply} holds 0 points: the scene has no point cloud (models initialise randomly, "
+                      "where the cameras look)", stacklevel=3)
+        points = None
     # sizes were read from the headers above, so the Scene need not read them again
     return Scene(splits["train"], splits["test"], files, points=points, background=bg,
                  check_sizes=False, source=root)

@@ -1,0 +1,204 @@
+"""Where to put random initial points when a scene has none: where the cameras look.
+
+The original 3DGS draws them uniformly in a cube about the mean camera centre, with half-size
+the camera extent. That works for rigs that surround the scene (an orbit, a hemisphere, a
+turntable): the cube holds what every camera sees. For a forward-facing rig (LLFF-like: cameras
+on a small patch, all looking one way) that cube sits around the cameras, not the scene, and a
+run from it trains to nothing (12 dB where points give 34 dB).
+
+:func:`init_region` tells the two apart by how much the optical axes spread:
+
+* ``cube``: the axes spread (the smallest eigenvalue of mean(I - d dᵀ) over the unit viewing
+  directions d is at least ``CONVERGING_SPREAD``: a full orbit gives about 0.65): the 3DGS cube,
+  unchanged.
+* ``frusta``: nearly parallel axes (a forward-facing rig gives about 0.01): points in the union
+  of the training views' frusta, uniform in disparity (1/depth) between ``near`` and ``far``,
+  as NeRF samples LLFF scenes. ``near`` is the first depth along the mean viewing axis that at
+  least half of the cameras see (nearer content is in too few views to be reconstructed);
+  ``far`` = ``FAR_OVER_NEAR`` x near. :func:`random_init_points` then draws 20 candidates per
+  point there and keeps the most photo-consistent ones (:func:`photo_consistent`: the colour a
+  candidate lands on agrees across the views that see it) with their mean colour: the
+  images carry the depth that the rig's geometry cannot.
+* a rig with nearly parallel axes but one camera centre, or no depth that half of the cameras
+  see, falls back to the cube and says so.
+
+The choice and its numbers are in :attr:`InitRegion.description` (the adapters log it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional, Sequence
+
+import torch
+
+from ..camera import Camera
+
+__all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "CONVERGING_SPREAD",
+           "FAR_OVER_NEAR"]
+
+# Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
+# scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
+# other are "parallel"; a full orbit gives ~0.65, the bundled forward rig ~0.01).
+CONVERGING_SPREAD = 0.05
+# far / near of the frusta region. LLFF captures bound their content by near/far ratios of
+# about 5 to 20; disparity-uniform sampling puts half of the points within 2 x near.
+FAR_OVER_NEAR = 20.0
+# the depth search along the mean axis: geometric steps from 1e-3 to 1e4 rig radii
+_DEPTH_STEPS = 141
+# frusta init: candidates drawn per kept point, the image width they are scored at, and the
+# fewest views a candidate must be seen in to be scored
+CANDIDATES_PER_POINT = 20
+PHOTO_WIDTH = 64
+MIN_VIEWS = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class InitRegion:
+    """A region to draw random initial points from.
+
+    kind "cube": uniform in center ± half. kind "frusta": a training camera at random, a pixel
+    uniform in its image, a depth uniform in disparity between near and far.
+    """
+
+    kind: str
+    description: str
+    center: Optional[torch.Tensor] = None
+    half: float = 0.0
+    near: float = 0.0
+    far: float = 0.0
+    cameras: tuple = ()
+
+    def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """[n, 3] float64 points, drawn with ``generator``."""
+        if self.kind == "cube":
+            u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+            return torch.as_tensor(self.center, dtype=torch.float64) + (2.0 * u - 1.0) * self.half
+        pick = torch.randint(len(self.cameras), (n,), generator=generator)
+        uv = torch.rand(n, 2, generator=generator, dtype=torch.float64)
+        disparity = 1.0 / self.far + torch.rand(n, generator=generator, dtype=torch.float64) * (
+            1.0 / self.near - 1.0 / self.far)
+        out = torch.empty(n, 3, dtype=torch.float64)
+        for i, cam in enumerate(self.cameras):
+            rows = (pick == i).nonzero().flatten()
+            if rows.numel() == 0:
+                continue
+            pixels = uv[rows] * torch.tensor([cam.width, cam.height], dtype=torch.float64)
+            origin, direction = cam.rays(pixels)
+            # a unit ray at depth z (camera-space) is z / cos of its angle to the optical axis away
+            axis = cam.camera_to_world[:3, 2] / torch.linalg.norm(cam.camera_to_world[:3, 2])
+            cos = (direction @ axis).clamp_min(1e-6)
+            out[rows] = origin + direction * (1.0 / disparity[rows] / cos)[:, None]
+        return out
+
+
+def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image, n: int,
+                     max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The n candidates whose colour agrees best across the training views, and that colour.
+
+    Every candidate [P, 3] is projected into every camera (its image downsampled to at most
+    ``max_width`` pixels across by ``image(camera, factor)``); the score is the variance of
+    the colours it lands on over the views that see it (a crude plane sweep: a point on a
+    surface sees one colour from everywhere, a point in free space sees several). Candidates
+    seen by fewer than ``MIN_VIEWS`` views rank last. Returns (xyz [n, 3] float64, rgb [n, 3]
+    in [0, 1] the mean colour, how many of the n are seen by at least MIN_VIEWS views).
+    """
+    p = candidates.shape[0]
+    # float32 is plenty for a pixel lookup at <= 64 px; sums of <= a few thousand views in float64
+    points = candidates.to(torch.float32)
+    total = torch.zeros(p, 3, dtype=torch.float64)
+    squares = torch.zeros(p, dtype=torch.float64)
+    count = torch.zeros(p, dtype=torch.float64)
+    for cam in cameras:
+        factor = max(1, -(-cam.width // max_width))
+        small = cam.scaled(factor)
+        img = image(cam, factor).to(torch.float32).reshape(-1, 3)
+        w2c = small.world_to_camera.to(torch.float32)
+        cam_xyz = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = cam_xyz[:, 2]
+        zs = z.clamp_min(1e-12)
+        px = small.fx * cam_xyz[:, 0] / zs + small.cx
+        py = small.fy * cam_xyz[:, 1] / zs + small.cy
+        inside = (z > 0) & (px >= 0) & (px < small.width) & (py >= 0) & (py < small.height)
+        u = px.clamp(0, small.width - 1).to(torch.int64)
+        v = py.clamp(0, small.height - 1).to(torch.int64)
+        colour = (img[v * small.width + u] * inside[:, None]).to(torch.float64)
+        total += colour
+        squares += (colour * colour).sum(1)
+        count += inside.to(torch.float64)
+    mean = total / count.clamp_min(1)[:, None]
+    variance = squares / count.clamp_min(1) - (mean * mean).sum(1)
+    score = torch.where(count >= MIN_VIEWS, variance, torch.full_like(variance, math.inf))
+    keep = torch.argsort(score)[:n]
+    return candidates[keep], mean[keep].clamp(0.0, 1.0), int((count[keep] >= MIN_VIEWS).sum())
+
+
+def random_init_points(scene, n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """n initial points (xyz, rgb [n, 3] float64) for a scene without a point cloud, and what
+    was done (for the log). Cube: uniform, colours uniform in [0, 1] (the original 3DGS).
+    Frusta: CANDIDATES_PER_POINT x n candidates in the region, the n most photo-consistent
+    kept with their mean colour (photo_consistent)."""
+    region = init_region(scene.train_cameras, scene.center, float(scene.extent))
+    if region.kind == "cube":
+        xyz = region.sample(n, generator)
+        return xyz, torch.rand(n, 3, generator=generator, dtype=torch.float64), region.description
+    candidates = region.sample(CANDIDATES_PER_POINT * n, generator)
+    xyz, rgb, seen = photo_consistent(candidates, scene.train_cameras, scene.image, n)
+    return xyz, rgb, (f"{region.description}; kept the {n} of {candidates.shape[0]} candidates whose colour agrees "
+                      f"best across the views ({seen} seen by >= {MIN_VIEWS} views)")
+
+
+def _axes(cameras: Sequence[Camera]) -> torch.Tensor:
+    """[N, 3] unit viewing directions (camera +z) in world coordinates."""
+    d = torch.stack([c.camera_to_world[:3, 2] for c in cameras])
+    return d / torch.linalg.norm(d, dim=1, keepdim=True)
+
+
+def _seen_fraction(cameras: Sequence[Camera], points: torch.Tensor) -> torch.Tensor:
+    """[P] fraction of the cameras that see each point (in front, inside the image)."""
+    seen = torch.zeros(points.shape[0], dtype=torch.float64)
+    for cam in cameras:
+        pix, z = cam.project(points)
+        inside = (z > 0) & (pix[:, 0] >= 0) & (pix[:, 0] <= cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] <= cam.height)
+        seen += inside.to(torch.float64)
+    return seen / len(cameras)
+
+
+def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) -> InitRegion:
+    """Where random initial points should go for this rig (see the module docstring).
+
+    Args:
+        cameras: the training cameras.
+        center, extent: the scene normalisation (:func:`~mvgs_plugin.data.camera_normalization`),
+            the cube of the original 3DGS.
+    """
+    if not cameras:
+        raise ValueError("init_region needs at least one camera")
+    center = torch.as_tensor(center, dtype=torch.float64)
+    cube = lambda why: InitRegion(  # noqa: E731
+        "cube", f"random init: cube centre {[round(float(v), 3) for v in center]} ± {extent:.4g} ({why})",
+        center=center, half=float(extent))
+    d = _axes(cameras)
+    spread = float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
+    if spread >= CONVERGING_SPREAD:
+        return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
+    centers = torch.stack([c.center for c in cameras])
+    radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
+    if not radius > 0:
+        return cube(f"nearly parallel axes (spread {spread:.3f}) but one camera centre: no depth cue")
+    mean_axis = d.mean(0)
+    mean_axis = mean_axis / torch.linalg.norm(mean_axis)
+    depths = radius * torch.logspace(-3, 4, _DEPTH_STEPS, dtype=torch.float64)
+    seen = _seen_fraction(cameras, centers.mean(0) + depths[:, None] * mean_axis)
+    ok = (seen >= 0.5).nonzero().flatten()
+    if ok.numel() == 0:
+        return cube(f"nearly parallel axes (spread {spread:.3f}) but no depth that half of the cameras see")
+    near = float(depths[int(ok[0])])
+    far = FAR_OVER_NEAR * near
+    return InitRegion(
+        "frusta", f"random init: the {len(cameras)} training frusta between depth {near:.4g} and {far:.4g}, "
+                  f"uniform in disparity (forward-facing rig: axis spread {spread:.3f} < {CONVERGING_SPREAD}; "
+                  f"near = the first depth half of the cameras see)",
+        near=near, far=far, cameras=tuple(cameras))
+
