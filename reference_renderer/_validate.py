@@ -89,14 +89,16 @@ NEAR_PLANE_FLOOR = 1e-10
 
 def check_quats(quats: Tensor) -> None:
     q = quats.detach()
-    # the largest component first: the norm of a tiny float32 quaternion would underflow to 0
-    big = q.abs().amax(dim=-1, keepdim=True)
-    norms = (q / big.clamp_min(torch.finfo(q.dtype).tiny)).norm(dim=-1) * big.squeeze(-1)
-    small = ~(norms >= QUAT_NORM_FLOOR)
-    if bool(small.any()):
-        i = int(small.nonzero()[0, 0])
-        raise ValueError(f"quats must have a norm >= {QUAT_NORM_FLOOR:g} (they are normalised), got norm "
-                         f"{float(norms[i]):.3g} at row {i}: {q[i].tolist()}")
+    # One pass: the squared norm, in the model's dtype, must be in [floor^2, dtype max] (it
+    # underflows below a norm of ~1e-19 in float32, which the floor refuses anyway, and overflows
+    # above ~1.8e19, where the renderers' normalisation would fail).
+    n2 = (q * q).sum(-1)
+    bad = ~((n2 >= QUAT_NORM_FLOOR ** 2) & (n2 <= torch.finfo(q.dtype).max))
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        norm = float(torch.linalg.vector_norm(q[i].double()))
+        raise ValueError(f"quats must have a norm in [{QUAT_NORM_FLOOR:g}, {math.sqrt(torch.finfo(q.dtype).max):.3g}] "
+                         f"(they are normalised), got norm {norm:.3g} at row {i}: {q[i].tolist()}")
 
 
 def check_scales(scales: Tensor) -> None:

@@ -156,7 +156,7 @@ def _project64(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, K
     det_raw = torch.where(ok, a_raw * c_raw - b * b, torch.zeros_like(det))
     compensation = torch.sqrt(torch.clamp_min(det_raw / det_s, 1e-12))
 
-    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
+    means2d = torch.stack([fx * (x / zs) + cx, fy * (y / zs) + cy], dim=-1)  # x / z first, as the kernel
     depths = z
 
     with torch.no_grad():

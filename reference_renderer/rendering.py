@@ -209,12 +209,14 @@ def rasterization(
     if absgrad and backend != "cpp":
         raise ValueError("absgrad=True needs backend 'cpp' (the PyTorch path has no per-pixel gradients)")
 
-    # Every differentiable input's gradient is checked in backward (the compiled kernels check
-    # their own too; autograd's PyTorch path would otherwise hand a NaN on silently).
-    means, quats, scales, opacities, colors, viewmats, Ks = (
-        _guard(t, name) for t, name in ((means, "means"), (quats, "quats"), (scales, "scales"),
-                                        (opacities, "opacities"), (colors, "colors"), (viewmats, "viewmats"),
-                                        (Ks, "Ks")))
+    # Off the compiled path (PyTorch backend, or camera gradients) every differentiable input's
+    # gradient is checked in backward: autograd would otherwise hand a NaN on silently. The
+    # compiled kernels check the gradients they produce themselves.
+    if backend != "cpp" or viewmats.requires_grad or Ks.requires_grad:
+        means, quats, scales, opacities, colors, viewmats, Ks = (
+            _guard(t, name) for t, name in ((means, "means"), (quats, "quats"), (scales, "scales"),
+                                            (opacities, "opacities"), (colors, "colors"), (viewmats, "viewmats"),
+                                            (Ks, "Ks")))
     proj, rgb = _project(means, quats, scales, colors, viewmats, Ks, width, height, near_plane, far_plane,
                          eps2d, tile_size, radius_clip, sh_degree, render_mode, backend)
     feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C, rgb)

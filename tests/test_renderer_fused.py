@@ -231,8 +231,13 @@ def test_fused_projection_without_sh_and_float32_forward():
     for name in ("means2d", "conics", "depths", "compensation"):
         torch.testing.assert_close(getattr(p, name), getattr(q, name), rtol=1e-9, atol=1e-10)
 
-    # float32: the kernel must be as accurate as the float32 twin, both measured against the
-    # float64 twin (conics relative to the conic's scale, as b may cancel).
+    # float32, measured against the float64 twin (conics relative to the conic's scale, as b may
+    # cancel). The PyTorch twin projects in float64 and rounds once. The kernel computes a pair
+    # in float32 unless it is at risk (csrc/project.cpp needs_double: det < 1e-3 a c, ...), so its
+    # conic may carry a few float32 ulps times a c / det <= 1e3: bounded by 2e-4 (measured
+    # 2.4e-5..3.8e-5 on seeds 20-23). The compensation (antialiased mode) cancels in
+    # a_raw c_raw - b^2 without that guard: bounded by 1e-3 (measured <= 3.8e-4).
+    bound = {"conics": 2e-4, "compensation": 1e-3}
     p32, rgb32 = fused(as_inputs(scene, torch.float32), scene, settings, 3)
     q32, ref32 = twin(as_inputs(scene, torch.float32), scene, settings, 3)
     for name in ("means2d", "conics", "depths", "compensation"):
@@ -244,7 +249,8 @@ def test_fused_projection_without_sh_and_float32_forward():
             scale = exact.abs() + 1e-3 * exact.abs().max()
         err_kernel = ((a.double() - exact).abs() / scale).max().item()
         err_twin = ((b.double() - exact).abs() / scale).max().item()
-        assert err_kernel <= 4 * err_twin + 1e-6, \
+        assert err_twin <= 1e-5, f"float32 {name}: the twin's rounding {err_twin:.3e}"
+        assert err_kernel <= bound.get(name, 4 * err_twin + 1e-6), \
             f"float32 {name}: kernel rel err {err_kernel:.3e} vs the float32 twin's {err_twin:.3e}"
     torch.testing.assert_close(rgb32, ref32, rtol=1e-5, atol=1e-6)
     # Radii and tiles come from float32 values; a rounding flip of ceil()/floor() is allowed
@@ -352,9 +358,9 @@ def worst_row_rel_err(actual, exact):
 
 
 def test_fused_projection_backward_float32():
-    """float32 kernel: its gradients must be as accurate as autograd's through the float32 twin,
-    both measured against the float64 twin (1e-2 needles and discs make some rows ~1e-3 off
-    in float32 in both)."""
+    """float32 kernel against the float64 twin: 1e-2 needles and discs make some rows ~1e-3 off
+    in float32 (the kernel computes most pairs in float32, csrc/project.cpp needs_double); the
+    float32 twin projects in float64 and rounds once, so its gradients are near exact."""
     settings = SETTINGS["default"]
     scene = hard_scene(seed=50, degenerate=False)
     ins_a, ins_t = as_inputs(scene, torch.float32, grad=True), as_inputs(scene, torch.float32, grad=True)
@@ -369,9 +375,8 @@ def test_fused_projection_backward_float32():
     for name, a, t, b in zip(IN_NAMES, ga, gt, gb):
         assert a.dtype == torch.float32 and torch.isfinite(a).all(), name
         err_kernel, err_twin = worst_row_rel_err(a, b), worst_row_rel_err(t, b)
-        assert err_kernel <= 4 * err_twin + 1e-6, \
-            f"float32 d/d{name}: kernel worst row rel err {err_kernel:.3e} vs the float32 twin's {err_twin:.3e}"
-        assert err_kernel <= 5e-3, f"float32 d/d{name}: {err_kernel:.3e}"
+        assert err_twin <= 1e-5, f"float32 d/d{name}: the twin's rounding {err_twin:.3e}"
+        assert err_kernel <= 5e-3, f"float32 d/d{name}: kernel worst row rel err {err_kernel:.3e}"
 
 
 # ============================================================================ 3. gradcheck

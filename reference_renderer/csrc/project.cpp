@@ -19,6 +19,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -154,7 +155,7 @@ inline void sym_mul(const T* S, const T* v, T* out) {
 
 template <typename T>
 struct Cam {
-    T R[9], t[3], fx, fy, cx, cy, lo_x, hi_x, lo_y, hi_y, center[3];
+    T R[9], t[3], fx, fy, cx, cy, lo_x, hi_x, lo_y, hi_y, center[3], t_abs;
 
     template <typename U>
     void load(const U* viewmat, const U* K, int64_t width, int64_t height) {
@@ -163,6 +164,7 @@ struct Cam {
             t[i] = T(viewmat[i * 4 + 3]);
         }
         fx = T(K[0]); fy = T(K[4]); cx = T(K[2]); cy = T(K[5]);
+        t_abs = std::abs(t[0]) + std::abs(t[1]) + std::abs(t[2]);
         const T tan_x = T(0.5) * T(width) / fx, tan_y = T(0.5) * T(height) / fy;
         lo_x = -(cx / fx + T(0.3) * tan_x); hi_x = (T(width) - cx) / fx + T(0.3) * tan_x;
         lo_y = -(cy / fy + T(0.3) * tan_y); hi_y = (T(height) - cy) / fy + T(0.3) * tan_y;
@@ -214,8 +216,8 @@ struct Pair {
         c = c_raw + T(s.eps2d);
         det = a * c - b * b;
         // Below the floor the conic 1/det and its backward's 1/det^2 would overflow: such a splat
-        // (a standard deviation under 1e-37 px in double) is culled. Pairs are computed in
-        // double (see forward), so the float floor only guards a direct Pair<float>.
+        // (a standard deviation under 1e-37 px in double) is culled; a float pair at its floor is
+        // done again in double (see needs_double).
         const T det_floor = std::is_same<T, float>::value ? T(1e-18) : T(1e-150);
         ok = in_depth && det > det_floor && std::isfinite(det);
         det_s = ok ? det : T(1);
@@ -242,7 +244,8 @@ constexpr int64_t kGaussians = 64;
 
 template <typename T>
 struct GaussianBlock {
-    T qn[kGaussians][4], qnorm[kGaussians], R[kGaussians][9], cov[kGaussians][6];
+    T qn[kGaussians][4], qnorm[kGaussians], R[kGaussians][9], cov[kGaussians][6], smax2[kGaussians],
+        smin2[kGaussians];
 
     template <typename U>
     void load(int64_t n0, int64_t n1, const U* quats, const U* scales) {
@@ -251,6 +254,8 @@ struct GaussianBlock {
             const T q[4] = {T(quats[n * 4]), T(quats[n * 4 + 1]), T(quats[n * 4 + 2]), T(quats[n * 4 + 3])};
             const T sc[3] = {T(scales[n * 3]), T(scales[n * 3 + 1]), T(scales[n * 3 + 2])};
             gaussian_cov(q, sc, qn[i], qnorm[i], R[i], cov[i]);
+            smax2[i] = std::max(sc[0] * sc[0], std::max(sc[1] * sc[1], sc[2] * sc[2]));
+            smin2[i] = std::min(sc[0] * sc[0], std::min(sc[1] * sc[1], sc[2] * sc[2]));
         }
     }
 };
@@ -325,76 +330,131 @@ inline void cov_backward(const T* qn, T qnorm, const T* R, const T* scale, const
     }
 }
 
+// Precision. A pair is computed in the model's type T. In float, a pair "at risk" is computed
+// again in double: its 2D covariance overflowed or is not finite, its determinant is at or below
+// the float floor or cancels (det < kCancel * a * c: a long thin needle, whose float conic was
+// 40 % off at 3000 px), its covariance's rounding is large against its footprint (kCovError), or
+// its pixel centre would round by more than kPixelError. Such pairs are rare in a trained model
+// (eps2d = 0.3 keeps det >= 0.09), so the float path keeps its speed (double throughout cost
+// 5-8 % per render at 128 px). Results are stored in T; a pair whose double results still do not
+// fit T (a conic that overflows, a centre beyond T's range) is culled with zeros stored, as
+// projection.narrow does. The backward makes the same choice from the same float values.
+constexpr double kCancel = 1e-3;
+
+// (4) the pixel centre's rounding: camera-space x, y carry ~eps * (|R mean| + |t|) of error, which
+// the focal over depth scales into pixels (a camera of focal 2.7e8 put a splat 16 px off).
+constexpr double kPixelError = 0.01;
+
+// (5) the 3D covariance's rounding: its entries carry ~eps * (largest scale)^2 of error, which the
+// Jacobian carries into the 2D covariance whatever the Gaussian's orientation; it must stay below
+// kCovError of a lower bound of the footprint's smallest eigenvalue that rounding cannot fake,
+// (smallest scale * min(fx, fy) / z)^2 + eps2d (J J^T >= (f / z)^2 I). A needle with scales
+// (39, 3e7, 5590) had a float covariance with a negative eigenvalue and a conic 1e7 times off,
+// and a float determinant that looked harmless.
+constexpr double kCovError = 1e-3;
+
+template <typename P>
+inline bool needs_double(const Pair<P>& q, const Cam<P>& cam, const P* mean, P smax2, P smin2, P eps2d) {
+    if (std::is_same<P, double>::value || !q.in_depth) return false;
+    if (!(std::isfinite(q.a) && std::isfinite(q.b) && std::isfinite(q.c) && std::isfinite(q.det)) ||
+        q.det <= P(1e-18) || q.det < P(kCancel) * q.a * q.c)
+        return true;
+    const P eps = std::numeric_limits<P>::epsilon(), gain = std::max(cam.fx, cam.fy) * q.inv_zs;
+    const P low = std::min(cam.fx, cam.fy) * q.inv_zs;
+    if (P(8) * eps * smax2 * gain * gain > P(kCovError) * (smin2 * low * low + eps2d)) return true;
+    const P magnitude = std::abs(mean[0]) + std::abs(mean[1]) + std::abs(mean[2]) + cam.t_abs;
+    return P(4) * eps * magnitude * gain > P(kPixelError);
+}
+
+// The double covariance of Gaussian n (quaternion and scales read from the model's T arrays).
+template <typename T>
+inline void cov_double(const T* quats, const T* scales, int64_t n, double* cov) {
+    const double q[4] = {double(quats[n * 4]), double(quats[n * 4 + 1]), double(quats[n * 4 + 2]), double(quats[n * 4 + 3])};
+    const double sc[3] = {double(scales[n * 3]), double(scales[n * 3 + 1]), double(scales[n * 3 + 2])};
+    double qn[4], qnorm, R[9];
+    gaussian_cov(q, sc, qn, qnorm, R, cov);
+}
+
 template <typename T>
 void forward(const Settings& s, const T* means, const T* quats, const T* scales, const T* sh,
              const T* viewmats, const T* Ks, T* means2d, T* conics, T* depths, T* comp, T* colors,
              int32_t* radii, int32_t* rects, uint8_t* valid, int n_threads) {
-    // The geometry (covariance, Jacobian, 2D covariance, its determinant and inverse) runs in
-    // double whatever T is: in float the determinant overflows for footprints beyond ~4e9 px,
-    // cancels for long thin needles and underflows for tiny splats, and its gradients met
-    // 0 * inf. Results are stored in T; a splat whose stored values do not fit T (a conic that
-    // overflows, a centre beyond T's range) is culled. Colours (SH) stay in T.
-    using G = double;
     const std::vector<Cam<T>> cams = load_cameras<T>(s, viewmats, Ks);
-    const std::vector<Cam<G>> gcams = load_cameras<G>(s, viewmats, Ks);
+    const std::vector<Cam<double>> gcams = load_cameras<double>(s, viewmats, Ks);
     const int64_t tiles_x = (s.width + s.tile - 1) / s.tile, tiles_y = (s.height + s.tile - 1) / s.tile;
     const int n_basis = s.sh_degree >= 0 ? int((s.sh_degree + 1) * (s.sh_degree + 1)) : 0;
     // Dividing by a power of two is exact as a product, so the common T = 16 avoids 4 divisions.
     const bool tile_pow2 = (s.tile & (s.tile - 1)) == 0;
     const double inv_tile = 1.0 / double(s.tile);
     parallel_blocks(s.N, kGaussians, n_threads, [&](int64_t n0, int64_t n1) {
-        GaussianBlock<G> blk;
+        GaussianBlock<T> blk;
         blk.load(n0, n1, quats, scales);
+        // Writes pair g's outputs from q (in P = T or double); returns false, writing nothing,
+        // when q is a float pair that must be done again in double.
+        auto emit = [&](const auto& q, const auto& cam, const auto* mean, decltype(q.a) smax2, decltype(q.a) smin2,
+                        int64_t g) -> bool {
+            using P = typename std::decay<decltype(q.a)>::type;
+            if (needs_double(q, cam, mean, smax2, smin2, P(s.eps2d))) return false;
+            // x / z before the focal: a centre beyond T's range overflows only if the result does
+            const P u = cam.fx * (q.p[0] * q.inv_zs) + cam.cx, v = cam.fy * (q.p[1] * q.inv_zs) + cam.cy;
+            const P inv_det = P(1) / q.det_s;
+            const P det_raw = q.ok ? q.a_raw * q.c_raw - q.b * q.b : P(0);
+            const T out2[2] = {T(u), T(v)};
+            const T outq[3] = {T(q.c * inv_det), T(-q.b * inv_det), T(q.a * inv_det)};
+            const T outc = T(std::sqrt(std::max(det_raw * inv_det, P(1e-12))));
+            const bool fits = std::isfinite(out2[0]) && std::isfinite(out2[1]) && std::isfinite(outq[0]) &&
+                              std::isfinite(outq[1]) && std::isfinite(outq[2]) && std::isfinite(outc);
+            // A pair whose outputs do not fit T is culled: in double they would not fit either
+            // (the conic and the centre are the same numbers, only rounded differently).
+            means2d[g * 2] = fits ? out2[0] : T(0);
+            means2d[g * 2 + 1] = fits ? out2[1] : T(0);
+            for (int k = 0; k < 3; ++k) conics[g * 3 + k] = fits ? outq[k] : T(0);
+            comp[g] = fits ? outc : T(0);
+            depths[g] = T(q.p[2]);
+            // Radius and tiles (no gradient), in the order of operations of projection.py.
+            const P mid = P(0.5) * (q.a + q.c);
+            const P lam = mid + std::sqrt(std::max(mid * mid - q.det, P(0.1)));
+            P radius = std::ceil(P(3) * std::sqrt(lam));
+            bool ok = q.ok && fits && std::isfinite(radius) && radius > P(s.radius_clip);
+            radius = ok ? std::min(radius, P(1 << 30)) : P(0);
+            int32_t* r = rects + g * 4;
+            const double rr = double(radius);
+            auto rng = [&](double center, int64_t n_t, int32_t* out) {
+                const double T_ = double(s.tile);
+                double lo = tile_pow2 ? std::floor((center - rr) * inv_tile) : std::floor((center - rr) / T_);
+                double hi = tile_pow2 ? std::floor((center + rr + T_ - 1) * inv_tile)
+                                      : std::floor((center + rr + T_ - 1) / T_);
+                lo = std::min(std::max(lo, 0.0), double(n_t));
+                hi = std::min(std::max(hi, 0.0), double(n_t));
+                if (std::isnan(lo)) lo = 0;  // torch.clamp keeps NaN; such pairs are not ok anyway
+                if (std::isnan(hi)) hi = 0;
+                out[0] = int32_t(lo);
+                out[1] = int32_t(hi);
+            };
+            rng(double(means2d[g * 2]), tiles_x, r);
+            rng(double(means2d[g * 2 + 1]), tiles_y, r + 2);
+            ok = ok && r[1] > r[0] && r[3] > r[2];
+            if (!ok) r[0] = r[1] = r[2] = r[3] = 0;
+            radii[g] = ok ? int32_t(radius) : 0;
+            valid[g] = ok ? 1 : 0;
+            return true;
+        };
         // Cameras outside, Gaussians inside: each output row is written sequentially.
         for (int64_t c = 0; c < s.C; ++c) {
             const Cam<T>& cam = cams[c];
-            const Cam<G>& gcam = gcams[c];
             for (int64_t n = n0; n < n1; ++n) {
-                const G* cov = blk.cov[n - n0];
                 const T* mean = means + n * 3;
-                const G gmean[3] = {G(mean[0]), G(mean[1]), G(mean[2])};
-                Pair<G> q;
-                q.compute(gcam, gmean, cov, s);
                 const int64_t g = c * s.N + n;
-                const G u = gcam.fx * q.p[0] * q.inv_zs + gcam.cx, v = gcam.fy * q.p[1] * q.inv_zs + gcam.cy;
-                const G inv_det = G(1) / q.det_s;
-                const G det_raw = q.ok ? q.a_raw * q.c_raw - q.b * q.b : G(0);
-                const T out2[2] = {T(u), T(v)};
-                const T outq[3] = {T(q.c * inv_det), T(-q.b * inv_det), T(q.a * inv_det)};
-                const T outc = T(std::sqrt(std::max(det_raw * inv_det, G(1e-12))));
-                const bool fits = std::isfinite(out2[0]) && std::isfinite(out2[1]) && std::isfinite(outq[0]) &&
-                                  std::isfinite(outq[1]) && std::isfinite(outq[2]) && std::isfinite(outc);
-                means2d[g * 2] = fits ? out2[0] : T(0);  // as projection.narrow: zeros where culled
-                means2d[g * 2 + 1] = fits ? out2[1] : T(0);
-                for (int k = 0; k < 3; ++k) conics[g * 3 + k] = fits ? outq[k] : T(0);
-                comp[g] = fits ? outc : T(0);
-                depths[g] = T(q.p[2]);
-                // Radius and tiles (no gradient), in the order of operations of projection.py.
-                const G mid = G(0.5) * (q.a + q.c);
-                const G lam = mid + std::sqrt(std::max(mid * mid - q.det, G(0.1)));
-                G radius = std::ceil(G(3) * std::sqrt(lam));
-                bool ok = q.ok && fits && std::isfinite(radius) && radius > G(s.radius_clip);
-                radius = ok ? std::min(radius, G(1 << 30)) : G(0);
-                int32_t* r = rects + g * 4;
-                const double rr = double(radius);
-                auto rng = [&](double center, int64_t n_t, int32_t* out) {
-                    const double T_ = double(s.tile);
-                    double lo = tile_pow2 ? std::floor((center - rr) * inv_tile) : std::floor((center - rr) / T_);
-                    double hi = tile_pow2 ? std::floor((center + rr + T_ - 1) * inv_tile)
-                                          : std::floor((center + rr + T_ - 1) / T_);
-                    lo = std::min(std::max(lo, 0.0), double(n_t));
-                    hi = std::min(std::max(hi, 0.0), double(n_t));
-                    if (std::isnan(lo)) lo = 0;  // torch.clamp keeps NaN; such pairs are not ok anyway
-                    if (std::isnan(hi)) hi = 0;
-                    out[0] = int32_t(lo);
-                    out[1] = int32_t(hi);
-                };
-                rng(u, tiles_x, r);
-                rng(v, tiles_y, r + 2);
-                ok = ok && r[1] > r[0] && r[3] > r[2];
-                if (!ok) r[0] = r[1] = r[2] = r[3] = 0;
-                radii[g] = ok ? int32_t(radius) : 0;
-                valid[g] = ok ? 1 : 0;
+                Pair<T> q;
+                q.compute(cam, mean, blk.cov[n - n0], s);
+                if (!emit(q, cam, mean, blk.smax2[n - n0], blk.smin2[n - n0], g)) {
+                    double cov[6];
+                    cov_double(quats, scales, n, cov);
+                    const double gmean[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
+                    Pair<double> qd;
+                    qd.compute(gcams[c], gmean, cov, s);
+                    emit(qd, gcams[c], gmean, 0.0, 0.0, g);
+                }
                 if (n_basis) {
                     T d[3];
                     for (int j = 0; j < 3; ++j) d[j] = mean[j] - cam.center[j];
@@ -414,125 +474,137 @@ void forward(const Settings& s, const T* means, const T* quats, const T* scales,
     });
 }
 
+// Backward of one pair's geometry (P = T or double): adds to the mean's and the covariance's
+// gradients (accumulated in double).
+template <typename P>
+inline void pair_backward(const Pair<P>& q, const Cam<P>& cam, double gu, double gv, double gq0, double gq1,
+                          double gq2, double gd, double gcp, double* dm, double* dcov) {
+    P dp[3] = {0, 0, P(gd)}, dzs = 0;
+    // means2d = (fx x / zs + cx, fy y / zs + cy)
+    dp[0] += P(gu) * cam.fx / q.zs;
+    dp[1] += P(gv) * cam.fy / q.zs;
+    dzs -= (P(gu) * cam.fx * q.p[0] + P(gv) * cam.fy * q.p[1]) / (q.zs * q.zs);
+    // conics = (c, -b, a) / det_s
+    P da = P(gq2) / q.det_s, db = -P(gq1) / q.det_s, dc = P(gq0) / q.det_s;
+    if (q.ok) {
+        const P ddet = -(P(gq0) * q.c - P(gq1) * q.b + P(gq2) * q.a) / (q.det_s * q.det_s);
+        da += ddet * q.c;
+        dc += ddet * q.a;
+        db -= P(2) * ddet * q.b;
+    }
+    P da_raw = 0, dc_raw = 0;
+    if (q.ok && gcp != 0.0) {  // compensation = sqrt(max(det_raw / det, 1e-12))
+        const P det_raw = q.a_raw * q.c_raw - q.b * q.b;
+        const P r = det_raw / q.det_s;
+        if (r >= P(1e-12)) {
+            const P dr = P(gcp) * P(0.5) / std::sqrt(r);
+            const P ddet_raw = dr / q.det_s, ddet = -dr * det_raw / (q.det_s * q.det_s);
+            da_raw += ddet_raw * q.c_raw;
+            dc_raw += ddet_raw * q.a_raw;
+            db -= P(2) * ddet_raw * q.b;
+            da += ddet * q.c;
+            dc += ddet * q.a;
+            db -= P(2) * ddet * q.b;
+        }
+    }
+    da += da_raw;
+    dc += dc_raw;
+    // a = jw0^T S jw0, b = jw0^T S jw1, c = jw1^T S jw1 (S symmetric)
+    const P* j0 = q.jw0;
+    const P* j1 = q.jw1;
+    dcov[0] += double(da * j0[0] * j0[0] + db * j0[0] * j1[0] + dc * j1[0] * j1[0]);
+    dcov[3] += double(da * j0[1] * j0[1] + db * j0[1] * j1[1] + dc * j1[1] * j1[1]);
+    dcov[5] += double(da * j0[2] * j0[2] + db * j0[2] * j1[2] + dc * j1[2] * j1[2]);
+    dcov[1] += double(P(2) * da * j0[0] * j0[1] + db * (j0[0] * j1[1] + j1[0] * j0[1]) + P(2) * dc * j1[0] * j1[1]);
+    dcov[2] += double(P(2) * da * j0[0] * j0[2] + db * (j0[0] * j1[2] + j1[0] * j0[2]) + P(2) * dc * j1[0] * j1[2]);
+    dcov[4] += double(P(2) * da * j0[1] * j0[2] + db * (j0[1] * j1[2] + j1[1] * j0[2]) + P(2) * dc * j1[1] * j1[2]);
+    P dj0[3], dj1[3];
+    for (int i = 0; i < 3; ++i) {
+        dj0[i] = P(2) * da * q.s0[i] + db * q.s1[i];
+        dj1[i] = db * q.s0[i] + P(2) * dc * q.s1[i];
+    }
+    // jw0 = (fx / zs) R0 - (fx xz / zs) R2; jw1 likewise with fy, yz, R1
+    P dA0 = 0, dB0 = 0, dA1 = 0, dB1 = 0;
+    for (int j = 0; j < 3; ++j) {
+        dA0 += dj0[j] * cam.R[j];
+        dB0 -= dj0[j] * cam.R[6 + j];
+        dA1 += dj1[j] * cam.R[3 + j];
+        dB1 -= dj1[j] * cam.R[6 + j];
+    }
+    const P zs2 = q.zs * q.zs;
+    dzs -= (dA0 * cam.fx + dB0 * cam.fx * q.xz + dA1 * cam.fy + dB1 * cam.fy * q.yz) / zs2;
+    const P dxz = dB0 * cam.fx / q.zs, dyz = dB1 * cam.fy / q.zs;
+    // x/z and y/z clamps pass the gradient inside [lo, hi] (torch.clamp's rule)
+    if (q.raw_xz >= cam.lo_x && q.raw_xz <= cam.hi_x) {
+        dp[0] += dxz / q.zs;
+        dzs -= dxz * q.p[0] / zs2;
+    }
+    if (q.raw_yz >= cam.lo_y && q.raw_yz <= cam.hi_y) {
+        dp[1] += dyz / q.zs;
+        dzs -= dyz * q.p[1] / zs2;
+    }
+    if (q.in_depth) dp[2] += dzs;
+    for (int j = 0; j < 3; ++j)
+        dm[j] += double(cam.R[j] * dp[0] + cam.R[3 + j] * dp[1] + cam.R[6 + j] * dp[2]);
+}
+
 template <typename T>
 void backward(const Settings& s, const T* means, const T* quats, const T* scales, const T* sh,
               const T* viewmats, const T* Ks, const T* g_means2d, const T* g_conics, const T* g_depths,
               const T* g_comp, const T* g_colors, T* d_means, T* d_quats, T* d_scales, T* d_sh,
               int n_threads) {
-    using G = double;  // the geometry in double, as in forward
     const std::vector<Cam<T>> cams = load_cameras<T>(s, viewmats, Ks);
-    const std::vector<Cam<G>> gcams = load_cameras<G>(s, viewmats, Ks);
+    const std::vector<Cam<double>> gcams = load_cameras<double>(s, viewmats, Ks);
     const int n_basis = s.sh_degree >= 0 ? int((s.sh_degree + 1) * (s.sh_degree + 1)) : 0;
     parallel_blocks(s.N, kGaussians, n_threads, [&](int64_t n0, int64_t n1) {
-        GaussianBlock<G> blk;
+        GaussianBlock<T> blk;
         blk.load(n0, n1, quats, scales);
-        G dmeans[kGaussians][3] = {}, dcovs[kGaussians][6] = {};
+        // Gradients add up in double: a pair done in double may pass a gradient beyond float.
+        double dmeans[kGaussians][3] = {}, dcovs[kGaussians][6] = {};
         // Cameras outside, Gaussians inside (rows read sequentially); each Gaussian's gradient
         // still adds up over the cameras in camera order, in this one thread.
         for (int64_t c = 0; c < s.C; ++c) {
+            const Cam<T>& cam = cams[c];
             for (int64_t n = n0; n < n1; ++n) {
-                const G* cov = blk.cov[n - n0];
                 const T* mean = means + n * 3;
-                G* dm = dmeans[n - n0];
-                G* dcov = dcovs[n - n0];
+                double* dm = dmeans[n - n0];
                 T* dsh = d_sh ? d_sh + n * s.K * 3 : nullptr;
                 const int64_t g = c * s.N + n;
-                const G gu = g_means2d[g * 2], gv = g_means2d[g * 2 + 1];
-                const G gq0 = g_conics[g * 3], gq1 = g_conics[g * 3 + 1], gq2 = g_conics[g * 3 + 2];
-                const G gd = g_depths[g], gcp = g_comp[g];
-                const bool geo = gu != G(0) || gv != G(0) || gq0 != G(0) || gq1 != G(0) || gq2 != G(0) ||
-                                 gd != G(0) || gcp != G(0);
-                const Cam<T>& tcam = cams[c];
+                const double gu = g_means2d[g * 2], gv = g_means2d[g * 2 + 1];
+                const double gq0 = g_conics[g * 3], gq1 = g_conics[g * 3 + 1], gq2 = g_conics[g * 3 + 2];
+                const double gd = g_depths[g], gcp = g_comp[g];
+                const bool geo = gu != 0.0 || gv != 0.0 || gq0 != 0.0 || gq1 != 0.0 || gq2 != 0.0 || gd != 0.0 ||
+                                 gcp != 0.0;
                 if (n_basis) {
                     const T* gc = g_colors + g * 3;
                     if (gc[0] != T(0) || gc[1] != T(0) || gc[2] != T(0)) {
-                        T dmc[3] = {T(0), T(0), T(0)};  // the colour's share of the mean's gradient, in T
-                        sh_backward(int(s.sh_degree), n_basis, tcam, mean, sh + n * s.K * 3, gc, dsh, dmc);
-                        for (int j = 0; j < 3; ++j) dm[j] += G(dmc[j]);
+                        T dmc[3] = {T(0), T(0), T(0)};  // the colour's share of the mean's gradient
+                        sh_backward(int(s.sh_degree), n_basis, cam, mean, sh + n * s.K * 3, gc, dsh, dmc);
+                        for (int j = 0; j < 3; ++j) dm[j] += double(dmc[j]);
                     }
                 }
                 if (!geo) continue;  // culled, occluded or unused: nothing reaches this pair
-                const Cam<G>& cam = gcams[c];
-                const G gmean[3] = {G(mean[0]), G(mean[1]), G(mean[2])};
-                Pair<G> q;
-                q.compute(cam, gmean, cov, s);
-                G dp[3] = {0, 0, gd}, dzs = 0;
-                // means2d = (fx x / zs + cx, fy y / zs + cy)
-                dp[0] += gu * cam.fx / q.zs;
-                dp[1] += gv * cam.fy / q.zs;
-                dzs -= (gu * cam.fx * q.p[0] + gv * cam.fy * q.p[1]) / (q.zs * q.zs);
-                // conics = (c, -b, a) / det_s
-                G da = gq2 / q.det_s, db = -gq1 / q.det_s, dc = gq0 / q.det_s;
-                if (q.ok) {
-                    const G ddet = -(gq0 * q.c - gq1 * q.b + gq2 * q.a) / (q.det_s * q.det_s);
-                    da += ddet * q.c;
-                    dc += ddet * q.a;
-                    db -= G(2) * ddet * q.b;
+                Pair<T> q;
+                q.compute(cam, mean, blk.cov[n - n0], s);
+                // the forward's choice (culled pairs, whose outputs did not fit, get no gradient)
+                if (!needs_double(q, cam, mean, blk.smax2[n - n0], blk.smin2[n - n0], T(s.eps2d))) {
+                    pair_backward(q, cam, gu, gv, gq0, gq1, gq2, gd, gcp, dm, dcovs[n - n0]);
+                } else {
+                    double cov[6];
+                    cov_double(quats, scales, n, cov);
+                    const double gmean[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
+                    Pair<double> qd;
+                    qd.compute(gcams[c], gmean, cov, s);
+                    pair_backward(qd, gcams[c], gu, gv, gq0, gq1, gq2, gd, gcp, dm, dcovs[n - n0]);
                 }
-                G da_raw = 0, dc_raw = 0;
-                if (q.ok && gcp != G(0)) {  // compensation = sqrt(max(det_raw / det, 1e-12))
-                    const G det_raw = q.a_raw * q.c_raw - q.b * q.b;
-                    const G r = det_raw / q.det_s;
-                    if (r >= G(1e-12)) {
-                        const G dr = gcp * G(0.5) / std::sqrt(r);
-                        const G ddet_raw = dr / q.det_s, ddet = -dr * det_raw / (q.det_s * q.det_s);
-                        da_raw += ddet_raw * q.c_raw;
-                        dc_raw += ddet_raw * q.a_raw;
-                        db -= G(2) * ddet_raw * q.b;
-                        da += ddet * q.c;
-                        dc += ddet * q.a;
-                        db -= G(2) * ddet * q.b;
-                    }
-                }
-                da += da_raw;
-                dc += dc_raw;
-                // a = jw0^T S jw0, b = jw0^T S jw1, c = jw1^T S jw1 (S symmetric)
-                const G* j0 = q.jw0;
-                const G* j1 = q.jw1;
-                dcov[0] += da * j0[0] * j0[0] + db * j0[0] * j1[0] + dc * j1[0] * j1[0];
-                dcov[3] += da * j0[1] * j0[1] + db * j0[1] * j1[1] + dc * j1[1] * j1[1];
-                dcov[5] += da * j0[2] * j0[2] + db * j0[2] * j1[2] + dc * j1[2] * j1[2];
-                dcov[1] += G(2) * da * j0[0] * j0[1] + db * (j0[0] * j1[1] + j1[0] * j0[1]) + G(2) * dc * j1[0] * j1[1];
-                dcov[2] += G(2) * da * j0[0] * j0[2] + db * (j0[0] * j1[2] + j1[0] * j0[2]) + G(2) * dc * j1[0] * j1[2];
-                dcov[4] += G(2) * da * j0[1] * j0[2] + db * (j0[1] * j1[2] + j1[1] * j0[2]) + G(2) * dc * j1[1] * j1[2];
-                G dj0[3], dj1[3];
-                for (int i = 0; i < 3; ++i) {
-                    dj0[i] = G(2) * da * q.s0[i] + db * q.s1[i];
-                    dj1[i] = db * q.s0[i] + G(2) * dc * q.s1[i];
-                }
-                // jw0 = (fx / zs) R0 - (fx xz / zs) R2; jw1 likewise with fy, yz, R1
-                G dA0 = 0, dB0 = 0, dA1 = 0, dB1 = 0;
-                for (int j = 0; j < 3; ++j) {
-                    dA0 += dj0[j] * cam.R[j];
-                    dB0 -= dj0[j] * cam.R[6 + j];
-                    dA1 += dj1[j] * cam.R[3 + j];
-                    dB1 -= dj1[j] * cam.R[6 + j];
-                }
-                const G zs2 = q.zs * q.zs;
-                dzs -= (dA0 * cam.fx + dB0 * cam.fx * q.xz + dA1 * cam.fy + dB1 * cam.fy * q.yz) / zs2;
-                const G dxz = dB0 * cam.fx / q.zs, dyz = dB1 * cam.fy / q.zs;
-                // x/z and y/z clamps pass the gradient inside [lo, hi] (torch.clamp's rule)
-                if (q.raw_xz >= cam.lo_x && q.raw_xz <= cam.hi_x) {
-                    dp[0] += dxz / q.zs;
-                    dzs -= dxz * q.p[0] / zs2;
-                }
-                if (q.raw_yz >= cam.lo_y && q.raw_yz <= cam.hi_y) {
-                    dp[1] += dyz / q.zs;
-                    dzs -= dyz * q.p[1] / zs2;
-                }
-                if (q.in_depth) dp[2] += dzs;
-                for (int j = 0; j < 3; ++j)
-                    dm[j] += cam.R[j] * dp[0] + cam.R[3 + j] * dp[1] + cam.R[6 + j] * dp[2];
             }
         }
         for (int64_t n = n0; n < n1; ++n) {
             const int64_t i = n - n0;
             for (int j = 0; j < 3; ++j) d_means[n * 3 + j] = T(dmeans[i][j]);
-            const G scale[3] = {G(scales[n * 3]), G(scales[n * 3 + 1]), G(scales[n * 3 + 2])};
-            G dq[4], ds[3];
-            cov_backward(blk.qn[i], blk.qnorm[i], blk.R[i], scale, dcovs[i], dq, ds);
-            for (int k = 0; k < 4; ++k) d_quats[n * 4 + k] = T(dq[k]);
-            for (int k = 0; k < 3; ++k) d_scales[n * 3 + k] = T(ds[k]);
+            const T dcov[6] = {T(dcovs[i][0]), T(dcovs[i][1]), T(dcovs[i][2]), T(dcovs[i][3]), T(dcovs[i][4]),
+                               T(dcovs[i][5])};  // beyond T's range: Inf, and the caller raises
+            cov_backward(blk.qn[i], blk.qnorm[i], blk.R[i], scales + n * 3, dcov, d_quats + n * 4, d_scales + n * 3);
         }
     });
 }
