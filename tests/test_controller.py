@@ -362,6 +362,37 @@ def test_a_flipped_bit_in_a_checkpoint_is_refused(scene, tmp_path):
     trainer.load_checkpoint(str(good))
 
 
+def test_a_checkpoint_of_another_config_is_refused_or_its_overrides_named(scene, tmp_path):
+    """A baseline checkpoint loaded into a run of the same stages but another seed and MVAD: strict
+    refuses, naming each differing field with both values, and loads nothing; strict=False keeps
+    this run's values, warns naming them, and loads the state. Speed-only fields may differ."""
+    import dataclasses
+
+    saved_config = MVGSConfig.baseline().with_total_steps(10)
+    trainer = MVGS(make(scene), scene, saved_config)
+    trainer.step()
+    path = tmp_path / "base.pt"
+    trainer.save_checkpoint(str(path))
+
+    other = dataclasses.replace(saved_config, seed=7, mvad=True)
+    fresh = MVGS(make(scene), scene, other)
+    before = fresh.adapter.positions().clone()
+    with pytest.raises(ValueError) as err:
+        fresh.load_checkpoint(str(path))
+    message = str(err.value)
+    assert "base.pt" in message and "mvad: checkpoint False, this run True" in message
+    assert "seed: checkpoint 0, this run 7" in message
+    assert fresh.step_count == 0 and torch.equal(fresh.adapter.positions(), before)
+    with pytest.warns(UserWarning, match=r"this run's values are kept: .*mvad: checkpoint False, this run True"):
+        fresh.load_checkpoint(str(path), strict=False)
+    assert fresh.step_count == 1 and fresh.config.seed == 7
+    assert torch.equal(fresh.adapter.positions(), trainer.adapter.positions())
+
+    faster = MVGS(make(scene), scene, dataclasses.replace(saved_config, chunk_size=1, divergence_factor=None))
+    faster.load_checkpoint(str(path))  # runtime fields only: no error, no warning
+    assert faster.step_count == 1
+
+
 def test_a_killed_save_leaves_no_partial_after_the_next_save(scene, tmp_path):
     """A writer killed mid-save (SIGKILL: no cleanup runs) leaves its temporary file; the next
     save of the same path removes it. A partial whose writer is still running is kept."""
