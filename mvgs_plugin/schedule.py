@@ -6,7 +6,8 @@ step."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
@@ -14,7 +15,7 @@ from torch import Tensor
 
 from .camera import Camera
 from .config import MVGSConfig, Stage
-from .densify import best_windows, camera_axes, cross_ray_boxes, mvad_threshold, resolution_threshold
+from .densify import best_windows, camera_axes, cross_ray_boxes, loss_map, mvad_threshold, resolution_threshold
 from .protocol import DensifyContext
 from .sampler import ViewSampler
 
@@ -96,6 +97,8 @@ class StepPlan:
     per-view loss (1 for "sum", 1/M for "mean"); chunks: positions in `views` rendered and
     backpropagated together; stats: per chunk, whether its densification statistics are
     collected; densify / reset_opacity / handoff_reset: what runs after the backward passes.
+    recorded: per-view loss maps a hand-written loop handed over with record() (optional: see
+    ViewSchedule.densify_context).
     """
 
     step: int
@@ -112,6 +115,14 @@ class StepPlan:
     densify: bool
     reset_opacity: bool
     handoff_reset: bool
+    recorded: List[Tensor] = field(default_factory=list)
+
+    def record(self, images: Sequence[Tensor], targets: Sequence[Tensor]) -> None:
+        """Hand the step's rendered images and their targets to the schedule, chunk by chunk in
+        view order (one line after backward in a hand-written loop). Cross-ray densification
+        needs their per-view loss maps; without them it is skipped with a warning. The maps are
+        detached and [H', W'] each, so recording costs no graph memory."""
+        self.recorded.extend(loss_map(img, gt) for img, gt in zip(images, targets))
 
     def __iter__(self) -> Iterator[Tuple[List[Camera], List[Tensor], Tensor, bool]]:
         """Per chunk: (cameras, target images, backgrounds [C, 3], collect statistics?)."""
@@ -144,6 +155,7 @@ class ViewSchedule:
         self._bg_gen = torch.Generator().manual_seed(config.seed + 1)
         self._scaled: Dict[Tuple[int, int], Camera] = {}
         self.step_count = 0
+        self._warned_no_maps = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
 
@@ -208,7 +220,9 @@ class ViewSchedule:
         """The densification context of a step: the threshold (scaled to the step's image width
         when config.grad_threshold_width is set, halved by MVAD when the step's cameras are far
         apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
-        from the step's per-view loss maps [H', W'] (same order as plan.cameras)."""
+        from the step's per-view loss maps [H', W'] (same order as plan.cameras). Without
+        loss_maps, the maps a loop recorded with plan.record() are used; with neither, CRD is
+        skipped for the step (boxes None) and a warning says so once per schedule."""
         cfg = self.config
         threshold = self.base_threshold(plan)
         if cfg.mvad:
@@ -219,9 +233,16 @@ class ViewSchedule:
             threshold = mvad_threshold(centers, threshold, origin, cfg.mvad_tau, cfg.mvad_rule, axes,
                                        cfg.mvad_rotation_weight)
         boxes, cap = None, None
-        if cfg.crd:
-            if loss_maps is None:
-                raise ValueError("cross-ray densification needs the step's loss maps")
+        if cfg.crd and loss_maps is None:
+            if len(plan.recorded) == len(plan.views):
+                loss_maps = plan.recorded
+            elif not self._warned_no_maps:
+                self._warned_no_maps = True
+                warnings.warn(f"step {plan.step}: cross-ray densification (config.crd) is skipped: it needs the "
+                              f"step's per-view loss maps ({len(plan.recorded)} of {len(plan.views)} recorded); "
+                              "call plan.record(images, targets) after each chunk's backward, or pass "
+                              "densify_context(plan, loss_maps). Said once per schedule.", stacklevel=2)
+        if cfg.crd and loss_maps is not None:
             h, w = cfg.crd_window
             if cfg.crd_window_per_level:
                 h, w = max(1, round(h / plan.factor)), max(1, round(w / plan.factor))

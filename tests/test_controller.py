@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from adapters.gs3d import GS3DAdapter, GS3DConfig
-from mvgs_plugin import MVGS, MVGSConfig, Stage
+from mvgs_plugin import MVGS, MVGSConfig, Stage, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.testing import check_adapter, synthetic_scene
 
@@ -156,6 +156,59 @@ def test_three_line_wrap(scene):
     single = _load_example("single_view").train(scene, 12)
     assert mvgs.num_primitives() > 0 and single.num_primitives() > 0
     assert not torch.equal(mvgs.positions()[: single.num_primitives()], single.positions()[: mvgs.num_primitives()])
+
+
+@pytest.mark.parametrize("preset", ["baseline", "paper", "default", "multiview"])
+def test_three_line_wrap_trains_through_densification_and_resets_with_every_preset(scene, preset):
+    """The hand-written loop of examples/three_line_wrap/mvgs.py, 300 steps: the schedule (built
+    here independently with the same config) asks for several densifications and an opacity
+    reset, and the loop runs them all, cross-ray densification included (no warning: the loop
+    records its loss maps), and the model grows."""
+    import warnings
+
+    steps = 300
+    config = MVGSConfig.from_preset(preset, seed=0).with_total_steps(steps)
+    plans = list(ViewSchedule(scene, config))
+    assert sum(p.densify for p in plans) >= 3 and sum(p.reset_opacity for p in plans) >= 1, preset
+    if preset != "baseline":
+        assert len({p.stage for p in plans}) >= 2  # a pyramid hand-off too
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = _load_example("mvgs").train(scene, steps, preset=preset)
+    assert not [w for w in caught if "cross-ray" in str(w.message)], [str(w.message) for w in caught]
+    assert model.num_primitives() != len(scene.points)
+    assert bool(torch.isfinite(model.positions()).all())
+
+
+def test_a_loop_that_does_not_record_loss_maps_skips_cross_ray_densification_with_one_warning(scene):
+    """The single-view loop run with a CRD config (it never calls plan.record): it trains on,
+    and cross-ray densification is skipped with one warning naming what it needs."""
+    import warnings
+
+    config = MVGSConfig.multiview(seed=0).with_total_steps(200)
+    schedule = ViewSchedule(scene, config)
+    model = make(scene)
+    densified = 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for plan in schedule:
+            model.set_step(plan.clock)
+            for cams, targets, backgrounds, collect in plan:
+                out = model.render(cams, backgrounds)
+                (plan.weight * sum(photometric_loss(i, t) for i, t in zip(out.images, targets))).backward()
+                if collect:
+                    model.accumulate_stats(out)
+            with torch.no_grad():
+                if plan.densify:
+                    ctx = schedule.densify_context(plan)
+                    assert ctx.boxes is None
+                    model.densify(ctx)
+                    densified += 1
+            model.optimizer_step()
+            model.zero_grad()
+    said = [str(w.message) for w in caught if "cross-ray" in str(w.message)]
+    assert densified >= 2 and len(said) == 1, said
+    assert "plan.record(images, targets)" in said[0]
 
 
 @pytest.mark.parametrize("preset,cut", [("multiview", 15), ("default", 15)])

@@ -2,7 +2,9 @@
 already has, mvgs.py is the same loop trained with MVGS. Every line of the step stays the
 user's own (render, loss, backward, statistics, densification, optimizer); the schedule decides
 which views each step sees, at which pyramid level, and when densification runs.
-`diff single_view.py mvgs.py` shows the one line that changes.
+`diff single_view.py mvgs.py` shows the lines that change: the config (any preset), and one
+line handing the rendered images to the plan for cross-ray densification's loss maps (without
+it that rule is skipped with a warning; nothing else needs it).
 
     python examples/three_line_wrap/single_view.py --steps 300
     python examples/three_line_wrap/mvgs.py --steps 300
@@ -22,16 +24,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from train_3dgs import BUNDLED, load_scene  # noqa: E402
 
 
-def train(scene, steps: int, seed: int = 0) -> GS3DAdapter:
+def train(scene, steps: int, seed: int = 0, preset: str = "default") -> GS3DAdapter:
     torch.manual_seed(seed)
     model = GS3DAdapter.from_scene(scene)
-    schedule = ViewSchedule(scene, MVGSConfig.default(seed=seed).with_total_steps(steps))
+    schedule = ViewSchedule(scene, MVGSConfig.from_preset(preset, seed=seed).with_total_steps(steps))
     for plan in schedule:
         model.set_step(plan.clock)
         for cams, targets, backgrounds, collect_stats in plan:
             out = model.render(cams, backgrounds)
             loss = plan.weight * sum(photometric_loss(img, gt) for img, gt in zip(out.images, targets))
             loss.backward()
+            plan.record(out.images, targets)  # cross-ray densification's loss maps (else skipped, with a warning)
             if collect_stats:
                 model.accumulate_stats(out)
         with torch.no_grad():

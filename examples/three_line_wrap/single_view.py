@@ -2,7 +2,9 @@
 already has, mvgs.py is the same loop trained with MVGS. Every line of the step stays the
 user's own (render, loss, backward, statistics, densification, optimizer); the schedule decides
 which views each step sees, at which pyramid level, and when densification runs.
-`diff single_view.py mvgs.py` shows the one line that changes.
+`diff single_view.py mvgs.py` shows the lines that change: the config (any preset), and one
+line handing the rendered images to the plan for cross-ray densification's loss maps (without
+it that rule is skipped with a warning; nothing else needs it).
 
     python examples/three_line_wrap/single_view.py --steps 300
     python examples/three_line_wrap/mvgs.py --steps 300
