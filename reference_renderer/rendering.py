@@ -165,6 +165,20 @@ def rasterization(
     rasterize_mode: str = "classic",
     camera_model: str = "pinhole",
     backend: Optional[str] = None,
+    *,
+    sparse_grad: bool = False,
+    channel_chunk: int = 32,
+    distributed: bool = False,
+    segmented: bool = False,
+    covars: Optional[Tensor] = None,
+    with_ut: bool = False,
+    with_eval3d: bool = False,
+    radial_coeffs: Optional[Tensor] = None,
+    tangential_coeffs: Optional[Tensor] = None,
+    thin_prism_coeffs: Optional[Tensor] = None,
+    ftheta_coeffs=None,
+    rolling_shutter=None,
+    viewmats_rs: Optional[Tensor] = None,
 ) -> Tuple[Tensor, Tensor, Dict]:
     """Renders N 3D Gaussians into C pinhole cameras (classic 3DGS image formation).
 
@@ -192,6 +206,13 @@ def rasterization(
         rasterize_mode: "classic", or "antialiased" (opacity times the eps2d compensation).
         camera_model: only "pinhole".
         backend: "cpp", "torch", or None for the fastest available (see available_backends()).
+        sparse_grad, channel_chunk, distributed, segmented, covars, with_ut, with_eval3d,
+        radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
+        viewmats_rs: gsplat 1.5.3's other keywords, so a call written for gsplat runs unchanged.
+            Their defaults (and any channel_chunk, a memory knob) are accepted; a value asking
+            for what this renderer does not do (packed sparse gradients, gsplat's own
+            multi-GPU split, precomputed covariances, the unscented transform, 3D evaluation,
+            lens distortion, rolling shutter) is refused naming the alternative.
 
     Returns:
         render_colors [C, H, W, D'], render_alphas [C, H, W, 1], meta with means2d [C,N,2] (call
@@ -200,6 +221,9 @@ def rasterization(
         [C,N,3], opacities [C,N], width, height, n_cameras, tile_size, tile_width, tile_height,
         isect_offsets, flatten_ids, gaussian_ids (None: not packed), backend.
     """
+    _check_gsplat_options(sparse_grad, channel_chunk, distributed, segmented, covars, with_ut, with_eval3d,
+                          radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
+                          viewmats_rs)
     means, C, N = _check_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
         radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode, absgrad,
@@ -291,6 +315,38 @@ def _features(means, colors, viewmats, sh_degree, render_mode, depths, C, rgb=No
     if render_mode != "RGB":
         feats.append(depths.unsqueeze(-1))
     return torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]
+
+
+def _check_gsplat_options(sparse_grad, channel_chunk, distributed, segmented, covars, with_ut, with_eval3d,
+                          radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
+                          viewmats_rs) -> None:
+    """gsplat 1.5.3's keywords this renderer takes only at their defaults (see rasterization)."""
+    if isinstance(channel_chunk, bool) or not isinstance(channel_chunk, int) or channel_chunk < 1:
+        raise ValueError(f"channel_chunk must be a positive int (a memory knob of gsplat's, unused here), "
+                         f"got {channel_chunk!r}")
+    refused = (
+        ("sparse_grad", sparse_grad, False, "sparse gradients come with packed=True, which this renderer does not "
+                                            "have: pass sparse_grad=False (dense [N] gradients)"),
+        ("distributed", distributed, False, "for several processes use mvgs_plugin.distributed (each rank renders "
+                                            "its share of the views): pass distributed=False"),
+        ("segmented", segmented, False, "segmented sorting comes with packed=True: pass segmented=False"),
+        ("with_ut", with_ut, False, "the unscented transform is not implemented: pass with_ut=False (EWA projection)"),
+        ("with_eval3d", with_eval3d, False, "3D Gaussian evaluation is not implemented: pass with_eval3d=False"),
+    )
+    for name, value, default, why in refused:
+        if value != default:
+            raise ValueError(f"{name}={value!r} is not supported: {why}")
+    for name, value in (("covars", covars), ("radial_coeffs", radial_coeffs), ("tangential_coeffs", tangential_coeffs),
+                        ("thin_prism_coeffs", thin_prism_coeffs), ("ftheta_coeffs", ftheta_coeffs),
+                        ("viewmats_rs", viewmats_rs)):
+        if value is not None:
+            why = ("pass quats and scales instead of precomputed covariances" if name == "covars" else
+                   "lens distortion and rolling shutter are not modelled: undistort the images (pinhole cameras) "
+                   f"and pass {name}=None")
+            raise ValueError(f"{name} is not supported: {why}")
+    if rolling_shutter is not None and getattr(rolling_shutter, "name", rolling_shutter) != "GLOBAL":
+        raise ValueError(f"rolling_shutter={rolling_shutter!r} is not supported: only a global shutter "
+                         "(None or RollingShutterType.GLOBAL)")
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,

@@ -273,3 +273,33 @@ def test_device_mismatch_is_rejected():
 def test_absgrad_needs_compiled_backend():
     with pytest.raises(ValueError, match="absgrad=True needs backend 'cpp'"):
         rasterization(**_args(absgrad=True, backend="torch"))
+
+
+def test_every_keyword_of_gsplat_rasterization_is_accepted_at_its_default():
+    """A call written for gsplat 1.5.3 (the installed dev dependency) runs unchanged: every
+    keyword of gsplat.rasterization exists here, its default is accepted (packed aside: gsplat
+    defaults to packed=True, which is refused with the alternative named), and a value asking
+    for what this renderer does not do is refused naming the option."""
+    import inspect
+
+    import gsplat  # a dev dependency (pyproject.toml [dev]); its rasterization is pure Python to import
+    from gsplat.rendering import rasterization as gsplat_rasterization
+
+    theirs = inspect.signature(gsplat_rasterization).parameters
+    ours = inspect.signature(rasterization).parameters
+    assert set(theirs) <= set(ours), sorted(set(theirs) - set(ours))
+    args = _args()
+    defaults = {k: p.default for k, p in theirs.items() if p.default is not inspect.Parameter.empty and k != "packed"}
+    defaults = {k: v for k, v in defaults.items() if k not in args}
+    img, _, _ = rasterization(**args, **defaults, packed=False)
+    ref, _, _ = rasterization(**args)
+    assert torch.equal(img, ref)
+    with pytest.raises(ValueError, match="packed=True is not supported: pass packed=False"):
+        rasterization(**args, packed=theirs["packed"].default)
+    for name, value in (("sparse_grad", True), ("distributed", True), ("segmented", True), ("with_ut", True),
+                        ("with_eval3d", True), ("covars", torch.eye(3, dtype=F64)[None]),
+                        ("radial_coeffs", torch.zeros(1, 6, dtype=F64)), ("viewmats_rs", torch.eye(4, dtype=F64)[None]),
+                        ("channel_chunk", 0)):
+        with pytest.raises(ValueError, match=name):
+            rasterization(**args, **{name: value})
+    assert gsplat.__version__ == "1.5.3"
