@@ -104,6 +104,32 @@ def float_above(low: float, inclusive: bool = False) -> Callable[[str], float]:
     return parse
 
 
+def check_device(args) -> None:
+    """Refuse --device / --rasterizer choices this machine cannot run, before any work."""
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device cuda: torch {torch.__version__} sees no CUDA device here "
+                         "(torch.cuda.is_available() is False); use --device cpu")
+    if args.rasterizer == "gsplat":
+        if args.device != "cuda":
+            raise ValueError("--rasterizer gsplat needs --device cuda (gsplat's rasterization runs on CUDA); on the "
+                             "CPU use --rasterizer reference, which has the same call shape")
+        import importlib.util
+
+        if importlib.util.find_spec("gsplat") is None:
+            raise ValueError("--rasterizer gsplat: gsplat is not installed; pip install gsplat")
+
+
+def rasterize_function(args):
+    """The rasterizer --rasterizer asks for (GS3DConfig.rasterize)."""
+    if args.rasterizer == "gsplat":
+        from gsplat import rasterization as gsplat_rasterization
+
+        return gsplat_rasterization
+    from reference_renderer import rasterization
+
+    return rasterization
+
+
 def check_out(out: Path) -> None:
     """Refuse an output folder that cannot be one, before any work: an existing file, a path
     under a file, or a folder (or its nearest existing parent) this process cannot write."""
@@ -148,6 +174,11 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--seed", type=int_at_least(0), default=0)
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="where the model trains (cuda: the model, renders and optimizer on the GPU)")
+    ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
+                    help="reference: this package's renderer (CPU or CUDA tensors); gsplat: gsplat's CUDA "
+                         "rasterization (needs --device cuda and gsplat installed)")
     ap.add_argument("--dist-timeout", type=float_above(0), default=DEFAULT_TIMEOUT,
                     help="under torchrun: seconds a rank waits for the others before stopping with an error")
     return ap
@@ -236,6 +267,8 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "preset": args.preset,
         "data": str(args.data),
         "threads": torch.get_num_threads(),
+        "device": getattr(args, "device", "cpu"),
+        "rasterizer": getattr(args, "rasterizer", "reference"),
         "world_size": 1 if trainer.distributed is None else trainer.distributed.world_size,
         "config": config.to_dict(),
         "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
@@ -255,10 +288,11 @@ def launch(args, run: Callable) -> dict:
     than one (dist a Collective; the training script itself is unchanged). Every train_*.py
     example starts this way."""
     check_out(args.out)
+    check_device(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    dist = init_from_env(device="cpu", timeout=args.dist_timeout)  # None unless torchrun started > 1 process
+    dist = init_from_env(device=args.device, timeout=args.dist_timeout)  # None unless torchrun started > 1 process
     if dist is None:
         return run(args, None)
     with abort_on_error():  # an error ends this rank at once; the others' next collective then fails
@@ -291,7 +325,8 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     scene = load_scene(args.data)
     config = config_from_args(args)
-    adapter = GS3DAdapter.from_scene(scene, model_config(config, args.seed, args.max_gaussians))
+    model = dataclasses.replace(model_config(config, args.seed, args.max_gaussians), rasterize=rasterize_function(args))
+    adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

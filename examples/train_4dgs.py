@@ -22,6 +22,7 @@ time bins) or "random".
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -29,6 +30,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
     common_args, config_from_args, exit_process, int_at_least, launch, load_scene, metrics_record, model_config,
+    rasterize_function,
     train_and_evaluate, write_json,
 )
 
@@ -70,7 +72,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     total = config.clock_length
     coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
-    return GS4DConfig(canonical=model_config(config, args.seed, args.max_gaussians), coarse_steps=coarse,
+    canonical = dataclasses.replace(model_config(config, args.seed, args.max_gaussians), rasterize=rasterize_function(args))
+    return GS4DConfig(canonical=canonical, coarse_steps=coarse,
                       fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
 
 
@@ -88,7 +91,7 @@ def run(args, dist) -> dict:
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
     config = config_from_args(args, time_spread=args.time_spread)
     model_cfg = gs4d_config(config, args)
-    adapter = GS4DAdapter.from_scene(scene, model_cfg)
+    adapter = GS4DAdapter.from_scene(scene, model_cfg, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

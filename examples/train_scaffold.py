@@ -42,6 +42,9 @@ def parse_args(argv=None):
                     help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
     args = ap.parse_args(argv)
+    if args.device != "cpu" or args.rasterizer != "reference":
+        ap.error("train_scaffold.py runs on the CPU with the reference renderer only (the Scaffold-GS adapter "
+                 f"does not take a device yet): got --device {args.device} --rasterizer {args.rasterizer}")
     if args.voxel_size is not None and not args.voxel_size > 0:
         ap.error(f"--voxel-size must be > 0, got {args.voxel_size}")
     return args

@@ -118,3 +118,20 @@ def test_stages_option_replaces_the_preset_plan():
     for bad in ("8:x:10", "8:16", "0:1:10"):
         with pytest.raises(SystemExit):
             example.parse_args(["--stages", bad])
+
+
+@pytest.mark.parametrize("flags,message", [
+    (["--device", "cuda"], "--device cuda: torch .* sees no CUDA device here"),
+    (["--rasterizer", "gsplat"], "--rasterizer gsplat needs --device cuda"),
+])
+def test_device_flags_this_machine_cannot_run_stop_before_any_work(tmp_path, monkeypatch, flags, message):
+    """This CPU machine (torch.cuda.is_available() is False here, asserted) refuses --device cuda
+    and a gsplat rasterizer on the CPU at once: no scene is loaded, no folder written."""
+    import torch
+
+    assert not torch.cuda.is_available()
+    example = load_example()
+    monkeypatch.setattr(example, "load_scene", lambda path: pytest.fail("loaded a scene before checking the device"))
+    with pytest.raises(ValueError, match=message):
+        example.main(flags + ["--steps", "3", "--no-progress", "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
