@@ -33,7 +33,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
 from mvgs_plugin.data.init import InitRegion, random_init_points
-from mvgs_plugin.densify import check_boxes
+from mvgs_plugin.densify import boxes_contain, check_boxes
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 from reference_renderer.projection import quat_to_rotmat
@@ -270,21 +270,6 @@ def _block_knn(q: Tensor, q_idx: Tensor, c: Tensor, c_idx: Tensor, k: int) -> Te
         exact = ((q[s:s + rows, None, :] - c[idx]) ** 2).sum(dim=-1)  # ... measured exactly
         out[s:s + rows] = exact.mean(dim=1)
     return out
-
-
-def _inside_any_box(points: Tensor, boxes: Tensor) -> Tensor:
-    """[N] bool: points [N, 3] strictly inside at least one of boxes [B, 2, 3] (min, max)."""
-    N, B = points.shape[0], boxes.shape[0]
-    inside = torch.zeros(N, dtype=torch.bool, device=points.device)
-    if N == 0 or B == 0:
-        return inside
-    p = points.detach().to(torch.float64)
-    lo, hi = boxes[:, 0].to(p), boxes[:, 1].to(p)  # [B, 3]
-    rows = max(1, _CHUNK_ELEMS // (3 * B))
-    for s in range(0, N, rows):
-        q = p[s:s + rows, None, :]  # [c, 1, 3]
-        inside[s:s + rows] = ((q > lo) & (q < hi)).all(dim=-1).any(dim=-1)
-    return inside
 
 
 def _top_by_score(mask: Tensor, score: Tensor, k: int) -> Tensor:
@@ -718,7 +703,7 @@ class GS3DAdapter:
         if ctx.boxes is None:
             return none, 0
         boxes = check_boxes(ctx.boxes)
-        sel = _inside_any_box(self.params["means"], boxes.to(g.device))
+        sel = boxes_contain(self.params["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:
             sel = _top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))

@@ -52,12 +52,12 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
-from mvgs_plugin.densify import check_boxes
+from mvgs_plugin.densify import boxes_contain, check_boxes
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 
-from .gs3d import SH_C0, GS3DAdapter, make_adam, _check_float, _check_int, _inside_any_box, knn_mean_sq_dist
+from .gs3d import SH_C0, GS3DAdapter, make_adam, _check_float, _check_int, knn_mean_sq_dist
 from .gs4d import _log_linear
 from .ply import write_gaussian_ply
 
@@ -551,7 +551,7 @@ class ScaffoldAdapter:
         occupied = self.anchors
         box_new = 0
         if ctx.boxes is not None:
-            sel = _inside_any_box(xyz, check_boxes(ctx.boxes))
+            sel = boxes_contain(xyz, check_boxes(ctx.boxes))
             cap = ctx.max_new_from_boxes
             cap = None if cap is None else _check_int("max_new_from_boxes", cap, 0)
             cells, f = self._seed(xyz, feats, g, sel, occupied, self.voxel_size, cap, budget)

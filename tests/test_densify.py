@@ -200,3 +200,26 @@ def test_boxes_grow_by_half_the_largest_miss():
     padded, _ = cross_ray_boxes(cams, windows, pad_by_miss=True)
     np.testing.assert_allclose(padded[0, 0].numpy(), lo - miss / 2, atol=1e-9)
     np.testing.assert_allclose(padded[0, 1].numpy(), hi + miss / 2, atol=1e-9)
+
+
+def test_boxes_contain_is_the_public_inside_test_in_world_coordinates():
+    """boxes_contain against a plain loop over points and boxes, with points on faces (not
+    inside: strict), inside two boxes at once, and enough points to take several blocks."""
+    import mvgs_plugin.densify.crd as crd
+    from mvgs_plugin.densify import boxes_contain
+
+    g = torch.Generator().manual_seed(5)
+    boxes = torch.tensor([[[0.0, 0, 0], [1, 1, 1]], [[0.5, 0.5, 0.5], [2, 2, 2]], [[-3, -1, 5], [-2, 1, 6]]],
+                         dtype=torch.float64)
+    pts = torch.cat([torch.rand(3000, 3, generator=g, dtype=torch.float64) * 8 - 4,
+                     torch.tensor([[1.0, 0.5, 0.5], [0.75, 0.75, 0.75], [-2.5, 0.0, 5.5], [0.0, 0.0, 0.0]],
+                                  dtype=torch.float64)]).float()
+    want = torch.tensor([any(bool(((p.double() > b[0]) & (p.double() < b[1])).all()) for b in boxes) for p in pts])
+    old = crd._CHUNK_ELEMS
+    try:
+        crd._CHUNK_ELEMS = 90  # blocks of 10 points
+        got = boxes_contain(pts, boxes)
+    finally:
+        crd._CHUNK_ELEMS = old
+    assert torch.equal(got, want) and got[-3] and got[-2] and not got[-4] and not got[-1]
+    assert boxes_contain(pts, boxes[:0]).sum() == 0 and boxes_contain(pts[:0], boxes).numel() == 0

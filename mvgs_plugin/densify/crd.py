@@ -120,6 +120,34 @@ def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = Tru
     return boxes, torch.stack([i, j], dim=-1)[keep]
 
 
+# Elements per temporary comparison block of boxes_contain (2^24 float64 = 128 MB).
+_CHUNK_ELEMS = 1 << 24
+
+
+def boxes_contain(points: Tensor, boxes: Tensor) -> Tensor:
+    """[N] bool: which points lie strictly inside at least one box.
+
+    Args:
+        points: [N, 3] world coordinates (Gaussian means, anchor positions: the frame the
+            cameras' world_to_camera maps from).
+        boxes: [B, 2, 3] axis-aligned world boxes, [b, 0] the min corner and [b, 1] the max
+            corner, as cross_ray_boxes returns them (DensifyContext.boxes).
+    A consumer outside this package's adapters (e.g. a gsplat strategy) clones the points this
+    selects. Compared in float64, in blocks of at most 2^24 elements.
+    """
+    N, B = points.shape[0], boxes.shape[0]
+    inside = torch.zeros(N, dtype=torch.bool, device=points.device)
+    if N == 0 or B == 0:
+        return inside
+    p = points.detach().to(torch.float64)
+    lo, hi = boxes[:, 0].to(p), boxes[:, 1].to(p)  # [B, 3]
+    rows = max(1, _CHUNK_ELEMS // (3 * B))
+    for s in range(0, N, rows):
+        q = p[s:s + rows, None, :]  # [c, 1, 3]
+        inside[s:s + rows] = ((q > lo) & (q < hi)).all(dim=-1).any(dim=-1)
+    return inside
+
+
 def check_boxes(boxes) -> Tensor:
     """A DensifyContext's boxes as a [B, 2, 3] tensor (min corner, max corner); raises on a wrong
     shape, non-finite values or a box whose min exceeds its max (naming the box)."""
