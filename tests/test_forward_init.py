@@ -176,3 +176,27 @@ def test_random_init_logs_what_it_chose(caplog):
                for r in caplog.records), [r.getMessage() for r in caplog.records]
     xyz, rgb, _ = random_init_points(bare, 200, torch.Generator().manual_seed(0))
     assert xyz.shape == (200, 3) and float(rgb.min()) >= 0 and float(rgb.max()) <= 1
+
+
+def test_dynamic_scenes_without_points_use_the_same_rule():
+    """The 4DGS adapter initialises its canonical Gaussians through GS3DAdapter.from_scene, so a
+    D-NeRF-style scene without points gets the same answer: a ring of timed cameras keeps the
+    cube, a timed forward-facing rig gets points in front of its cameras."""
+    from adapters.gs4d import GS4DAdapter, GS4DConfig
+    from adapters.gs3d import GS3DConfig
+    from mvgs_plugin.data import Scene
+    from mvgs_plugin.testing import synthetic_scene
+
+    ring = synthetic_scene(n_train=6, n_test=1, size=16, time=True)
+    bare = Scene(ring.train_cameras, ring.test_cameras, {c.uid: ring.image(c) for c in ring.cameras}, points=None)
+    config = GS4DConfig(canonical=GS3DConfig(random_init=300))
+    model = GS4DAdapter.from_scene(bare, config)
+    off = (model.positions().double() - bare.center).abs()
+    assert model.num_primitives() == 300 and float(off.max()) <= bare.extent and float(off.max()) > 0.9 * bare.extent
+
+    cams = [dataclasses.replace(c, time=i / 5) for i, c in enumerate(parallel_rig([-0.6, -0.3, 0.0, 0.3, 0.6, 0.9]))]
+    images = {c.uid: torch.rand(c.height, c.width, 3, generator=torch.Generator().manual_seed(c.uid)) for c in cams}
+    forward = Scene(cams[:5], cams[5:], images, points=None)
+    model = GS4DAdapter.from_scene(forward, config)
+    depth = torch.stack([c.project(model.positions().double())[1] for c in forward.train_cameras])
+    assert model.num_primitives() == 300 and bool((depth.max(0).values > 0).all())  # in front of a camera
