@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
-from mvgs_plugin.data.init import InitRegion, random_init_points
+from mvgs_plugin.data.init import random_init_points
 from mvgs_plugin.densify import boxes_contain, check_boxes
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
@@ -445,17 +445,7 @@ class GS3DAdapter:
     @staticmethod
     def _random_points(scene, config: GS3DConfig) -> Tuple[Tensor, Tensor]:
         gen = torch.Generator().manual_seed(config.seed)
-        cameras = getattr(scene, "train_cameras", None)
-        if config.random_init_half_size is not None or not cameras:  # the user's cube, or no cameras to ask
-            center = torch.as_tensor(scene.center, dtype=torch.float64)
-            half = config.random_init_half_size or float(scene.extent)
-            why = "config.random_init_half_size" if config.random_init_half_size else "no cameras: scene.extent"
-            region = InitRegion("cube", f"random init: cube centre ± {half:g} ({why})", center=center, half=half)
-            xyz = region.sample(config.random_init, gen)
-            rgb = torch.rand(config.random_init, 3, generator=gen, dtype=torch.float64)
-            LOG.info("%s", region.description)
-            return xyz, rgb
-        xyz, rgb, description = random_init_points(scene, config.random_init, gen)
+        xyz, rgb, description = random_init_points(scene, config.random_init, gen, config.random_init_half_size)
         LOG.info("%s", description)
         return xyz, rgb
 

@@ -40,7 +40,7 @@ import torch
 
 from adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
-from mvgs_plugin.data import load_colmap, load_dnerf, load_nerf_synthetic
+from mvgs_plugin.data import is_dynamic, load_colmap, load_dnerf, load_nerf_synthetic
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text
 
@@ -50,15 +50,7 @@ BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
 def load_scene(path: Path):
     """COLMAP (sparse/ or sparse/0) or NeRF-synthetic / D-NeRF (transforms_train.json)."""
     if (path / "transforms_train.json").exists():
-        file = path / "transforms_train.json"
-        try:
-            meta = json.loads(file.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise ValueError(f"{file}: not readable JSON: {err}") from None
-        frames = meta.get("frames") if isinstance(meta, dict) else None
-        frames = frames if isinstance(frames, list) else []  # the loader names what is missing
-        frames = [f for f in frames if isinstance(f, dict)]
-        return load_dnerf(path) if frames and "time" in frames[0] else load_nerf_synthetic(path)
+        return load_dnerf(path) if is_dynamic(path) else load_nerf_synthetic(path)
     if (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
         return load_colmap(path)
     raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
@@ -206,8 +198,6 @@ def config_from_args(args, **preset_overrides) -> MVGSConfig:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     if args.budget is not None:
-        if not args.budget > 0:
-            raise ValueError(f"--budget must be > 0 (full-resolution view renders), got {args.budget}")
         config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
     else:
         config = config.with_total_steps(args.steps)
@@ -284,9 +274,10 @@ def parse_args(argv=None):
 
 
 def launch(args, run: Callable) -> dict:
-    """run(args, dist) in one process (dist None), or on every rank when torchrun started more
-    than one (dist a Collective; the training script itself is unchanged). Every train_*.py
-    example starts this way."""
+    """run(args, dist) in one process (dist None; returns its metrics), or on every rank when
+    torchrun started more than one (dist a Collective; the training script itself is
+    unchanged), after which the process exits with code 0. Every train_*.py example starts
+    this way."""
     check_out(args.out)
     check_device(args)
     if args.threads:
@@ -296,26 +287,14 @@ def launch(args, run: Callable) -> dict:
     if dist is None:
         return run(args, None)
     with abort_on_error():  # an error ends this rank at once; the others' next collective then fails
-        metrics = run(args, dist)
+        run(args, dist)
         dist.close()  # every rank waits for rank 0's evaluation and writes, then all leave together
-    global _RAN_DISTRIBUTED
-    _RAN_DISTRIBUTED = True
-    return metrics
-
-
-_RAN_DISTRIBUTED = False
-
-
-def exit_process() -> None:
-    """The end of a train_*.py process: after a distributed run, flush and os._exit(0). Even
-    after the ranks left the process group together, gloo's threads now and then abort the
-    interpreter's teardown ("terminate called without an active exception", SIGABRT, seen in
-    about 1 of 15 two-rank runs); every output is written and closed by then, so the teardown is
-    skipped. A single-process run ends normally."""
-    if _RAN_DISTRIBUTED:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
+    # The process ends here: even after the ranks left the group together, gloo's threads now
+    # and then abort the interpreter's teardown ("terminate called without an active exception",
+    # SIGABRT, about 1 in 15 two-rank runs); every output is written and closed by now.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def main(argv=None) -> dict:
@@ -345,4 +324,3 @@ def run(args, dist) -> dict:
 
 if __name__ == "__main__":
     main()
-    exit_process()

@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, exit_process, int_at_least, launch, load_scene, metrics_record, model_config,
+    common_args, config_from_args, int_at_least, launch, load_scene, metrics_record, model_config,
     rasterize_function,
     train_and_evaluate, write_json,
 )
@@ -122,4 +122,3 @@ def run(args, dist) -> dict:
 
 if __name__ == "__main__":
     main()
-    exit_process()

@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, exit_process, launch, load_scene, metrics_record,
+    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record,
     train_and_evaluate, write_json,
 )
 
@@ -97,4 +97,3 @@ def run(args, dist) -> dict:
 
 if __name__ == "__main__":
     main()
-    exit_process()

@@ -43,6 +43,15 @@ def config_differences(saved: MVGSConfig, current: MVGSConfig) -> List[tuple]:
             if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
 
 
+def _non_finite(t) -> int:
+    """How many entries of t are NaN or Inf. One sum first (no mask): a finite sum clears the
+    tensor at the cost of one reduction; only a non-finite one (NaN, Inf or overflow) counts."""
+    t = t.detach()
+    if t.numel() == 0 or bool(torch.isfinite(t.sum())):
+        return 0
+    return int((~torch.isfinite(t)).sum())
+
+
 # The running loss level of MVGSConfig.divergence_factor: an exponential average with this decay
 # of the steps that passed the check (a diverging step never raises it), from the first step on,
 # and never below _LEVEL_FLOOR: a photometric loss per view of images in [0, 1] stays below 1,
@@ -266,12 +275,8 @@ class MVGS:
 
     def _check_gradients(self, plan) -> None:
         for name, g in self.adapter.named_gradients().items():
-            # One sum first (no mask): a NaN or Inf anywhere makes it non-finite; a finite sum
-            # clears the group, an overflowing one goes to the exact check.
-            if g is None or bool(torch.isfinite(g.sum())):
-                continue
-            if not bool(torch.isfinite(g).all()):
-                bad = int((~torch.isfinite(g)).sum())
+            bad = 0 if g is None else _non_finite(g)
+            if bad:
                 raise FloatingPointError(
                     f"step {plan.step}: {bad} non-finite gradient entries in group {name!r} after views "
                     f"{[c.name for c in plan.cameras]}; stopping before the optimizer step"
@@ -298,12 +303,10 @@ class MVGS:
         if not hasattr(self.adapter, "gradient_parameters"):
             return
         for name, p in self.adapter.gradient_parameters().items():
-            with torch.no_grad():
-                if p.numel() == 0 or bool(torch.isfinite(p.sum())) or bool(torch.isfinite(p).all()):
-                    continue
-                bad = int((~torch.isfinite(p)).sum())
-            raise FloatingPointError(f"step {plan.step}: {bad} non-finite values in group {name!r} after the "
-                                     "optimizer step: the run diverges (a learning rate too high?)")
+            bad = _non_finite(p)
+            if bad:
+                raise FloatingPointError(f"step {plan.step}: {bad} non-finite values in group {name!r} after the "
+                                         "optimizer step: the run diverges (a learning rate too high?)")
 
     # ---- the whole run --------------------------------------------------------------------
     def fit(self, steps: Optional[int] = None, callback: Optional[Callable[[StepInfo], None]] = None,

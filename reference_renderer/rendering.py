@@ -88,8 +88,8 @@ def _project(means, quats, scales, colors, viewmats, Ks, width, height, near_pla
     fuse_sh = sh_degree is not None and colors.dim() == 3 and render_mode != "D" and render_mode != "ED"
     settings = (width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, float(radius_clip),
                 sh_degree if fuse_sh else None)
-    # the kernel computes the geometry in double and culls what does not fit the model's dtype,
-    # as projection.project does (csrc/project.cpp, forward)
+    # the kernel re-projects in double the pairs float32 would get wrong and culls what does not
+    # fit the model's dtype (csrc/project.cpp, needs_double); projection.project is the float64 twin
     out = _ProjectCpp.apply(means, quats, scales, colors if fuse_sh else None, viewmats, Ks, settings)
     means2d, conics, depths, comp, rgb, radii, rects, valid = out
     return Projection(means2d, conics, depths, comp, radii, rects, valid), (rgb if fuse_sh else None)

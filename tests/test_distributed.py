@@ -163,7 +163,7 @@ def _worker(rank, world, port, name, out, timeout):
             torch.save(result, out / f"rank{rank}.pt")
             coll.close()
             (out / f"rank{rank}.closed").write_text(str(time.monotonic()))
-            # as the examples do (exit_process): gloo's threads can abort the interpreter's teardown
+            # as the examples' launch() does: gloo's threads can abort the interpreter's teardown
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(0)

@@ -98,17 +98,14 @@ def check_binary_counts(model_dir: Path) -> None:
         file = Path(model_dir) / name
         if not file.is_file():
             continue
-        size = file.stat().st_size
-        with open(file, "rb") as f:
-            head = f.read(8)
-        if len(head) < 8:
+        r = _Reader(file)
+        size = len(r.data)
+        if size < 8:
             raise ValueError(f"{file}: {size} bytes, too short to hold its record count (8 bytes)")
-        count = int.from_bytes(head, "little")
-        if count * least > size - 8:
+        count = r.u64("the record count")
+        if count * least > size - 8:  # the common damage, said in one line before the walk
             raise ValueError(f"{file} declares {count} records, which take at least {count * least} bytes, but "
                              f"the file has {size}: it is truncated or corrupt")
-        r = _Reader(file)
-        r.u64("the record count")
         for i in range(count):
             if name == "points3D.bin":
                 r.take(43, f"point {i}")

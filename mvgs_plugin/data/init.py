@@ -134,12 +134,21 @@ def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image,
     return candidates[keep], mean[keep].clamp(0.0, 1.0), int((count[keep] >= MIN_VIEWS).sum())
 
 
-def random_init_points(scene, n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, str]:
+def random_init_points(scene, n: int, generator: torch.Generator,
+                       half_size: Optional[float] = None) -> tuple[torch.Tensor, torch.Tensor, str]:
     """n initial points (xyz, rgb [n, 3] float64) for a scene without a point cloud, and what
     was done (for the log). Cube: uniform, colours uniform in [0, 1] (the original 3DGS).
     Frusta: CANDIDATES_PER_POINT x n candidates in the region, the n most photo-consistent
-    kept with their mean colour (photo_consistent)."""
-    region = init_region(scene.train_cameras, scene.center, float(scene.extent))
+    kept with their mean colour (photo_consistent). ``half_size`` (or a scene-like object
+    without training cameras) asks for the cube about scene.center instead of init_region."""
+    cameras = getattr(scene, "train_cameras", None)
+    if half_size is not None or not cameras:
+        half = float(scene.extent) if half_size is None else float(half_size)
+        why = "no cameras: scene.extent" if half_size is None else "a given half size"
+        region = InitRegion("cube", f"random init: cube centre ± {half:g} ({why})",
+                            center=torch.as_tensor(scene.center, dtype=torch.float64), half=half)
+    else:
+        region = init_region(cameras, scene.center, float(scene.extent))
     if region.kind == "cube":
         xyz = region.sample(n, generator)
         return xyz, torch.rand(n, 3, generator=generator, dtype=torch.float64), region.description

@@ -16,7 +16,7 @@ from .colmap import check_inside, normalize_name
 from .images import check_background, image_size
 from .scene import PointCloud, Scene
 
-__all__ = ["load_nerf_synthetic", "load_dnerf", "read_points_ply", "OPENGL_TO_OPENCV"]
+__all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "OPENGL_TO_OPENCV"]
 
 # Blender/OpenGL cameras look down -z with y up; OpenCV looks down +z with y down. Flipping the
 # camera's y and z axes (right-multiplying camera-to-world) converts one into the other.
@@ -216,6 +216,12 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     # sizes were read from the headers above, so the Scene need not read them again
     return Scene(splits["train"], splits["test"], files, points=points, background=bg,
                  check_sizes=False, source=root)
+
+
+def is_dynamic(path) -> bool:
+    """Whether the NeRF-synthetic layout in ``path`` is a D-NeRF scene (its train frames carry a
+    'time'); a malformed transforms_train.json is named in a ValueError."""
+    return "time" in _read_json(Path(path) / "transforms_train.json")[0]
 
 
 def load_nerf_synthetic(path, background: Optional[Sequence[float]] = (1.0, 1.0, 1.0)) -> Scene:

@@ -247,13 +247,11 @@ struct GaussianBlock {
     T qn[kGaussians][4], qnorm[kGaussians], R[kGaussians][9], cov[kGaussians][6], smax2[kGaussians],
         smin2[kGaussians];
 
-    template <typename U>
-    void load(int64_t n0, int64_t n1, const U* quats, const U* scales) {
+    void load(int64_t n0, int64_t n1, const T* quats, const T* scales) {
         for (int64_t n = n0; n < n1; ++n) {
             const int64_t i = n - n0;
-            const T q[4] = {T(quats[n * 4]), T(quats[n * 4 + 1]), T(quats[n * 4 + 2]), T(quats[n * 4 + 3])};
-            const T sc[3] = {T(scales[n * 3]), T(scales[n * 3 + 1]), T(scales[n * 3 + 2])};
-            gaussian_cov(q, sc, qn[i], qnorm[i], R[i], cov[i]);
+            const T* sc = scales + n * 3;
+            gaussian_cov(quats + n * 4, sc, qn[i], qnorm[i], R[i], cov[i]);
             smax2[i] = std::max(sc[0] * sc[0], std::max(sc[1] * sc[1], sc[2] * sc[2]));
             smin2[i] = std::min(sc[0] * sc[0], std::min(sc[1] * sc[1], sc[2] * sc[2]));
         }
