@@ -40,20 +40,11 @@ import torch
 
 from adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
-from mvgs_plugin.data import is_dynamic, load_colmap, load_dnerf, load_nerf_synthetic
+from mvgs_plugin.data import load_scene
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text
 
 BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
-
-
-def load_scene(path: Path):
-    """COLMAP (sparse/ or sparse/0) or NeRF-synthetic / D-NeRF (transforms_train.json)."""
-    if (path / "transforms_train.json").exists():
-        return load_dnerf(path) if is_dynamic(path) else load_nerf_synthetic(path)
-    if (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
-        return load_colmap(path)
-    raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None) -> GS3DConfig:

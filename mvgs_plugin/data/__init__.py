@@ -5,8 +5,9 @@ own data.
 """
 
 from .colmap import load_colmap
+from .load import load_scene
 from .nerf import is_dynamic, load_dnerf, load_nerf_synthetic
 from .scene import PointCloud, Scene, camera_normalization
 
 __all__ = ["Scene", "PointCloud", "camera_normalization", "load_colmap", "load_nerf_synthetic",
-           "load_dnerf", "is_dynamic"]
+           "load_dnerf", "is_dynamic", "load_scene"]
