@@ -248,7 +248,8 @@ class ScaffoldAdapter:
             torch.manual_seed(self.config.seed)
             self.mlps = ScaffoldMLPs(self.config.feat_dim, self.config.n_offsets, self.config.use_distance)
         if isinstance(features, Tensor) and features.is_floating_point():
-            self.mlps.to(features.dtype)  # the MLPs compute in the dtype of the anchor rows
+            # the MLPs compute in the dtype, and on the device, of the anchor rows
+            self.mlps.to(device=features.device, dtype=features.dtype)
         self._build(anchors, {"features": features, "offsets": offsets, "scaling": scaling})
 
     # ---- construction ----------------------------------------------------------------------
@@ -269,10 +270,11 @@ class ScaffoldAdapter:
     def _build(self, anchors: Tensor, rows: Dict[str, Tensor]) -> None:
         """(Re)create the anchor parameters, a fresh optimizer and zero statistics."""
         self._check_rows(anchors, rows)
-        dtype = next(self.mlps.parameters()).dtype
-        self.anchors = anchors.detach().to(dtype).clone().contiguous()
+        dtype, device = next(self.mlps.parameters()).dtype, next(self.mlps.parameters()).device
+        self.anchors = anchors.detach().to(device=device, dtype=dtype).clone().contiguous()
         self.params: Dict[str, torch.nn.Parameter] = {
-            n: torch.nn.Parameter(rows[n].detach().to(dtype).clone().contiguous()) for n in ANCHOR_GROUPS}
+            n: torch.nn.Parameter(rows[n].detach().to(device=device, dtype=dtype).clone().contiguous())
+            for n in ANCHOR_GROUPS}
         lrs = self._lrs(self._step)
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in ANCHOR_GROUPS]
         groups += [{"params": list(getattr(self.mlps, n).parameters()), "lr": lrs[n], "name": n} for n in MLP_NAMES]
@@ -287,11 +289,13 @@ class ScaffoldAdapter:
         self.views_seen = z(())
 
     @classmethod
-    def from_scene(cls, scene, config: Optional[ScaffoldConfig] = None, dtype: torch.dtype = torch.float32
-                   ) -> "ScaffoldAdapter":
+    def from_scene(cls, scene, config: Optional[ScaffoldConfig] = None, dtype: torch.dtype = torch.float32,
+                   device: Optional[torch.device | str] = None) -> "ScaffoldAdapter":
         """Anchors = unique voxel centres of scene.points; features 0; offsets 0 (or
         N(0, offset_init_std^2)); scaling log(sqrt(mean squared distance to the 3 nearest other
-        anchors)) repeated 6 times (floored at 1e-7 before the root, as 3DGS)."""
+        anchors)) repeated 6 times (floored at 1e-7 before the root, as 3DGS). device: where the
+        anchors and MLPs live (default: the CPU); made on the CPU, then moved, so a seed gives
+        the same model on any device."""
         config = ScaffoldConfig() if config is None else config
         points = getattr(scene, "points", None)
         if points is None or len(points) == 0:
@@ -309,7 +313,7 @@ class ScaffoldAdapter:
         gen = torch.Generator().manual_seed(config.seed)
         offsets = torch.randn(a, k, 3, generator=gen, dtype=torch.float64) * config.offset_init_std
         features = torch.zeros(a, config.feat_dim, dtype=torch.float64)
-        t = lambda x: x.to(dtype)  # noqa: E731
+        t = lambda x: x.to(device=device, dtype=dtype)  # noqa: E731
         model = cls(t(anchors), t(features), t(offsets), t(scaling), scene.extent, voxel, config)
         return model
 
@@ -666,8 +670,9 @@ class ScaffoldAdapter:
         self.config = config
         self.voxel_size, self.scene_extent = float(state["voxel_size"]), float(state["scene_extent"])
         self._step = int(state["step"])
-        dtype = next(self.mlps.parameters()).dtype
-        self.mlps = ScaffoldMLPs(config.feat_dim, config.n_offsets, config.use_distance).to(dtype)
+        ref = next(self.mlps.parameters())
+        self.mlps = ScaffoldMLPs(config.feat_dim, config.n_offsets, config.use_distance).to(device=ref.device,
+                                                                                              dtype=ref.dtype)
         self.mlps.load_state_dict(state["mlps"])
         self._build(state["anchors"], state["params"])
         self.optimizer.load_state_dict(state["optimizer"])

@@ -18,6 +18,7 @@ ScaffoldAdapter.state_dict()).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -26,7 +27,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record,
+    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, rasterize_function,
     train_and_evaluate, write_json,
 )
 
@@ -42,9 +43,6 @@ def parse_args(argv=None):
                     help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
     args = ap.parse_args(argv)
-    if args.device != "cpu" or args.rasterizer != "reference":
-        ap.error("train_scaffold.py runs on the CPU with the reference renderer only (the Scaffold-GS adapter "
-                 f"does not take a device yet): got --device {args.device} --rasterizer {args.rasterizer}")
     if args.voxel_size is not None and not args.voxel_size > 0:
         ap.error(f"--voxel-size must be > 0, got {args.voxel_size}")
     return args
@@ -68,7 +66,8 @@ def run(args, dist) -> dict:
     scene = load_scene(args.data)
     config = config_from_args(args)
     model_cfg = scaffold_config(config, args)
-    adapter = ScaffoldAdapter.from_scene(scene, model_cfg)
+    model_cfg = dataclasses.replace(model_cfg, rasterize=rasterize_function(args))
+    adapter = ScaffoldAdapter.from_scene(scene, model_cfg, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

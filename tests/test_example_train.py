@@ -135,3 +135,21 @@ def test_device_flags_this_machine_cannot_run_stop_before_any_work(tmp_path, mon
     with pytest.raises(ValueError, match=message):
         example.main(flags + ["--steps", "3", "--no-progress", "--out", str(tmp_path / "out")])
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("script", ["train_scaffold.py", "train_4dgs.py"])
+def test_every_example_refuses_cuda_flags_this_machine_cannot_run(tmp_path, script):
+    """The Scaffold-GS and 4DGS examples take --device / --rasterizer too, and stop the same way
+    here (no CUDA): a clear error before any scene is read or folder written."""
+    import torch
+
+    assert not torch.cuda.is_available()
+    spec = importlib.util.spec_from_file_location(script[:-3], EXAMPLE.parent / script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    for flags, message in ((["--device", "cuda"], "sees no CUDA device here"),
+                           (["--rasterizer", "gsplat"], "needs --device cuda")):
+        with pytest.raises(ValueError, match=message):
+            module.main(flags + ["--data", str(tmp_path / "none"), "--steps", "3", "--no-progress",
+                                 "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
