@@ -1,0 +1,114 @@
+"""Single view against MVGS in the port of gsplat's simple_trainer loop, at equal steps and at
+equal CPU time; prints a markdown table (and writes it with --table).
+
+Every run is its own single-threaded process (examples/gsplat_loop/simple_trainer*.py, one
+thread), at most `--parallel` at a time. Rows:
+- single view, gsplat's DefaultStrategy as installed, `--steps` steps;
+- single view through MVGSStrategy's baseline preset (the same strategy on the schedule's clock,
+  which also resets opacities: gsplat 1.5.3's strategy alone never does);
+- single view with grow_grad2d = 2e-4 x 800 / W (W the images' width): the threshold the
+  default preset uses at full resolution, so that row differs from "MVGS default" only by the
+  pyramid warm-up and the opacity resets;
+- each MVGS preset in `--presets` at `--steps` steps;
+- equal CPU: for each MVGS preset, the single-view loop given the steps that cost the preset's
+  CPU time (its steps x preset CPU / single-view CPU), and the preset given the single-view
+  run's CPU time the same way.
+
+    python benchmarks/bench_gsplat_loop.py --steps 1000 --table docs/gsplat_loop.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LOOP = ROOT / "examples" / "gsplat_loop"
+
+
+def run(script: str, steps: int, out: Path, data, preset: str = "default", seed: int = 0, extra=()) -> dict:
+    cmd = [sys.executable, str(LOOP / script), "--steps", str(steps), "--out", str(out), "--threads", "1",
+           "--preset", preset, "--seed", str(seed), *extra]
+    if data is not None:
+        cmd += ["--data", str(data)]
+    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def row(name: str, m: dict) -> str:
+    return (f"| {name} | {m['steps']} | {m['work']:.0f} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m['num_gaussians']} "
+            f"| {m['cpu_seconds']:.0f} | {m['train_seconds']:.0f} |")
+
+
+def main(argv=None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=None, help="scene folder (default: the bundled tabletop scene)")
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--presets", nargs="+", default=["default", "multiview"])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--parallel", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("out/bench_gsplat_loop"))
+    ap.add_argument("--table", type=Path, default=None, help="also write the table here")
+    args = ap.parse_args(argv)
+    n, out = args.steps, args.out
+
+    from mvgs_plugin.data import load_scene
+
+    width = load_scene(args.data or ROOT / "examples" / "scenes" / "tabletop").train_cameras[0].width
+    scaled = ["--grow-grad2d", f"{2e-4 * 800 / width:.6g}"]
+    jobs = {"single": ("simple_trainer.py", n, "default", ()),
+            "single-mvgs-clock": ("simple_trainer_mvgs.py", n, "baseline", ()),
+            "single-scaled": ("simple_trainer.py", n, "default", scaled)}
+    jobs.update({p: ("simple_trainer_mvgs.py", n, p, ()) for p in args.presets})
+    with ThreadPoolExecutor(args.parallel) as pool:
+        futures = {k: pool.submit(run, s, steps, out / k, args.data, p, args.seed, x)
+                   for k, (s, steps, p, x) in jobs.items()}
+        first = {k: f.result() for k, f in futures.items()}
+        single = first["single"]
+        second = {}
+        for p in args.presets:
+            ratio = first[p]["cpu_seconds"] / single["cpu_seconds"]
+            second[f"single@{p}"] = pool.submit(run, "simple_trainer.py", max(2, round(n * ratio)), out / f"single_at_{p}",
+                                                args.data, "default", args.seed)
+            second[f"{p}@single"] = pool.submit(run, "simple_trainer_mvgs.py", max(2, round(n / ratio)), out / f"{p}_at_single",
+                                                args.data, p, args.seed)
+            ratio_scaled = first[p]["cpu_seconds"] / first["single-scaled"]["cpu_seconds"]
+            if ratio_scaled > 1.05:  # the scaled single view is cheaper: give it the preset's CPU time
+                second[f"scaled@{p}"] = pool.submit(run, "simple_trainer.py", max(2, round(n * ratio_scaled)),
+                                                    out / f"single_scaled_at_{p}", args.data, "default", args.seed,
+                                                    scaled)
+            elif ratio_scaled < 0.95:  # the preset is cheaper: give it the scaled single view's CPU time
+                second[f"{p}@scaled"] = pool.submit(run, "simple_trainer_mvgs.py", max(2, round(n / ratio_scaled)),
+                                                    out / f"{p}_at_single_scaled", args.data, p, args.seed)
+        second = {k: f.result() for k, f in second.items()}
+
+    lines = [f"Scene: {args.data or 'bundled tabletop'}; seed {args.seed}; one thread per run; CPU = user + sys of the "
+             "training loop, wall beside it; work = full-resolution view renders.", "",
+             "| run | steps | work | PSNR (dB) | SSIM | Gaussians | CPU (s) | wall (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|",
+             row("single view (DefaultStrategy as installed)", single),
+             row("single view, MVGSStrategy baseline preset (schedule's clock, with resets)", first["single-mvgs-clock"]),
+             row(f"single view, grow_grad2d {scaled[1]} (the default's threshold at {width} px)",
+                 first["single-scaled"])]
+    for p in args.presets:
+        lines.append(row(f"MVGS {p}, equal steps", first[p]))
+    for p in args.presets:
+        lines.append(row(f"single view at MVGS {p}'s CPU time", second[f"single@{p}"]))
+        lines.append(row(f"MVGS {p} at single view's CPU time", second[f"{p}@single"]))
+        if f"scaled@{p}" in second:
+            lines.append(row(f"single view, grow_grad2d {scaled[1]}, at MVGS {p}'s CPU time", second[f"scaled@{p}"]))
+        if f"{p}@scaled" in second:
+            lines.append(row(f"MVGS {p} at the grow_grad2d {scaled[1]} single view's CPU time", second[f"{p}@scaled"]))
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.table is not None:
+        args.table.write_text(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
