@@ -273,6 +273,20 @@ def test_truncated_points_file_below_its_declared_count_is_refused(tmp_path):
     assert str(file) in msg and f"declares {declared} records" in msg and "1000" in msg, msg
 
 
+def test_an_unknown_camera_model_does_not_end_the_walk(tmp_path):
+    """A camera model id the walk does not know leaves cameras.bin to pycolmap, but the image and
+    point files after it are still walked: a truncated points3D.bin is still refused by name."""
+    scene_dir = copy_scene(tmp_path)
+    cams = scene_dir / "sparse" / "0" / "cameras.bin"
+    data = bytearray(cams.read_bytes())
+    data[12:16] = (99).to_bytes(4, "little", signed=True)  # record 0: u64 count, i32 id, i32 model
+    cams.write_bytes(bytes(data))
+    points = scene_dir / "sparse" / "0" / "points3D.bin"
+    points.write_bytes(points.read_bytes()[:1000])
+    with pytest.raises(ValueError, match=re.escape(str(points)) + ".*declares 4000 records"):
+        load_colmap(scene_dir)
+
+
 def test_count_header_itself_truncated_is_refused(tmp_path):
     scene_dir = copy_scene(tmp_path)
     file = scene_dir / "sparse" / "0" / "images.bin"

@@ -106,6 +106,7 @@ def check_binary_counts(model_dir: Path) -> None:
         if count * least > size - 8:  # the common damage, said in one line before the walk
             raise ValueError(f"{file} declares {count} records, which take at least {count * least} bytes, but "
                              f"the file has {size}: it is truncated or corrupt")
+        known = True
         for i in range(count):
             if name == "points3D.bin":
                 r.take(43, f"point {i}")
@@ -116,10 +117,12 @@ def check_binary_counts(model_dir: Path) -> None:
                 r.take(24 * r.u64(f"image {i}'s 2D point count"), f"image {i}'s 2D points")
             else:
                 model = struct.unpack("<i", r.take(8, f"camera {i}")[4:8])[0]
-                if model not in _CAMERA_PARAMS:
-                    return  # a model this walk does not know: pycolmap decides (the file is tiny)
+                if model not in _CAMERA_PARAMS:  # a model this walk does not know: pycolmap decides on
+                    known = False  # this (tiny) file; the image and point files are still walked
+                    break
                 r.take(16 + 8 * _CAMERA_PARAMS[model], f"camera {i}")
-        r.done()
+        if known:
+            r.done()
 
 
 def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
