@@ -33,7 +33,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
 from mvgs_plugin.data.init import random_init_points
-from mvgs_plugin.densify import boxes_contain, check_boxes
+from mvgs_plugin.densify import boxes_contain, check_boxes, top_by_score
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 from reference_renderer.projection import quat_to_rotmat
@@ -269,18 +269,6 @@ def _block_knn(q: Tensor, q_idx: Tensor, c: Tensor, c_idx: Tensor, k: int) -> Te
         idx = d2.topk(k, dim=1, largest=False).indices  # ranked by the expansion ...
         exact = ((q[s:s + rows, None, :] - c[idx]) ** 2).sum(dim=-1)  # ... measured exactly
         out[s:s + rows] = exact.mean(dim=1)
-    return out
-
-
-def _top_by_score(mask: Tensor, score: Tensor, k: int) -> Tensor:
-    """Keep at most k of the True entries of mask [N]: those with the largest score [N]
-    (ties: lower index first)."""
-    idx = mask.nonzero().squeeze(1)
-    if idx.numel() <= k:
-        return mask
-    order = torch.sort(score[idx], descending=True, stable=True).indices[:k]
-    out = torch.zeros_like(mask)
-    out[idx[order]] = True
     return out
 
 
@@ -696,7 +684,7 @@ class GS3DAdapter:
         sel = boxes_contain(self.params["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:
-            sel = _top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+            sel = top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
     def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor):

@@ -58,11 +58,11 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data.scene import PointCloud
-from mvgs_plugin.densify import boxes_contain
+from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
-from .gs3d import GS3DAdapter, GS3DConfig, make_adam, _check_float, _check_int, _top_by_score
+from .gs3d import GS3DAdapter, GS3DConfig, make_adam, _check_float, _check_int
 
 __all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
 
@@ -517,7 +517,7 @@ class GS4DAdapter(GS3DAdapter):
                 sel |= boxes_contain(self.deformed(t)["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:
-            sel = _top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+            sel = top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
     # ---- optimisation -----------------------------------------------------------------------

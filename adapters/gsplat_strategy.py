@@ -69,9 +69,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import warnings
-from typing import Any, Dict, Iterator, List, Optional, Union
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -81,10 +80,33 @@ from gsplat.strategy.ops import duplicate, reset_opa
 
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.config import MVGSConfig
-from mvgs_plugin.densify import boxes_contain
+from mvgs_plugin.controller import config_differences
+from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.schedule import StepPlan, ViewSchedule
 
-__all__ = ["MVGSStrategy", "adopt_strategy_clock"]
+__all__ = ["MVGSStrategy", "MVGSBatches", "adopt_strategy_clock", "gsplat_batch"]
+
+
+def gsplat_batch(cameras: Sequence[Camera], images: Tensor, image_ids: Sequence[int], backgrounds: Tensor
+                 ) -> Dict[str, Tensor]:
+    """A batch as gsplat's Dataset gives it: camtoworld [C, 4, 4], K [C, 3, 3], image [C, H, W, 3]
+    float in 0..255 (from `images` in [0, 1]), image_id [C], plus background [C, 3]."""
+    if len({(c.width, c.height) for c in cameras}) != 1:
+        raise ValueError(f"a batch needs one image size, got {sorted({(c.width, c.height) for c in cameras})} "
+                         "(use a chunk_size of 1 for mixed sizes)")
+    return {
+        "camtoworld": torch.stack([c.camera_to_world for c in cameras]).float(),
+        "K": torch.stack([c.K for c in cameras]).float(),
+        "image": images * 255.0,
+        "image_id": torch.tensor(list(image_ids), dtype=torch.long),
+        "background": backgrounds.float(),
+    }
+
+
+def _clock_per_step(config: MVGSConfig, steps: int) -> float:
+    """Clock units per single-view step of a run of `steps`: 1 on a step clock; on a work clock
+    the ratio that keeps a step-valued setting at its fraction of the run."""
+    return config.clock_length / steps if config.counts_work else 1.0
 
 
 def adopt_strategy_clock(config: MVGSConfig, strategy: DefaultStrategy, steps: int) -> MVGSConfig:
@@ -94,7 +116,7 @@ def adopt_strategy_clock(config: MVGSConfig, strategy: DefaultStrategy, steps: i
     (DefaultStrategy prunes by size once the step exceeds reset_every), grad_threshold from
     grow_grad2d. On a work clock each value keeps its fraction of the run (times
     config.clock_length / steps)."""
-    r = config.clock_length / steps if config.counts_work else 1.0
+    r = _clock_per_step(config, steps)
     scale = lambda v, low: max(low, int(round(v * r)))  # noqa: E731
     return dataclasses.replace(
         config, densify_from=scale(strategy.refine_start_iter, 0),
@@ -141,7 +163,7 @@ class MVGSStrategy:
         run_steps = config.total_steps
         if clock == "strategy":
             config = adopt_strategy_clock(config, strategy, run_steps)
-        r = config.clock_length / run_steps if config.counts_work else 1.0
+        r = _clock_per_step(config, run_steps)
         self._scale2d_until = strategy.refine_scale2d_stop_iter * r
         self._pause = strategy.pause_refine_after_reset * r
         self.strategy = strategy
@@ -186,7 +208,7 @@ class MVGSStrategy:
                                f"{self._calls_expected} batch(es) drawn")
         if self._collect[self._calls]:
             self._call_strategy(params, optimizers, state, info, packed, refine=None)
-        if renders is not None and self.schedule.needs_loss_maps:
+        if renders is not None and plan.wants_maps:
             targets = self._targets[self._calls]
             if tuple(renders.shape[:3]) != tuple(targets.shape[:3]):
                 raise ValueError(f"renders must be the batch's colours [{', '.join(map(str, targets.shape))}], got "
@@ -216,23 +238,9 @@ class MVGSStrategy:
                 warnings.warn("stats_from='last' needs batches(chunked=True): an unchunked batch renders all "
                               "views in one call, so its statistics come from all of them", stacklevel=3)
         self._plan, self._collect, self._calls, self._calls_expected = plan, collect, 0, len(chunks)
-        out = [self._batch(plan, c) for c in chunks]
-        self._targets = [b["image"] / 255.0 for b in out]
-        return out
-
-    @staticmethod
-    def _batch(plan: StepPlan, positions: List[int]) -> Dict[str, Tensor]:
-        cams: List[Camera] = [plan.cameras[i] for i in positions]
-        if len({(c.width, c.height) for c in cams}) != 1:
-            raise ValueError(f"step {plan.step}: a batch needs one image size, got "
-                             f"{sorted({(c.width, c.height) for c in cams})} (use a chunk_size of 1 for mixed sizes)")
-        return {
-            "camtoworld": torch.stack([torch.linalg.inv(c.world_to_camera) for c in cams]).float(),
-            "K": torch.stack([c.K for c in cams]).float(),
-            "image": torch.stack([plan.images[i] for i in positions]) * 255.0,
-            "image_id": torch.tensor([plan.views[i] for i in positions], dtype=torch.long),
-            "background": plan.backgrounds[positions].float(),
-        }
+        self._targets = [torch.stack([plan.images[i] for i in c]) for c in chunks]  # [C, H, W, 3] in [0, 1]
+        return [gsplat_batch([plan.cameras[i] for i in c], t, [plan.views[i] for i in c], plan.backgrounds[c])
+                for c, t in zip(chunks, self._targets)]
 
     # ---- what runs between steps -------------------------------------------------------------
     def _end_of_step(self, params, optimizers, state) -> None:
@@ -272,13 +280,10 @@ class MVGSStrategy:
         first) with gsplat's ops.duplicate; the copies start with zero statistics, so the
         strategy's own grow step that follows acts on the originals only (as GS3DAdapter)."""
         sel = boxes_contain(params["means"], boxes)
-        if cap is not None and int(sel.sum()) > cap:
+        if cap is not None:
             grad2d, count = state.get("grad2d"), state.get("count")
-            score = (grad2d / count.clamp_min(1)) if grad2d is not None else torch.zeros(len(sel))
-            idx = sel.nonzero().squeeze(1)
-            keep = idx[torch.sort(score[idx].to(sel.device), descending=True, stable=True).indices[:cap]]
-            sel = torch.zeros_like(sel)
-            sel[keep] = True
+            score = grad2d / count.clamp_min(1) if grad2d is not None else torch.zeros(len(sel))
+            sel = top_by_score(sel, score, cap)
         n = int(sel.sum())
         if n:
             duplicate(params=params, optimizers=optimizers, state=state, mask=sel)
@@ -306,7 +311,7 @@ class MVGSStrategy:
             return
         view.refine_start_iter, view.refine_stop_iter, view.refine_every = 0, 4, 1
         view.reset_every = 2 if refine.prune_large else 4
-        view.grow_grad2d = float(refine.grad_threshold) if math.isfinite(refine.grad_threshold) else math.inf
+        view.grow_grad2d = float(refine.grad_threshold)
         view.refine_scale2d_stop_iter = (4 if self._plan.clock < self._scale2d_until else 1) if scale2d else 0
         view.step_post_backward(params, optimizers, state, 3, self._empty_info(params, scale2d), packed=False)
 
@@ -329,11 +334,10 @@ class MVGSStrategy:
         return {"schedule": self.schedule.state_dict(), "config": self.config.to_dict()}
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
-        saved = MVGSConfig.from_dict(state["config"])
-        if saved != self.config:
-            diff = [f.name for f in dataclasses.fields(MVGSConfig)
-                    if f.compare and getattr(saved, f.name) != getattr(self.config, f.name)]
-            raise ValueError(f"the checkpoint's MVGS config differs from this run's in {diff}")
+        diff = config_differences(MVGSConfig.from_dict(state["config"]), self.config)
+        if diff:
+            raise ValueError("the checkpoint's MVGS config differs from this run's: "
+                             + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diff))
         self.schedule.load_state_dict(state["schedule"])
         self._plan, self._calls, self._calls_expected = None, 0, 0
 

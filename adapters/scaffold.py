@@ -270,11 +270,10 @@ class ScaffoldAdapter:
     def _build(self, anchors: Tensor, rows: Dict[str, Tensor]) -> None:
         """(Re)create the anchor parameters, a fresh optimizer and zero statistics."""
         self._check_rows(anchors, rows)
-        dtype, device = next(self.mlps.parameters()).dtype, next(self.mlps.parameters()).device
-        self.anchors = anchors.detach().to(device=device, dtype=dtype).clone().contiguous()
+        ref = next(self.mlps.parameters())  # the anchors live where, and as, the MLPs compute
+        self.anchors = anchors.detach().to(ref).clone().contiguous()
         self.params: Dict[str, torch.nn.Parameter] = {
-            n: torch.nn.Parameter(rows[n].detach().to(device=device, dtype=dtype).clone().contiguous())
-            for n in ANCHOR_GROUPS}
+            n: torch.nn.Parameter(rows[n].detach().to(ref).clone().contiguous()) for n in ANCHOR_GROUPS}
         lrs = self._lrs(self._step)
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in ANCHOR_GROUPS]
         groups += [{"params": list(getattr(self.mlps, n).parameters()), "lr": lrs[n], "name": n} for n in MLP_NAMES]

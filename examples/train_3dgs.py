@@ -47,12 +47,14 @@ from mvgs_plugin.io import atomic_write_text
 BUNDLED = Path(__file__).resolve().parent / "scenes" / "tabletop"
 
 
-def model_config(config: MVGSConfig, seed: int, max_gaussians=None) -> GS3DConfig:
+def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
-    every 1000) compressed with the run, as the controller's densification clock is."""
+    every 1000) compressed with the run, as the controller's densification clock is; rasterize:
+    the rasterizer (None: GS3DConfig's, the reference one)."""
     clock = config.clock_length
+    extra = {} if rasterize is None else {"rasterize": rasterize}
     return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
-                      sh_degree_interval=max(1, round(1000 * clock / 30_000)))
+                      sh_degree_interval=max(1, round(1000 * clock / 30_000)), **extra)
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -295,7 +297,7 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     scene = load_scene(args.data)
     config = config_from_args(args)
-    model = dataclasses.replace(model_config(config, args.seed, args.max_gaussians), rasterize=rasterize_function(args))
+    model = model_config(config, args.seed, args.max_gaussians, rasterize_function(args))
     adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0

@@ -25,6 +25,15 @@ import math
 from typing import Optional, Tuple, Union
 
 
+def _check_finite_above(name: str, value, low: float, what: str, optional: bool = False) -> None:
+    """Raise ValueError("<name> must be <what>, got <value>") unless value is a real number (not a
+    bool) with low < value < inf, or None when optional."""
+    if optional and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low < value < float("inf"):
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class Stage:
     """One level of cross-intrinsic guidance: image pyramid factor, views per step, steps."""
@@ -200,20 +209,15 @@ class MVGSConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 what = "a positive int" if low == 1 else "an int >= 0"
                 raise ValueError(f"{name} must be {what}{' or None' if name == 'chunk_size' else ''}, got {v!r}")
-        t = self.mvad_tau
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < float("inf"):
-            raise ValueError(f"mvad_tau must be a finite discrepancy > 0 (a chord on the unit sphere is at most 2), "
-                             f"got {t!r}")
-        m = self.chunk_memory_mb
-        if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 < m < float("inf"):
-            raise ValueError(f"chunk_memory_mb must be a finite number of MiB > 0, got {m!r}")
+        _check_finite_above("mvad_tau", self.mvad_tau, 0, "a finite discrepancy > 0 (a chord on the unit sphere "
+                                                          "is at most 2)")
+        _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
         if not self.grad_threshold > 0:
             raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold!r}")
-        w = self.grad_threshold_width
-        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 < w < float("inf")):
-            raise ValueError(f"grad_threshold_width must be None or a finite width in pixels > 0, got {w!r}")
+        _check_finite_above("grad_threshold_width", self.grad_threshold_width, 0,
+                            "None or a finite width in pixels > 0", optional=True)
         if not (isinstance(self.mvad_rule, str) and self.mvad_rule == "any") and not (
                 not isinstance(self.mvad_rule, (str, bool)) and 0.0 < float(self.mvad_rule) <= 1.0):
             raise ValueError(f"mvad_rule must be 'any' or a fraction in (0, 1], got {self.mvad_rule!r}")
@@ -221,13 +225,11 @@ class MVGSConfig:
         if len(self.view_cost) != 2 or not all(0.0 <= v < float("inf") for v in self.view_cost) or not math.isclose(
                 sum(self.view_cost), 1.0):
             raise ValueError(f"view_cost must be (a, b) with a, b >= 0 and a + b = 1, got {self.view_cost!r}")
-        d = self.divergence_factor
-        if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not 1 < d < float("inf")):
-            raise ValueError(f"divergence_factor must be None or a finite number > 1, got {d!r}")
-        b = self.budget
-        if b is not None and (isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 < b < float("inf")):
-            raise ValueError(f"budget must be None or a finite number of full-resolution views > 0, got {b!r}")
-        if b is not None and self.restart_per_stage:
+        _check_finite_above("divergence_factor", self.divergence_factor, 1, "None or a finite number > 1",
+                            optional=True)
+        _check_finite_above("budget", self.budget, 0, "None or a finite number of full-resolution views > 0",
+                            optional=True)
+        if self.budget is not None and self.restart_per_stage:
             raise ValueError("budget needs one continuous clock (restart_per_stage=False); the paper() preset "
                              "restarts its schedules at every stage")
         if self.clock_unit not in ("steps", "work"):
@@ -379,8 +381,7 @@ class MVGSConfig:
         with_total_steps()'s floors for short runs. Baseline and MVGS given one budget thus do
         the same work on the same clock.
         """
-        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < float("inf"):
-            raise ValueError(f"budget must be a finite number of full-resolution views > 0, got {budget!r}")
+        _check_finite_above("budget", budget, 0, "a finite number of full-resolution views > 0")
         if self.restart_per_stage:
             raise ValueError("with_budget needs one continuous clock (restart_per_stage=False); the paper() "
                              "preset restarts its schedules at every stage")

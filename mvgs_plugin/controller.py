@@ -58,7 +58,6 @@ def _non_finite(t) -> int:
 # so with the default factor 100 a loss above 1 is always caught and one near-perfect view
 # cannot make the next ordinary one look like an explosion.
 _LEVEL_DECAY = 0.9
-_LEVEL_WARMUP = 1
 _LEVEL_FLOOR = 0.01
 
 
@@ -132,7 +131,7 @@ class MVGS:
                                 f"got {type(distributed).__name__}")
             require_support(adapter)
         self.distributed = distributed
-        self._loss_level = (0.0, 0)  # running loss per view and how many steps it has seen
+        self._loss_level: Optional[float] = None  # running loss per view; None before the first step
 
     @property
     def is_main(self) -> bool:
@@ -160,7 +159,7 @@ class MVGS:
             adapter.reset_opacity()
         adapter.set_step(plan.clock)
         times["adapter"] += time.perf_counter() - t0
-        maps = [] if plan.densify and self.schedule.needs_loss_maps else None
+        maps = [] if plan.wants_maps else None
         dist = self.distributed
         mine = list(range(len(plan.views))) if dist is None else dist.positions(len(plan.views))
         error: Optional[BaseException] = None
@@ -287,15 +286,17 @@ class MVGS:
         MVGSConfig.divergence_factor). The level starts again in every process (not saved)."""
         factor = self.config.divergence_factor
         per_view = total / (plan.weight * len(plan.views))
-        level, seen = self._loss_level
-        level = max(level, _LEVEL_FLOOR)
-        if factor is not None and seen >= _LEVEL_WARMUP and per_view > factor * level:
+        old = self._loss_level
+        if old is None:
+            self._loss_level = per_view
+            return
+        level = max(old, _LEVEL_FLOOR)
+        if factor is not None and per_view > factor * level:
             raise FloatingPointError(
                 f"step {plan.step}: the loss per view is {per_view:.4g}, {per_view / level:.3g} times its running "
                 f"level {level:.4g} (> divergence_factor {factor:g}): the run diverges (a learning rate too high?); "
                 "stopping before the optimizer step")
-        old = self._loss_level[0]
-        self._loss_level = (per_view if seen == 0 else _LEVEL_DECAY * old + (1 - _LEVEL_DECAY) * per_view, seen + 1)
+        self._loss_level = _LEVEL_DECAY * old + (1 - _LEVEL_DECAY) * per_view
 
     def _check_parameters(self, plan) -> None:
         """Every trainable tensor finite after the optimizer step (adapters with

@@ -97,8 +97,9 @@ class StepPlan:
     per-view loss (1 for "sum", 1/M for "mean"); chunks: positions in `views` rendered and
     backpropagated together; stats: per chunk, whether its densification statistics are
     collected; densify / reset_opacity / handoff_reset: what runs after the backward passes.
-    recorded: per-view loss maps a hand-written loop handed over with record() (optional: see
-    ViewSchedule.densify_context).
+    wants_maps: whether this step's densification needs per-view loss maps (it densifies and
+    cross-ray densification is on); recorded: the maps a hand-written loop handed over with
+    record() (optional: see ViewSchedule.densify_context).
     """
 
     step: int
@@ -115,14 +116,17 @@ class StepPlan:
     densify: bool
     reset_opacity: bool
     handoff_reset: bool
+    wants_maps: bool = False
     recorded: List[Tensor] = field(default_factory=list)
 
     def record(self, images: Sequence[Tensor], targets: Sequence[Tensor]) -> None:
         """Hand the step's rendered images and their targets to the schedule, chunk by chunk in
         view order (one line after backward in a hand-written loop). Cross-ray densification
         needs their per-view loss maps; without them it is skipped with a warning. The maps are
-        detached and [H', W'] each, so recording costs no graph memory."""
-        self.recorded.extend(loss_map(img, gt) for img, gt in zip(images, targets))
+        detached and [H', W'] each, so recording costs no graph memory; on steps that do not
+        densify with CRD (wants_maps False) nothing is computed or kept."""
+        if self.wants_maps:
+            self.recorded.extend(loss_map(img, gt) for img, gt in zip(images, targets))
 
     def __iter__(self) -> Iterator[Tuple[List[Camera], List[Tensor], Tensor, bool]]:
         """Per chunk: (cameras, target images, backgrounds [C, 3], collect statistics?)."""
@@ -179,15 +183,17 @@ class ViewSchedule:
         images = [self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
         chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
         collect = pos.clock < cfg.densify_until
+        densify = collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)
         stats = [collect and (cfg.stats_from == "all" or c[-1] == len(ids) - 1) for c in chunks]
         self.step_count = s
         return StepPlan(
             step=s, clock=pos.clock, stage=pos.index, factor=pos.stage.factor, views=ids, cameras=cams,
             images=images, backgrounds=self._backgrounds(len(ids)),
             weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
-            densify=collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every),
+            densify=densify,
             reset_opacity=collect and pos.crosses(cfg.opacity_reset_every),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
+            wants_maps=densify and cfg.crd,
         )
 
     @property
@@ -200,11 +206,6 @@ class ViewSchedule:
             work += n * self.config.step_work(stage) * min(stage.views, n_train) / stage.views
             left -= n
         return work
-
-    @property
-    def needs_loss_maps(self) -> bool:
-        """Whether densification steps need per-view loss maps (cross-ray densification)."""
-        return self.config.crd
 
     def base_threshold(self, plan: StepPlan) -> float:
         """β before MVAD: config.grad_threshold, times config.grad_threshold_width / W when that

@@ -321,9 +321,7 @@ def _check_gsplat_options(sparse_grad, channel_chunk, distributed, segmented, co
                           radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
                           viewmats_rs) -> None:
     """gsplat 1.5.3's keywords this renderer takes only at their defaults (see rasterization)."""
-    if isinstance(channel_chunk, bool) or not isinstance(channel_chunk, int) or channel_chunk < 1:
-        raise ValueError(f"channel_chunk must be a positive int (a memory knob of gsplat's, unused here), "
-                         f"got {channel_chunk!r}")
+    V.check_positive_int("channel_chunk", channel_chunk)  # a memory knob of gsplat's, unused here
     refused = (
         ("sparse_grad", sparse_grad, False, "sparse gradients come with packed=True, which this renderer does not "
                                             "have: pass sparse_grad=False (dense [N] gradients)"),

@@ -23,11 +23,10 @@ from typing import Dict, Optional
 import torch
 from torch import Tensor
 
-from adapters.gs3d import knn_mean_sq_dist
+from adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.camera import Camera, stack_cameras
 from reference_renderer import rasterization
-
-SH_C0 = 0.28209479177387814
+from reference_renderer.projection import quat_to_rotmat
 
 
 def inverse_sigmoid(x: Tensor) -> Tensor:
@@ -171,7 +170,7 @@ class GaussianModel:
         sel = (padded >= grad_threshold) & (self.get_scaling.max(dim=1).values > self.percent_dense * scene_extent)
         stds = self.get_scaling[sel].repeat(N, 1)
         samples = torch.normal(mean=torch.zeros_like(stds), std=stds)
-        rots = _rotation_matrices(self.get_rotation[sel]).repeat(N, 1, 1)
+        rots = quat_to_rotmat(self.get_rotation[sel]).repeat(N, 1, 1)
         xyz, f_dc, f_rest, opacity, _, rotation = self._rows(sel, N)
         new_xyz = torch.bmm(rots, samples[..., None])[..., 0] + xyz
         new_scaling = torch.log(self.get_scaling[sel].repeat(N, 1) / (0.8 * N))
@@ -212,15 +211,6 @@ class GaussianModel:
         self.training_setup(iterations)
         self.xyz_gradient_accum, self.denom, self.max_radii2D = accum.clone(), denom.clone(), max_radii2D.clone()
         self.optimizer.load_state_dict(opt_state)
-
-
-def _rotation_matrices(q: Tensor) -> Tensor:
-    """[N, 3, 3] from unit quaternions w-x-y-z."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(-1, 3, 3)
 
 
 def render(viewpoint_camera: Camera, pc: GaussianModel, bg_color: Tensor) -> Dict[str, Tensor]:

@@ -31,7 +31,7 @@ import torch
 from gaussian_model import GaussianModel, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.data import load_scene
-from mvgs_plugin.densify import boxes_contain
+from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
@@ -49,12 +49,9 @@ def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
     if ctx.boxes is None or not len(ctx.boxes):
         return 0
     sel = boxes_contain(gaussians.get_xyz, ctx.boxes)
-    if ctx.max_new_from_boxes is not None and int(sel.sum()) > ctx.max_new_from_boxes:
+    if ctx.max_new_from_boxes is not None:
         score = (gaussians.xyz_gradient_accum / gaussians.denom.clamp_min(1)).squeeze(-1)
-        idx = sel.nonzero().squeeze(1)
-        keep = idx[torch.sort(score[idx], descending=True, stable=True).indices[:ctx.max_new_from_boxes]]
-        sel = torch.zeros_like(sel)
-        sel[keep] = True
+        sel = top_by_score(sel, score, ctx.max_new_from_boxes)
     n, accum, denom = int(sel.sum()), gaussians.xyz_gradient_accum, gaussians.denom
     if n:
         radii = gaussians.max_radii2D

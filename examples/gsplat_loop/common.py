@@ -34,7 +34,8 @@ from typing import Dict, List, Optional, Tuple
 import torch
 from torch import Tensor
 
-from adapters.gs3d import knn_mean_sq_dist
+from adapters.gs3d import SH_C0, knn_mean_sq_dist
+from adapters.gsplat_strategy import gsplat_batch
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
@@ -42,9 +43,6 @@ from mvgs_plugin.sampler import ViewSampler
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from train_3dgs import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function  # noqa: E402
-
-SH_C0 = 0.28209479177387814  # the degree-0 real SH basis constant
-
 
 @dataclass
 class Config:
@@ -163,13 +161,8 @@ class TrainBatches:
     def __next__(self) -> Dict[str, Tensor]:
         ids = self.sampler.sample(min(self.batch_size, len(self.scene.train_cameras)))
         cams = [self.scene.train_cameras[i] for i in ids]
-        return {
-            "camtoworld": torch.stack([torch.linalg.inv(c.world_to_camera) for c in cams]).float(),
-            "K": torch.stack([c.K for c in cams]).float(),
-            "image": torch.stack([self.scene.image(c) for c in cams]) * 255.0,
-            "image_id": torch.tensor(ids, dtype=torch.long),
-            "background": self.background.expand(len(ids), 3).clone(),
-        }
+        return gsplat_batch(cams, torch.stack([self.scene.image(c) for c in cams]), ids,
+                            self.background.expand(len(ids), 3))
 
     def state_dict(self) -> Dict:
         return {"sampler": self.sampler.state_dict()}
@@ -182,11 +175,10 @@ def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strat
     """Everything a resumed run needs to continue as if never stopped (atomic, checksummed, and
     loadable without running pickled code): the next step, parameters, optimizer and scheduler
     states, the strategy's running statistics, the data iterator's position, the RNG."""
-    state = {k: v for k, v in strategy_state.items()}
     save_checked({
         "step": step + 1, "splats": {k: v.detach().cpu() for k, v in splats.items()},
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-        "schedulers": [s.state_dict() for s in schedulers], "strategy_state": state,
+        "schedulers": [s.state_dict() for s in schedulers], "strategy_state": dict(strategy_state),
         "loader": loader.state_dict(), "rng": torch.get_rng_state(),
     }, str(path))
 

@@ -34,6 +34,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..camera import Camera
+from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "CONVERGING_SPREAD",
            "FAR_OVER_NEAR"]
@@ -144,9 +145,7 @@ def random_init_points(scene, n: int, generator: torch.Generator,
     cameras = getattr(scene, "train_cameras", None)
     if half_size is not None or not cameras:
         half = float(scene.extent) if half_size is None else float(half_size)
-        why = "no cameras: scene.extent" if half_size is None else "a given half size"
-        region = InitRegion("cube", f"random init: cube centre ± {half:g} ({why})",
-                            center=torch.as_tensor(scene.center, dtype=torch.float64), half=half)
+        region = _cube(scene.center, half, "no cameras: scene.extent" if half_size is None else "a given half size")
     else:
         region = init_region(cameras, scene.center, float(scene.extent))
     if region.kind == "cube":
@@ -158,10 +157,11 @@ def random_init_points(scene, n: int, generator: torch.Generator,
                       f"best across the views ({seen} seen by >= {MIN_VIEWS} views)")
 
 
-def _axes(cameras: Sequence[Camera]) -> torch.Tensor:
-    """[N, 3] unit viewing directions (camera +z) in world coordinates."""
-    d = torch.stack([c.camera_to_world[:3, 2] for c in cameras])
-    return d / torch.linalg.norm(d, dim=1, keepdim=True)
+def _cube(center, half: float, why: str) -> InitRegion:
+    """The original 3DGS region: the cube center ± half."""
+    center = torch.as_tensor(center, dtype=torch.float64)
+    return InitRegion("cube", f"random init: cube centre {[round(float(v), 3) for v in center]} ± {half:.4g} ({why})",
+                      center=center, half=float(half))
 
 
 def _seen_fraction(cameras: Sequence[Camera], points: torch.Tensor) -> torch.Tensor:
@@ -184,11 +184,9 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) 
     """
     if not cameras:
         raise ValueError("init_region needs at least one camera")
-    center = torch.as_tensor(center, dtype=torch.float64)
-    cube = lambda why: InitRegion(  # noqa: E731
-        "cube", f"random init: cube centre {[round(float(v), 3) for v in center]} ± {extent:.4g} ({why})",
-        center=center, half=float(extent))
-    d = _axes(cameras)
+    cube = lambda why: _cube(center, extent, why)  # noqa: E731
+    d = camera_axes(cameras)
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)  # unit viewing directions
     spread = float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
     if spread >= CONVERGING_SPREAD:
         return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")

@@ -2,8 +2,9 @@
 cross-ray boxes (CRD). The controller calls them; adapters receive their results in the
 DensifyContext."""
 
-from .crd import best_windows, boxes_contain, check_boxes, closest_points, cross_ray_boxes, loss_map, window_corners
+from .crd import (best_windows, boxes_contain, check_boxes, closest_points, cross_ray_boxes, loss_map, top_by_score,
+                  window_corners)
 from .mvad import camera_axes, mvad_threshold, pair_discrepancy, resolution_threshold
 
 __all__ = ["mvad_threshold", "resolution_threshold", "pair_discrepancy", "camera_axes", "best_windows", "window_corners",
-           "closest_points", "cross_ray_boxes", "check_boxes", "boxes_contain", "loss_map"]
+           "closest_points", "cross_ray_boxes", "check_boxes", "boxes_contain", "top_by_score", "loss_map"]

@@ -148,6 +148,19 @@ def boxes_contain(points: Tensor, boxes: Tensor) -> Tensor:
     return inside
 
 
+def top_by_score(mask: Tensor, score: Tensor, k: int) -> Tensor:
+    """Keep at most k of the True entries of mask [N]: those with the largest score [N] (ties:
+    lower index first). CRD's cap on what one call clones (DensifyContext.max_new_from_boxes),
+    ranked by the mean screen-space gradient."""
+    idx = mask.nonzero().squeeze(1)
+    if idx.numel() <= k:
+        return mask
+    order = torch.sort(score[idx].to(mask.device), descending=True, stable=True).indices[:k]
+    out = torch.zeros_like(mask)
+    out[idx[order]] = True
+    return out
+
+
 def check_boxes(boxes) -> Tensor:
     """A DensifyContext's boxes as a [B, 2, 3] tensor (min corner, max corner); raises on a wrong
     shape, non-finite values or a box whose min exceeds its max (naming the box)."""

@@ -187,6 +187,12 @@ std::vector<Cam<G>> load_cameras(const Settings& s, const T* viewmats, const T* 
 }
 
 // Intermediate values of one (camera, Gaussian) pair, shared by forward and backward.
+// Determinant floors below which a pair is culled: its conic 1/det and the backward's 1/det^2
+// would overflow. float's floor also sends a float pair to be done again in double (needs_double);
+// double's is projection.py's DET_FLOOR.
+constexpr double kFloatDetFloor = 1e-18;
+constexpr double kDoubleDetFloor = 1e-150;
+
 template <typename T>
 struct Pair {
     T p[3], zs, inv_zs, xz, yz, raw_xz, raw_yz, jw0[3], jw1[3], s0[3], s1[3], a_raw, b, c_raw, a, c, det, det_s;
@@ -218,7 +224,7 @@ struct Pair {
         // Below the floor the conic 1/det and its backward's 1/det^2 would overflow: such a splat
         // (a standard deviation under 1e-37 px in double) is culled; a float pair at its floor is
         // done again in double (see needs_double).
-        const T det_floor = std::is_same<T, float>::value ? T(1e-18) : T(1e-150);
+        const T det_floor = T(std::is_same<T, float>::value ? kFloatDetFloor : kDoubleDetFloor);
         ok = in_depth && det > det_floor && std::isfinite(det);
         det_s = ok ? det : T(1);
     }
@@ -355,7 +361,7 @@ template <typename P>
 inline bool needs_double(const Pair<P>& q, const Cam<P>& cam, const P* mean, P smax2, P smin2, P eps2d) {
     if (std::is_same<P, double>::value || !q.in_depth) return false;
     if (!(std::isfinite(q.a) && std::isfinite(q.b) && std::isfinite(q.c) && std::isfinite(q.det)) ||
-        q.det <= P(1e-18) || q.det < P(kCancel) * q.a * q.c)
+        q.det <= P(kFloatDetFloor) || q.det < P(kCancel) * q.a * q.c)
         return true;
     const P eps = std::numeric_limits<P>::epsilon(), gain = std::max(cam.fx, cam.fy) * q.inv_zs;
     const P low = std::min(cam.fx, cam.fy) * q.inv_zs;
@@ -364,13 +370,20 @@ inline bool needs_double(const Pair<P>& q, const Cam<P>& cam, const P* mean, P s
     return P(4) * eps * magnitude * gain > P(kPixelError);
 }
 
-// The double covariance of Gaussian n (quaternion and scales read from the model's T arrays).
+// The pair of Gaussian n and a camera done again in double, its covariance rebuilt from the
+// model's T quaternion and scales (what needs_double sends here, forward and backward alike);
+// gmean receives the mean in double.
 template <typename T>
-inline void cov_double(const T* quats, const T* scales, int64_t n, double* cov) {
+inline Pair<double> pair_double(const T* quats, const T* scales, int64_t n, const T* mean, const Cam<double>& cam,
+                                const Settings& s, double* gmean) {
     const double q[4] = {double(quats[n * 4]), double(quats[n * 4 + 1]), double(quats[n * 4 + 2]), double(quats[n * 4 + 3])};
     const double sc[3] = {double(scales[n * 3]), double(scales[n * 3 + 1]), double(scales[n * 3 + 2])};
-    double qn[4], qnorm, R[9];
+    double qn[4], qnorm, R[9], cov[6];
     gaussian_cov(q, sc, qn, qnorm, R, cov);
+    for (int j = 0; j < 3; ++j) gmean[j] = double(mean[j]);
+    Pair<double> qd;
+    qd.compute(cam, gmean, cov, s);
+    return qd;
 }
 
 template <typename T>
@@ -446,11 +459,8 @@ void forward(const Settings& s, const T* means, const T* quats, const T* scales,
                 Pair<T> q;
                 q.compute(cam, mean, blk.cov[n - n0], s);
                 if (!emit(q, cam, mean, blk.smax2[n - n0], blk.smin2[n - n0], g)) {
-                    double cov[6];
-                    cov_double(quats, scales, n, cov);
-                    const double gmean[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
-                    Pair<double> qd;
-                    qd.compute(gcams[c], gmean, cov, s);
+                    double gmean[3];
+                    const Pair<double> qd = pair_double(quats, scales, n, mean, gcams[c], s, gmean);
                     emit(qd, gcams[c], gmean, 0.0, 0.0, g);
                 }
                 if (n_basis) {
@@ -588,12 +598,9 @@ void backward(const Settings& s, const T* means, const T* quats, const T* scales
                 if (!needs_double(q, cam, mean, blk.smax2[n - n0], blk.smin2[n - n0], T(s.eps2d))) {
                     pair_backward(q, cam, gu, gv, gq0, gq1, gq2, gd, gcp, dm, dcovs[n - n0]);
                 } else {
-                    double cov[6];
-                    cov_double(quats, scales, n, cov);
-                    const double gmean[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
-                    Pair<double> qd;
-                    qd.compute(gcams[c], gmean, cov, s);
-                    pair_backward(qd, gcams[c], gu, gv, gq0, gq1, gq2, gd, gcp, dm, dcovs[n - n0]);
+                    double gmean[3];
+                    pair_backward(pair_double(quats, scales, n, mean, gcams[c], s, gmean), gcams[c], gu, gv, gq0, gq1,
+                                  gq2, gd, gcp, dm, dcovs[n - n0]);
                 }
             }
         }
