@@ -158,6 +158,7 @@ class MVGSStrategy:
             config = MVGSConfig.from_preset(config)
         if not isinstance(config, MVGSConfig):
             raise TypeError(f"config must be an MVGSConfig or a preset name, got {type(config).__name__}")
+        config = config.for_scene(scene)  # before the rescaling: a forward-facing rig keeps the step count
         if steps is not None:
             config = config.with_total_steps(steps)
         run_steps = config.total_steps

@@ -42,6 +42,8 @@ RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-fixed": ["--preset", "baseline"],
     "default": ["--preset", "default"],
+    # the default with its pyramid kept on a forward-facing rig (the default before forward_rig)
+    "default-pyramid": ["--preset", "default", "--forward-rig", "pyramid"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # Candidates tried for the cost-aware default (docs/equal_compute.md): the pyramid's coarse
@@ -77,7 +79,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
         argv += ["--data", str(data)]
     args = ex.parse_args(argv)
     scene = ex.load_scene(args.data)
-    config = ex.config_from_args(args)
+    config = ex.config_from_args(args, scene)
     adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))
     trainer = MVGS(adapter, scene, config)
     marks = {round(trainer.total_steps * (i + 1) / points) for i in range(points)}

@@ -154,6 +154,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--threshold-width", type=float_above(0, inclusive=True), default=None,
                     help="image width in pixels the gradient threshold is meant for; it is scaled to the "
                          "rendered width (0: never scaled, as 3DGS; default: as the preset, 800 for default)")
+    ap.add_argument("--forward-rig", choices=["pyramid", "finest"], default=None,
+                    help="on a forward-facing rig (nearly parallel optical axes): keep the stage plan (pyramid) "
+                         "or train at full resolution only (finest) (default: as the preset, finest for default)")
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None)
     ap.add_argument("--out", type=Path, default=Path(out))
     ap.add_argument("--seed", type=int_at_least(0), default=0)
@@ -179,17 +182,22 @@ def parse_stages(text: str) -> tuple:
     return stages
 
 
-def config_from_args(args, **preset_overrides) -> MVGSConfig:
-    """The MVGSConfig the common CLI asks for: preset, --views, rescaled to --steps (or run on
-    --budget), --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
+def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
+    """The MVGSConfig the common CLI asks for: preset, --views, resolved for the scene's rig
+    (MVGSConfig.for_scene with --forward-rig, when a scene is given), rescaled to --steps (or run on --budget),
+    --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
+    if getattr(args, "forward_rig", None):
+        preset_overrides = {**preset_overrides, "forward_rig": args.forward_rig}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
     if args.views is not None:
         config = config.with_views(args.views)
     if args.resolution_scale != 1:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
+    if scene is not None:
+        config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
     if args.budget is not None:
         config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
     else:
@@ -296,7 +304,7 @@ def main(argv=None) -> dict:
 
 def run(args, dist) -> dict:
     scene = load_scene(args.data)
-    config = config_from_args(args)
+    config = config_from_args(args, scene)
     model = model_config(config, args.seed, args.max_gaussians, rasterize_function(args))
     adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)

@@ -88,7 +88,7 @@ def run(args, dist) -> dict:
     if untimed:
         raise ValueError(f"{args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
-    config = config_from_args(args, time_spread=args.time_spread)
+    config = config_from_args(args, scene, time_spread=args.time_spread)
     model_cfg = gs4d_config(config, args)
     adapter = GS4DAdapter.from_scene(scene, model_cfg, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)

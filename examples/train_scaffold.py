@@ -64,7 +64,7 @@ def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
     scene = load_scene(args.data)
-    config = config_from_args(args)
+    config = config_from_args(args, scene)
     model_cfg = scaffold_config(config, args)
     model_cfg = dataclasses.replace(model_cfg, rasterize=rasterize_function(args))
     adapter = ScaffoldAdapter.from_scene(scene, model_cfg, device=args.device)

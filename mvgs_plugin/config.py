@@ -128,6 +128,15 @@ class MVGSConfig:
         0.9, floored at 0.01; it starts again in every process); None: never. Normal runs stay
         below 10x (opacity resets, stage hand-offs); a learning rate of 1e3 on the colours gives
         360x at its first step.
+    forward_rig: what the stage plan does on a forward-facing rig (optical axes nearly parallel,
+        as in LLFF captures: mvgs_plugin.data.init.is_forward_facing): "pyramid" (run it as
+        given) or "finest" (default(): drop the coarser stages and give the finest stage their
+        work on a budget, their steps without one). Applied by for_scene(), which MVGS and
+        ViewSchedule call. Why: on a forward-facing rig the coarse warm-up did not pay on either
+        scene measured (docs/equal_compute.md, "Forward-facing rigs"): every view sees nearly the
+        whole scene from one side, so full-resolution steps fit it from the start, and a model
+        fitted at 1/4 or 1/2 resolution transfers badly to full resolution (4-12 dB below a
+        baseline given the same work at the hand-off).
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -171,6 +180,7 @@ class MVGSConfig:
     max_views_rule: str = "cap"
     seed: int = 0
     time_spread: str = "random"
+    forward_rig: str = "pyramid"
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
@@ -196,7 +206,8 @@ class MVGSConfig:
         if not self.stages or not all(isinstance(s, Stage) for s in self.stages):
             raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
         choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",),
-                   "mvad_center": ("origin", "scene"), "time_spread": ("random", "stratified")}
+                   "mvad_center": ("origin", "scene"), "time_spread": ("random", "stratified"),
+                   "forward_rig": ("pyramid", "finest")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -315,9 +326,10 @@ class MVGSConfig:
         multiview(). Multi-view steps, MVAD and CRD are off: at equal work they cost optimizer
         steps and did not pay back on any scene measured (MVAD and CRD act on pairs of views, so
         with one view per step they have nothing to act on; with_views(M) turns M views back on
-        at every level)."""
+        at every level). On a forward-facing rig it trains at full resolution only
+        (forward_rig="finest", see for_scene())."""
         return cls(**{"stages": stages_from_shares(DEFAULT_SHARES), "preset": "default", "clock_unit": "work",
-                      "grad_threshold_width": 800.0, **overrides})
+                      "grad_threshold_width": 800.0, "forward_rig": "finest", **overrides})
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "MVGSConfig":
@@ -389,6 +401,33 @@ class MVGSConfig:
         steps = [max(1, round(budget * w / sum(work) / self.step_work(s))) for s, w in zip(self.stages, work)]
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
         return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / 30_000))
+
+    def for_scene(self, scene) -> "MVGSConfig":
+        """This config as it runs on `scene` (its train_cameras): with forward_rig="finest" on a
+        forward-facing rig, the stages coarser than the finest are dropped and the last finest
+        stage takes over their work when the clocks count work (a budget, or clock_unit="work"),
+        their steps when they count steps, so no clock-valued field changes. Otherwise, or when
+        no stage is coarser, the config itself. Idempotent.
+
+        Call it on the recipe, before with_total_steps() / with_budget(): the default's 30k-work
+        recipe then becomes 30k full-resolution steps, and a run asked for N steps (or budget B)
+        is exactly the baseline's N steps (B). MVGS and ViewSchedule call it too, for configs
+        that were not resolved: on an already rescaled config it keeps the work, so a --steps
+        run gets fewer, dearer steps but every schedule (and clock_length) stays as planned."""
+        finest = min(s.factor for s in self.stages)
+        if self.forward_rig == "pyramid" or all(s.factor == finest for s in self.stages):
+            return self
+        from .data.init import is_forward_facing  # the data package imports this module's users
+        if not is_forward_facing(scene.train_cameras):
+            return self
+        kept = [s for s in self.stages if s.factor == finest]
+        dropped = [s for s in self.stages if s.factor != finest]
+        last = kept[-1]
+        if self.counts_work:
+            extra = round(sum(s.steps * self.step_work(s) for s in dropped) / self.step_work(last))
+        else:
+            extra = sum(s.steps for s in dropped)
+        return dataclasses.replace(self, stages=tuple(kept[:-1]) + (Stage(last.factor, last.views, last.steps + extra),))
 
     def with_views(self, views: int) -> "MVGSConfig":
         """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""

@@ -113,7 +113,8 @@ class MVGS:
     Args:
         adapter: the model, its renderer and optimizer (see protocol.Adapter).
         scene: a mvgs_plugin.data.Scene (train/test cameras, images, extent).
-        config: MVGSConfig (presets: baseline(), paper(), default()).
+        config: MVGSConfig (presets: baseline(), paper(), default()), run as config.for_scene(scene)
+            (the default trains a forward-facing rig at full resolution only).
         distributed: a distributed.Collective to shard each step's views over the ranks of a
             process group (every rank builds the same MVGS with the same config and seed);
             None: one process. The adapter must implement protocol.DistributedAdapter.
@@ -123,7 +124,7 @@ class MVGS:
                  distributed: Optional[Collective] = None):
         self.adapter = adapter
         self.scene = scene
-        self.config = config or MVGSConfig.default()
+        self.config = (config or MVGSConfig.default()).for_scene(scene)
         self.schedule = ViewSchedule(scene, self.config)
         if distributed is not None:
             if not isinstance(distributed, Collective):

@@ -150,7 +150,7 @@ class ViewSchedule:
         if not scene.train_cameras:
             raise ValueError("scene has no training cameras")
         self.scene = scene
-        self.config = config
+        self.config = config = config.for_scene(scene)
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None

@@ -38,6 +38,9 @@ Variants (``--variant``):
   3.3-3.6 from the scene, each looking at a point near ``TARGET`` (axes within 9 degrees of
   their mean: nearly parallel, not an orbit); test views take interleaved grid slots. Sun and
   sky as default.
+* ``forward-clutter``: the clutter scene's primitives, materials, sun and sky seen by the
+  forward rig (32 train + 8 test views), with no back wall: sky behind the objects, a second
+  forward-facing scene whose content differs from ``forward``'s.
 * ``clutter``: a second 360-degree scene: 12 primitives (spheres, yawed cubes, cylinders) of
   varied sizes scattered on the ground disc without overlap (fixed seed), in diffuse colours,
   value-noise textures, plastic, rough Cu / Al / Cr and one glass (dielectric) sphere; sun
@@ -65,7 +68,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter")
+VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter")
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
 FOV_X_DEG = 45.0
@@ -243,7 +246,7 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
     n_total = n_train + n_test
     slots = pick_test_slots(n_total, n_test)
     counts = {"train": 0, "test": 0}
-    if variant == "forward":
+    if variant in ("forward", "forward-clutter"):
         rig = rig_forward(n_total)
     elif variant == "clutter":
         rig = rig_rings(n_total)
@@ -510,7 +513,7 @@ class SceneBuilder:
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
         self._cache: dict[float, object] = {}
-        if variant == "clutter":
+        if variant in ("clutter", "forward-clutter"):
             # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
             self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
             self.clutter_tex = {
@@ -634,7 +637,7 @@ class SceneBuilder:
         return self._cache[key]
 
     def scene_dict(self, t: float) -> dict:
-        if self.variant == "clutter":
+        if self.variant in ("clutter", "forward-clutter"):
             return self.clutter_dict()
         mi = self.mi
         T = mi.ScalarTransform4f
@@ -792,7 +795,7 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
     """
     if variant == "moving":
         return sample_ground(n, rng)
-    if variant == "clutter":
+    if variant in ("clutter", "forward-clutter"):
         return sample_clutter(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
     n = n - n_wall
@@ -1075,9 +1078,9 @@ def parse_args(argv=None):
                     help="render markers through the written cameras; print pixel errors")
     args = ap.parse_args(argv)
     if args.n_train is None:
-        args.n_train = {"sparse": 10, "forward": 32}.get(args.variant, 48)
+        args.n_train = {"sparse": 10, "forward": 32, "forward-clutter": 32}.get(args.variant, 48)
     if args.n_test is None:
-        args.n_test = 8 if args.variant == "forward" else 12
+        args.n_test = 8 if args.variant in ("forward", "forward-clutter") else 12
     if args.max_track == 1 or args.max_track < 0:
         ap.error(f"--max-track must be 0 (unlimited) or >= 2, got {args.max_track}")
     if args.n_train < 2 or args.n_test < 0 or args.size < 8 or args.spp < 1:

@@ -36,8 +36,8 @@ import torch
 from ..camera import Camera
 from ..densify.mvad import camera_axes
 
-__all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "CONVERGING_SPREAD",
-           "FAR_OVER_NEAR"]
+__all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
+           "is_forward_facing", "CONVERGING_SPREAD", "FAR_OVER_NEAR"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
 # scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
@@ -174,6 +174,23 @@ def _seen_fraction(cameras: Sequence[Camera], points: torch.Tensor) -> torch.Ten
     return seen / len(cameras)
 
 
+def axis_spread(cameras: Sequence[Camera]) -> float:
+    """How far the optical axes of a rig spread: the smallest eigenvalue of mean(I - d dᵀ) over
+    the unit viewing directions d (about sin² of their angular spread; 0 for parallel axes, 2/3
+    for directions spread evenly over the sphere)."""
+    if not cameras:
+        raise ValueError("axis_spread needs at least one camera")
+    d = camera_axes(cameras)
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    return float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
+
+
+def is_forward_facing(cameras: Sequence[Camera]) -> bool:
+    """Whether a rig looks one way (LLFF-like, a walk-through looking ahead) rather than around
+    the scene: axis_spread below CONVERGING_SPREAD."""
+    return axis_spread(cameras) < CONVERGING_SPREAD
+
+
 def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) -> InitRegion:
     """Where random initial points should go for this rig (see the module docstring).
 
@@ -187,7 +204,7 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) 
     cube = lambda why: _cube(center, extent, why)  # noqa: E731
     d = camera_axes(cameras)
     d = d / torch.linalg.norm(d, dim=1, keepdim=True)  # unit viewing directions
-    spread = float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
+    spread = axis_spread(cameras)
     if spread >= CONVERGING_SPREAD:
         return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
     centers = torch.stack([c.center for c in cameras])
