@@ -164,6 +164,21 @@ def make_adam(groups, eps: float) -> torch.optim.Adam:
     except (RuntimeError, TypeError, ValueError):  # no fused kernel for this torch / device / dtype
         return torch.optim.Adam(groups, lr=0.0, eps=eps)
 
+ADAM_BETAS = (0.9, 0.999)  # torch's and the original's
+
+
+def scale_for_views(optimizer: torch.optim.Optimizer, lrs: Dict[str, float], views: int, eps: float) -> None:
+    """Set every named group's learning rate for a step of `views` views, with Grendel-GS's
+    batch rule (a batch of M images: learning rate x √M, Adam betas to the power M, eps / √M, so
+    M images in one step move the parameters about as M single-image steps would); views = 1
+    gives the single-view values exactly. lrs: the single-view rate of each group, by name."""
+    root = math.sqrt(views)
+    for group in optimizer.param_groups:
+        group["lr"] = lrs[group["name"]] * root
+        group["betas"] = (ADAM_BETAS[0] ** views, ADAM_BETAS[1] ** views)
+        group["eps"] = eps / root
+
+
 def _check_int(name: str, value, lo: int, hi: Optional[int] = None) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"{name} must be an int, got {value!r}")
@@ -297,6 +312,7 @@ class GS3DAdapter:
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
+        self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
         self._mean_reference: Optional[Tensor] = None  # see optimizer_step
         self.active_sh_degree = _check_int("active_sh_degree", active_sh_degree, 0,
                                            self.config.sh_degree)
@@ -481,16 +497,17 @@ class GS3DAdapter:
         lo, hi = math.log(c.lr_means_init * self.scene_extent), math.log(c.lr_means_final * self.scene_extent)
         return math.exp((1.0 - t) * lo + t * hi)
 
-    def _set_means_lr(self, step: int) -> None:
-        for group in self.optimizer.param_groups:
-            if group["name"] == "means":
-                group["lr"] = self.means_lr(step)
+    def set_views_per_step(self, views: int) -> None:
+        """Scale the optimizer for steps of `views` views from the next set_step on (Grendel-GS's
+        rule, see scale_for_views; MVGSConfig.views_scaling="sqrt" calls it every step)."""
+        self._views = _check_int("views", views, 1)
 
     def set_step(self, step: int) -> None:
-        """Learning rate of the means and the active SH degree for ``step``: both pure functions
-        of the step, so a resumed run continues exactly."""
+        """Learning rates (the means' decay, times √M for M-view steps, see set_views_per_step)
+        and the active SH degree for ``step``: pure functions of the step, so a resumed run
+        continues exactly."""
         self._step = _check_int("step", step, 0)
-        self._set_means_lr(step)
+        scale_for_views(self.optimizer, self._base_lrs(), self._views, self.config.adam_eps)
         self.active_sh_degree = min(self.config.sh_degree, step // self.config.sh_degree_interval)
 
     def learning_rates(self) -> Dict[str, float]:

@@ -62,7 +62,7 @@ from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
-from .gs3d import GS3DAdapter, GS3DConfig, make_adam, _check_float, _check_int
+from .gs3d import GS3DAdapter, GS3DConfig, make_adam, scale_for_views, _check_float, _check_int
 
 __all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
 
@@ -404,9 +404,7 @@ class GS4DAdapter(GS3DAdapter):
                 "mlp": e * _log_linear(step, c.coarse_steps, c.fine_steps, c.lr_mlp_init, c.lr_mlp_final)}
 
     def _set_field_lrs(self, step: int) -> None:
-        lrs = self.field_lrs(step)
-        for group in self.field_optimizer.param_groups:
-            group["lr"] = lrs[group["name"]]
+        scale_for_views(self.field_optimizer, self.field_lrs(step), self._views, self.config.adam_eps)
 
     def set_step(self, step: int) -> None:
         """The 3DGS schedules, the field's learning rates and the stage (coarse or fine)."""

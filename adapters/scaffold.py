@@ -57,7 +57,7 @@ from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from reference_renderer import rasterization
 
-from .gs3d import SH_C0, GS3DAdapter, make_adam, _check_float, _check_int, knn_mean_sq_dist
+from .gs3d import SH_C0, GS3DAdapter, make_adam, scale_for_views, _check_float, _check_int, knn_mean_sq_dist
 from .gs4d import _log_linear
 from .ply import write_gaussian_ply
 
@@ -243,6 +243,7 @@ class ScaffoldAdapter:
         self.voxel_size = _check_float("voxel_size", voxel_size, positive=True)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
+        self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
         self._reg_cameras: List[Camera] = []
         with torch.random.fork_rng():
             torch.manual_seed(self.config.seed)
@@ -371,9 +372,12 @@ class ScaffoldAdapter:
     def set_step(self, step: int) -> None:
         """Learning rates for ``step`` (pure functions of it)."""
         self._step = _check_int("step", step, 0)
-        lrs = self._lrs(step)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lrs[group["name"]]
+        scale_for_views(self.optimizer, self._lrs(step), self._views, self.config.adam_eps)
+
+    def set_views_per_step(self, views: int) -> None:
+        """Scale the optimizer for steps of `views` views from the next set_step on (Grendel-GS's
+        rule, see adapters.gs3d.scale_for_views)."""
+        self._views = _check_int("views", views, 1)
 
     def learning_rates(self) -> Dict[str, float]:
         return {g["name"]: g["lr"] for g in self.optimizer.param_groups}

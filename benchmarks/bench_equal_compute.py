@@ -46,6 +46,9 @@ RUNS = {
     "default-pyramid": ["--preset", "default", "--forward-rig", "pyramid"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
+    # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard
+    "multiview-sqrt": ["--preset", "multiview", "--views-scaling", "sqrt"],
+    "multiview-capped": ["--preset", "multiview", "--max-views-fraction", "0.25"],
     # Candidates tried for the cost-aware default (docs/equal_compute.md): the pyramid's coarse
     # levels with many (cheap) views and one at full resolution; the same pyramid with one view
     # per step; the default's pyramid with as many views per coarse step as cost about one full

@@ -75,15 +75,16 @@ def int_at_least(low: int) -> Callable[[str], int]:
     return parse
 
 
-def float_above(low: float, inclusive: bool = False) -> Callable[[str], float]:
-    """An argparse type: a finite float > low (>= low when inclusive)."""
+def float_above(low: float, inclusive: bool = False, high: float = math.inf) -> Callable[[str], float]:
+    """An argparse type: a finite float > low (>= low when inclusive) and <= high."""
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and (value >= low if inclusive else value > low)):
-            raise argparse.ArgumentTypeError(f"expected a finite number {'>=' if inclusive else '>'} {low:g}, "
+        if not (math.isfinite(value) and (value >= low if inclusive else value > low) and value <= high):
+            bound = "" if high == math.inf else f" and <= {high:g}"
+            raise argparse.ArgumentTypeError(f"expected a finite number {'>=' if inclusive else '>'} {low:g}{bound}, "
                                              f"got {text!r}")
         return value
     return parse
@@ -157,6 +158,12 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--forward-rig", choices=["pyramid", "finest"], default=None,
                     help="on a forward-facing rig (nearly parallel optical axes): keep the stage plan (pyramid) "
                          "or train at full resolution only (finest) (default: as the preset, finest for default)")
+    ap.add_argument("--views-scaling", choices=["none", "sqrt"], default=None,
+                    help="optimizer for M-view steps: none (the summed loss, single-view rates) or sqrt (Grendel-GS: "
+                         "learning rates x sqrt(M), Adam betas ** M, eps / sqrt(M)) (default: as the preset, none)")
+    ap.add_argument("--max-views-fraction", type=float_above(0, high=1.0), default=None,
+                    help="sparse-view guard: cap every step's views at this fraction of the training views "
+                         "(at least 1; default: no cap)")
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None)
     ap.add_argument("--out", type=Path, default=Path(out))
     ap.add_argument("--seed", type=int_at_least(0), default=0)
@@ -188,8 +195,9 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
-    if getattr(args, "forward_rig", None):
-        preset_overrides = {**preset_overrides, "forward_rig": args.forward_rig}
+    for name in ("forward_rig", "views_scaling", "max_views_fraction"):
+        if getattr(args, name, None) is not None:
+            preset_overrides = {**preset_overrides, name: getattr(args, name)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
     if args.views is not None:
         config = config.with_views(args.views)

@@ -137,6 +137,14 @@ class MVGSConfig:
         whole scene from one side, so full-resolution steps fit it from the start, and a model
         fitted at 1/4 or 1/2 resolution transfers badly to full resolution (4-12 dB below a
         baseline given the same work at the hand-off).
+    views_scaling: how the optimizer treats an M-view step: "none" (the paper: the summed loss,
+        the single-view learning rates) or "sqrt" (Grendel-GS's batch rule: learning rates x √M,
+        Adam betas to the power M, eps / √M, M the step's views; the adapter applies it in
+        set_views_per_step, which MVGS calls every step). Measured in docs/equal_compute.md.
+    max_views_fraction: None, or a cap on the views of any step as a fraction of the scene's
+        training views (at least 1): the sparse-view guard, so that on a scene with few views a
+        step never sees most of them at once. Applied by for_scene(); a capped stage keeps its work
+        on a budget (more, cheaper steps) and its steps otherwise.
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -181,6 +189,8 @@ class MVGSConfig:
     seed: int = 0
     time_spread: str = "random"
     forward_rig: str = "pyramid"
+    views_scaling: str = "none"
+    max_views_fraction: Optional[float] = None
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
@@ -207,7 +217,7 @@ class MVGSConfig:
             raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
         choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",),
                    "mvad_center": ("origin", "scene"), "time_spread": ("random", "stratified"),
-                   "forward_rig": ("pyramid", "finest")}
+                   "forward_rig": ("pyramid", "finest"), "views_scaling": ("none", "sqrt")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -222,6 +232,10 @@ class MVGSConfig:
                 raise ValueError(f"{name} must be {what}{' or None' if name == 'chunk_size' else ''}, got {v!r}")
         _check_finite_above("mvad_tau", self.mvad_tau, 0, "a finite discrepancy > 0 (a chord on the unit sphere "
                                                           "is at most 2)")
+        _check_finite_above("max_views_fraction", self.max_views_fraction, 0, "None or a fraction in (0, 1]",
+                            optional=True)
+        if self.max_views_fraction is not None and self.max_views_fraction > 1:
+            raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
@@ -403,31 +417,47 @@ class MVGSConfig:
         return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / 30_000))
 
     def for_scene(self, scene) -> "MVGSConfig":
-        """This config as it runs on `scene` (its train_cameras): with forward_rig="finest" on a
-        forward-facing rig, the stages coarser than the finest are dropped and the last finest
-        stage takes over their work when the clocks count work (a budget, or clock_unit="work"),
-        their steps when they count steps, so no clock-valued field changes. Otherwise, or when
-        no stage is coarser, the config itself. Idempotent.
+        """This config as it runs on `scene` (its train_cameras). Two scene-dependent rules, both
+        keeping every clock-valued field:
 
-        Call it on the recipe, before with_total_steps() / with_budget(): the default's 30k-work
-        recipe then becomes 30k full-resolution steps, and a run asked for N steps (or budget B)
-        is exactly the baseline's N steps (B). MVGS and ViewSchedule call it too, for configs
-        that were not resolved: on an already rescaled config it keeps the work, so a --steps
-        run gets fewer, dearer steps but every schedule (and clock_length) stays as planned."""
-        finest = min(s.factor for s in self.stages)
-        if self.forward_rig == "pyramid" or all(s.factor == finest for s in self.stages):
-            return self
+        * max_views_fraction: every stage's views are capped at that fraction of the training
+          views (at least 1); a capped stage keeps its work when the clocks count work (a budget,
+          or clock_unit="work"), so it gets more steps, and its steps when they count steps.
+        * forward_rig="finest" on a forward-facing rig: the stages coarser than the finest are
+          dropped and the last finest stage takes over their work (clocks on work) or steps.
+
+        Otherwise the config itself. Idempotent. Call it on the recipe, before
+        with_total_steps() / with_budget(): the default's 30k-work recipe on a forward-facing rig
+        then becomes 30k full-resolution steps, and a run asked for N steps (or budget B) is
+        exactly the baseline's N steps (B). MVGS and ViewSchedule call it too, for configs that
+        were not resolved: on an already rescaled config it keeps the work, so a --steps run may
+        get fewer, dearer steps but every schedule (and clock_length) stays as planned."""
+        out = self
+        if self.max_views_fraction is not None:
+            cap = max(1, math.floor(self.max_views_fraction * len(scene.train_cameras)))
+            if any(s.views > cap for s in self.stages):
+                stages = []
+                for s in self.stages:
+                    views = min(s.views, cap)
+                    steps = s.steps
+                    if self.counts_work and views != s.views:  # keep the stage's work
+                        steps = max(1, round(s.steps * s.views / views))
+                    stages.append(Stage(s.factor, views, steps))
+                out = dataclasses.replace(self, stages=tuple(stages))
+        finest = min(s.factor for s in out.stages)
+        if out.forward_rig == "pyramid" or all(s.factor == finest for s in out.stages):
+            return out
         from .data.init import is_forward_facing  # the data package imports this module's users
         if not is_forward_facing(scene.train_cameras):
-            return self
-        kept = [s for s in self.stages if s.factor == finest]
-        dropped = [s for s in self.stages if s.factor != finest]
+            return out
+        kept = [s for s in out.stages if s.factor == finest]
+        dropped = [s for s in out.stages if s.factor != finest]
         last = kept[-1]
-        if self.counts_work:
-            extra = round(sum(s.steps * self.step_work(s) for s in dropped) / self.step_work(last))
+        if out.counts_work:
+            extra = round(sum(s.steps * out.step_work(s) for s in dropped) / out.step_work(last))
         else:
             extra = sum(s.steps for s in dropped)
-        return dataclasses.replace(self, stages=tuple(kept[:-1]) + (Stage(last.factor, last.views, last.steps + extra),))
+        return dataclasses.replace(out, stages=tuple(kept[:-1]) + (Stage(last.factor, last.views, last.steps + extra),))
 
     def with_views(self, views: int) -> "MVGSConfig":
         """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""

@@ -125,6 +125,9 @@ class MVGS:
         self.adapter = adapter
         self.scene = scene
         self.config = (config or MVGSConfig.default()).for_scene(scene)
+        if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
+            raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
+                             f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
         self.schedule = ViewSchedule(scene, self.config)
         if distributed is not None:
             if not isinstance(distributed, Collective):
@@ -158,6 +161,8 @@ class MVGS:
         t0 = time.perf_counter()
         if plan.handoff_reset:
             adapter.reset_opacity()
+        if self.config.views_scaling == "sqrt":
+            adapter.set_views_per_step(len(plan.views))
         adapter.set_step(plan.clock)
         times["adapter"] += time.perf_counter() - t0
         maps = [] if plan.wants_maps else None

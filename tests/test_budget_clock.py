@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from mvgs_plugin.config import MVGSConfig, Stage
+from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene
 
