@@ -638,8 +638,9 @@ class GS3DAdapter:
           3. split: g >= β and max scale > percent_dense * E -> split_samples children at
              mean + R (s ⊙ n), n ~ N(0, I), scale s / (0.8 * split_samples), other attributes
              copied; the parent is removed;
-          with config.max_gaussians, growth stops at the cap: the candidates of 1-3 are ranked by
-          g together and the best that fit are kept (each adds 1, a split adds samples - 1);
+          with config.max_gaussians or ctx.max_primitives, growth stops at the (lower) cap: the
+          candidates of 1-3 are ranked by g together and the best that fit are kept (each adds 1,
+          a split adds samples - 1);
           4. prune (all rows, new ones included): opacity < min_opacity and, with
              ctx.prune_large, max scale > max_world_size * E or (when config.max_screen_size is
              set) max screen radius > max_screen_size.
@@ -669,7 +670,8 @@ class GS3DAdapter:
         box_sel, dropped_box_cap = self._box_selection(ctx, g)
         clone_sel = (g >= beta) & small
         split_sel = (g >= beta) & ~small
-        box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, g)
+        box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, g,
+                                                                      ctx.max_primitives)
 
         new_rows = self._new_rows(box_sel, clone_sel, split_sel)
         n_new = new_rows["means"].shape[0]
@@ -704,11 +706,14 @@ class GS3DAdapter:
             sel = top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
-    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor):
-        """Apply config.max_gaussians: rank all growth candidates by mean gradient and keep the
-        longest prefix whose net growth fits (measured against the count before pruning, so the
-        result never exceeds the cap). Returns the three masks and how many candidates fell."""
-        cap = self.config.max_gaussians
+    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor,
+                    max_primitives: Optional[int] = None):
+        """Apply config.max_gaussians and the call's ctx.max_primitives (the lower of the two): rank
+        all growth candidates by mean gradient and keep the longest prefix whose net growth fits
+        (measured against the count before pruning, so the result never exceeds the cap). Returns
+        the three masks and how many candidates fell."""
+        caps = [c for c in (self.config.max_gaussians, max_primitives) if c is not None]
+        cap = min(_check_int("max_primitives", c, 0) for c in caps) if caps else None
         if cap is None:
             return box_sel, clone_sel, split_sel, 0
         masks = [box_sel, clone_sel, split_sel]

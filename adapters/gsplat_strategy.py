@@ -158,6 +158,9 @@ class MVGSStrategy:
             config = MVGSConfig.from_preset(config)
         if not isinstance(config, MVGSConfig):
             raise TypeError(f"config must be an MVGSConfig or a preset name, got {type(config).__name__}")
+        if config.stage_growth is not None:
+            raise ValueError(f"config.stage_growth={config.stage_growth!r}: gsplat's DefaultStrategy has no cap on "
+                             "how far a refine may grow the count; use stage_growth=None")
         if config.views_scaling != "none":
             raise ValueError(f"config.views_scaling={config.views_scaling!r}: your loop owns the optimizers, so scale "
                              "them yourself (learning rates x sqrt(M), betas ** M, eps / sqrt(M)); use views_scaling='none'")

@@ -553,7 +553,8 @@ class ScaffoldAdapter:
         judged = self.offset_denom.reshape(-1) > t_child
         xyz = self.child_positions().reshape(-1, 3)
         feats = self.params["features"].detach().repeat_interleave(k, dim=0)  # [A*k, F]
-        budget = math.inf if self.config.max_anchors is None else max(0, self.config.max_anchors - a0)
+        caps = [c for c in (self.config.max_anchors, ctx.max_primitives) if c is not None]
+        budget = math.inf if not caps else max(0, min(_check_int("max_primitives", c, 0) for c in caps) - a0)
         added: List[Tuple[Tensor, Tensor, float]] = []  # (centres [Q,3], features [Q,F], cell edge)
         occupied = self.anchors
         box_new = 0

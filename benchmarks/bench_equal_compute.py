@@ -44,6 +44,8 @@ RUNS = {
     "default": ["--preset", "default"],
     # the default with its pyramid kept on a forward-facing rig (the default before forward_rig)
     "default-pyramid": ["--preset", "default", "--forward-rig", "pyramid"],
+    # the default with densification capped at twice the count each stage began with
+    "default-growth2": ["--preset", "default", "--stage-growth", "2"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

@@ -164,6 +164,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--max-views-fraction", type=float_above(0, high=1.0), default=None,
                     help="sparse-view guard: cap every step's views at this fraction of the training views "
                          "(at least 1; default: no cap)")
+    ap.add_argument("--stage-growth", type=float_above(1), default=None,
+                    help="cap densification within a stage at this multiple of the count the stage began with "
+                         "(default: no cap)")
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None)
     ap.add_argument("--out", type=Path, default=Path(out))
     ap.add_argument("--seed", type=int_at_least(0), default=0)
@@ -195,7 +198,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
-    for name in ("forward_rig", "views_scaling", "max_views_fraction"):
+    for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)

@@ -145,6 +145,11 @@ class MVGSConfig:
         training views (at least 1): the sparse-view guard, so that on a scene with few views a
         step never sees most of them at once. Applied by for_scene(); a capped stage keeps its work
         on a budget (more, cheaper steps) and its steps otherwise.
+    stage_growth: None, or how far densification may grow the primitive count within a stage:
+        at most stage_growth times the count the stage began with (the run's initial count for
+        the first stage), passed to the adapter as DensifyContext.max_primitives (the candidates
+        with the largest gradients are kept). Densification tied to the stage, as DashGaussian
+        ties the count to the resolution. Measured in docs/equal_compute.md.
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -191,6 +196,7 @@ class MVGSConfig:
     forward_rig: str = "pyramid"
     views_scaling: str = "none"
     max_views_fraction: Optional[float] = None
+    stage_growth: Optional[float] = None
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
@@ -236,6 +242,7 @@ class MVGSConfig:
                             optional=True)
         if self.max_views_fraction is not None and self.max_views_fraction > 1:
             raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
+        _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")

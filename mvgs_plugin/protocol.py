@@ -66,6 +66,8 @@ class DensifyContext:
     prune_large: whether size-based pruning (screen radius / world size) is active now (the
         original 3DGS turns it on after the first opacity reset).
     cameras: the cameras of the step that triggered the call (stage resolution).
+    max_primitives: a cap on the primitive count this call's growth may reach (None: no cap from
+        the controller; MVGSConfig.stage_growth sets it). Pruning runs as usual.
     """
 
     step: int
@@ -75,6 +77,7 @@ class DensifyContext:
     max_new_from_boxes: Optional[int] = None
     prune_large: bool = False
     cameras: Sequence[Camera] = ()
+    max_primitives: Optional[int] = None
 
 
 @dataclass

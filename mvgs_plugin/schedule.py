@@ -141,8 +141,8 @@ class ViewSchedule:
     examples/three_line_wrap): the same loop trains plain 3DGS with MVGSConfig.baseline() and
     MVGS with MVGSConfig.default().
 
-    primitive_count: the model's current size, for the memory bound of chunk_size=None; the
-    controller sets it every step. A loop of your own may set it too; until then the scene's
+    primitive_count: the model's current size, for the memory bound of chunk_size=None and (its
+    value when a stage begins) the cap of config.stage_growth; the controller sets it every step. A loop of your own may set it too; until then the scene's
     point count is assumed, or UNKNOWN_PRIMITIVES without points (small chunks: safe, slower).
     """
 
@@ -159,6 +159,7 @@ class ViewSchedule:
         self._bg_gen = torch.Generator().manual_seed(config.seed + 1)
         self._scaled: Dict[Tuple[int, int], Camera] = {}
         self.step_count = 0
+        self.stage_start_count: Optional[int] = None  # primitive_count when the current stage began
         self._warned_no_maps = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
@@ -178,6 +179,8 @@ class ViewSchedule:
         cfg = self.config
         s = self.step_count + 1
         pos = self.plan.locate(s)
+        if pos.first_in_stage or self.stage_start_count is None:
+            self.stage_start_count = self.primitive_count
         ids = self.sampler.sample(min(pos.stage.views, len(self.scene.train_cameras)))
         cams = [self._camera(i, pos.stage.factor) for i in ids]
         images = [self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
@@ -217,13 +220,16 @@ class ViewSchedule:
         return resolution_threshold(cfg.grad_threshold, width, cfg.grad_threshold_width)
 
     def densify_context(self, plan: StepPlan, loss_maps: Optional[Sequence[Tensor]] = None,
-                        primitive_count: int = 0, bounds: Optional[Tensor] = None) -> DensifyContext:
+                        primitive_count: int = 0, bounds: Optional[Tensor] = None,
+                        stage_start_count: Optional[int] = None) -> DensifyContext:
         """The densification context of a step: the threshold (scaled to the step's image width
         when config.grad_threshold_width is set, halved by MVAD when the step's cameras are far
         apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
         from the step's per-view loss maps [H', W'] (same order as plan.cameras). Without
         loss_maps, the maps a loop recorded with plan.record() are used; with neither, CRD is
-        skipped for the step (boxes None) and a warning says so once per schedule."""
+        skipped for the step (boxes None) and a warning says so once per schedule.
+        stage_start_count: the primitive count when the step's stage began, for the cap of
+        config.stage_growth (None: the count primitive_count had when next() began the stage)."""
         cfg = self.config
         threshold = self.base_threshold(plan)
         if cfg.mvad:
@@ -266,7 +272,14 @@ class ViewSchedule:
             max_new_from_boxes=cap,
             prune_large=plan.clock > cfg.prune_large_after,
             cameras=tuple(plan.cameras),
+            max_primitives=self._growth_cap(stage_start_count),
         )
+
+    def _growth_cap(self, stage_start_count: Optional[int]) -> Optional[int]:
+        start = self.stage_start_count if stage_start_count is None else stage_start_count
+        if self.config.stage_growth is None or start is None:
+            return None
+        return int(math.floor(self.config.stage_growth * start))
 
     def chunk_size(self, m: int, height: int, width: int) -> int:
         """Views per renderer call for a step of m views of height x width: config.chunk_size,
@@ -303,9 +316,11 @@ class ViewSchedule:
         return torch.tensor(self.background_value(), dtype=torch.float32).expand(n, 3).clone()
 
     def state_dict(self) -> Dict:
-        return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state()}
+        return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
+                "stage_start_count": self.stage_start_count}
 
     def load_state_dict(self, state: Dict) -> None:
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])
+        self.stage_start_count = state.get("stage_start_count")  # absent in checkpoints before stage_growth

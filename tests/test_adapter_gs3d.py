@@ -412,6 +412,24 @@ def test_max_gaussians_keeps_largest_gradients():
     assert sorted(keys(a)) == sorted([0, 1, 3, 4, 5, 6, 6, 7, 9] + [2, 2, 8, 8])
 
 
+def test_the_controllers_cap_is_the_same_ranking_and_the_lower_cap_wins():
+    scales = torch.full((10,), SMALL)
+    scales[[2, 5, 8]] = LARGE
+    accum = [3e-4, 4e-4, 9e-4, 5e-4, 6e-4, 8e-4, 7e-4, 1e-4, 2e-3, 2.5e-4]
+    for config, cap in ((GS3DConfig(), 13), (GS3DConfig(max_gaussians=13), 20), (GS3DConfig(max_gaussians=20), 13)):
+        a = adapter(10, scale=scales[:, None].expand(10, 3).clone(), config=config)
+        set_stats(a, accum, [1.0] * 10)
+        rep = a.densify(ctx(max_primitives=cap))
+        # as with max_gaussians=13 above: the splits of 8, 2 and 5 fit, the rest is dropped
+        assert (rep.split, rep.cloned, rep.after) == (3, 0, 13)
+        assert sorted(keys(a)) == sorted([0, 1, 3, 4, 6, 7, 9] + [2, 2, 5, 5, 8, 8])
+    a = adapter(10, scale=scales[:, None].expand(10, 3).clone())
+    set_stats(a, accum, [1.0] * 10)
+    assert a.densify(ctx(max_primitives=5)).after == 10  # already above the cap: no growth, nothing lost
+    with pytest.raises(ValueError, match="max_primitives"):
+        a.densify(ctx(max_primitives=-1))
+
+
 def test_reset_opacity():
     a = adapter(4, opacity=torch.tensor([0.5, 0.02, 0.005, 0.9]))
     fill_adam_state(a)

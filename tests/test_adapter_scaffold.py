@@ -260,6 +260,16 @@ def test_infinite_threshold_and_anchor_cap():
     assert ad.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=1.0)).after <= 2
 
 
+def test_the_controllers_anchor_cap():
+    for cap in (1, 2):
+        ad = hand_adapter([[0.0, 0, 0]], [[[5.0, 0, 0], [0, 5.0, 0], [0, 0, 5.0]]])
+        set_stats(ad, [[1.0, 1.0, 1.0]], [[10, 10, 10]], [1.0], [10], views=10)
+        assert ad.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=1.0, max_primitives=cap)).after <= cap
+    ad = hand_adapter([[0.0, 0, 0]], [[[5.0, 0, 0], [0, 5.0, 0], [0, 0, 5.0]]])
+    set_stats(ad, [[1.0, 1.0, 1.0]], [[10, 10, 10]], [1.0], [10], views=10)
+    assert ad.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=1.0)).after > 2  # uncapped: it grows
+
+
 def test_optimizer_state_follows_anchor_rows_and_mlps_untouched():
     ad = hand_adapter([[0.0, 0, 0], [40.0, 0, 0]], [[[0.1, 0, 0]], [[0.0, 0, 0.1]]])
     ad.set_step(1)

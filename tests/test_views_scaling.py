@@ -1,6 +1,7 @@
-"""Two options for M-view steps (docs/equal_compute.md): Grendel-GS's optimizer rule for a step of
-M views (MVGSConfig.views_scaling="sqrt", set_views_per_step) and the sparse-view guard
-(MVGSConfig.max_views_fraction). The optimizer is checked against Adam written out by hand."""
+"""Options of the equal-compute study (docs/equal_compute.md): Grendel-GS's optimizer rule for a
+step of M views (MVGSConfig.views_scaling="sqrt", set_views_per_step), the sparse-view guard
+(MVGSConfig.max_views_fraction) and the growth cap per stage (MVGSConfig.stage_growth). The
+optimizer is checked against Adam written out by hand."""
 
 from __future__ import annotations
 
@@ -141,3 +142,32 @@ def test_the_guard_leaves_scenes_with_enough_views_alone(scene):
     for bad in (0.0, -0.1, 1.5, math.nan):
         with pytest.raises(ValueError, match="max_views_fraction"):
             MVGSConfig(max_views_fraction=bad)
+
+
+def test_stage_growth_caps_every_stage_at_a_multiple_of_its_starting_count(scene):
+    growth = 1.3
+    config = MVGSConfig.default(stage_growth=growth, grad_threshold_width=None).with_total_steps(300)
+    trainer = MVGS(GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=300)), scene, config)
+    count, stage, start, capped = trainer.adapter.num_primitives(), None, None, 0
+    for _ in range(trainer.total_steps):
+        info = trainer.step()
+        if info.stage != stage:
+            stage, start = info.stage, count  # the count when the stage began (before its first step)
+        assert info.num_primitives <= math.floor(growth * start), (info.step, info.num_primitives, start)
+        if info.densify is not None:
+            capped += info.densify.extra["dropped_by_max_gaussians"] > 0
+        count = info.num_primitives
+    assert capped > 0 and stage == len(config.stages) - 1  # the cap bound, and every stage ran
+    # the same run without it grows past the cap
+    free = MVGS(GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=300)), scene,
+                MVGSConfig.default(grad_threshold_width=None).with_total_steps(300)).fit()
+    assert free.adapter.num_primitives() > math.floor(growth * len(scene.points))
+    # the stage's starting count survives a checkpoint
+    state = trainer.schedule.state_dict()
+    other = ViewSchedule(scene, config)
+    other.load_state_dict(state)
+    assert other.stage_start_count == trainer.schedule.stage_start_count == start
+    with pytest.raises(ValueError, match="stage_growth"):
+        MVGSConfig(stage_growth=1.0)
+    with pytest.raises(ValueError, match="no cap on"):
+        MVGSStrategy(DefaultStrategy(), scene, MVGSConfig.default(stage_growth=2.0), steps=10)
