@@ -124,11 +124,11 @@ class MVGS:
                  distributed: Optional[Collective] = None):
         self.adapter = adapter
         self.scene = scene
-        self.config = (config or MVGSConfig.default()).for_scene(scene)
+        self.schedule = ViewSchedule(scene, config or MVGSConfig.default())
+        self.config = self.schedule.config  # resolved for the scene (MVGSConfig.for_scene)
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
-        self.schedule = ViewSchedule(scene, self.config)
         if distributed is not None:
             if not isinstance(distributed, Collective):
                 raise TypeError(f"distributed must be a mvgs_plugin.distributed.Collective or None, "

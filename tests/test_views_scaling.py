@@ -17,9 +17,7 @@ from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene
-
-pytest.importorskip("gsplat")
-from gsplat.strategy import DefaultStrategy  # noqa: E402
+from gsplat.strategy import DefaultStrategy  # the [dev] extra installs gsplat
 
 
 @pytest.fixture(scope="module")
