@@ -32,12 +32,15 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.checks import check_float, check_int
 from mvgs_plugin.data.init import random_init_points
 from mvgs_plugin.densify import boxes_contain, check_boxes, top_by_score
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
-from reference_renderer import rasterization
-from reference_renderer.projection import quat_to_rotmat
+from mvgs_plugin.reference_renderer import rasterization
+from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
 
+from .knn import knn_mean_sq_dist
+from .ops import growth_cap, make_adam, scale_for_views, swap_param
 from .ply import read_gaussian_ply, write_gaussian_ply
 
 __all__ = ["GS3DConfig", "GS3DAdapter", "knn_mean_sq_dist", "SH_C0", "PARAM_NAMES"]
@@ -48,7 +51,6 @@ _STATE_FORMAT = "mvgs-gs3d/1"
 # Config fields tied to the running process (a function, backend options): never saved or loaded.
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
 # Elements per temporary distance matrix in kNN and box tests (2^24 float64 = 128 MB).
-_CHUNK_ELEMS = 1 << 24
 LOG = logging.getLogger("mvgs_plugin")
 # After an optimizer step a log-scale above this, or a mean farther than this many scene extents
 # from the model's median position, means a diverging run: exp(80) ~ 5.5e34 is near float32's limit (3.4e38, so the
@@ -60,7 +62,7 @@ MAX_MEAN_EXTENTS = 1e4
 
 @dataclass
 class GS3DConfig:
-    """Hyper-parameters of the 3DGS model (defaults: the original 3DGS, see MVGS_METHOD.md §5).
+    """Hyper-parameters of the 3DGS model (defaults: the original 3DGS, see docs/method.md §5).
 
     Initialisation:
         sh_degree: maximum SH degree (0..3).
@@ -125,24 +127,24 @@ class GS3DConfig:
     knn_chunk: int = 256
 
     def __post_init__(self) -> None:
-        _check_int("sh_degree", self.sh_degree, 0, 3)
+        check_int("sh_degree", self.sh_degree, 0, 3)
         for name in ("sh_degree_interval", "position_lr_max_steps", "knn_chunk", "split_samples"):
-            _check_int(name, getattr(self, name), 1)
-        _check_int("random_init", self.random_init, 1)
-        _check_int("seed", self.seed, 0)
+            check_int(name, getattr(self, name), 1)
+        check_int("random_init", self.random_init, 1)
+        check_int("seed", self.seed, 0)
         if self.max_gaussians is not None:
-            _check_int("max_gaussians", self.max_gaussians, 0)
+            check_int("max_gaussians", self.max_gaussians, 0)
         for name in ("lr_means_init", "lr_means_final", "adam_eps", "percent_dense", "max_world_size"):
-            _check_float(name, getattr(self, name), positive=True)
+            check_float(name, getattr(self, name), positive=True)
         for name in ("lr_sh0", "lr_shN", "lr_opacities", "lr_scales", "lr_quats", "min_opacity"):
-            _check_float(name, getattr(self, name))
+            check_float(name, getattr(self, name))
         for name in ("init_opacity", "opacity_reset_value"):
-            v = _check_float(name, getattr(self, name), positive=True)
+            v = check_float(name, getattr(self, name), positive=True)
             if v >= 1:
                 raise ValueError(f"{name} must be in (0, 1), got {v}")
         for name in ("random_init_half_size", "max_screen_size"):
             if getattr(self, name) is not None:
-                _check_float(name, getattr(self, name), positive=True)
+                check_float(name, getattr(self, name), positive=True)
         if not callable(self.rasterize):
             raise ValueError(f"rasterize must be callable, got {self.rasterize!r}")
         if not isinstance(self.rasterize_kwargs, dict):
@@ -155,136 +157,8 @@ class GS3DConfig:
 
 
 
-def make_adam(groups, eps: float) -> torch.optim.Adam:
-    """Adam as the original (lr per group, eps), with torch's fused kernel where it exists (CPU
-    since torch 2.4, CUDA): the same update in one pass over all groups, 6x faster than the
-    per-tensor loop at 50k Gaussians on one CPU thread (benchmarks/bench_step.py)."""
-    try:
-        return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=True)
-    except (RuntimeError, TypeError, ValueError):  # no fused kernel for this torch / device / dtype
-        return torch.optim.Adam(groups, lr=0.0, eps=eps)
-
-ADAM_BETAS = (0.9, 0.999)  # torch's and the original's
-
-
-def scale_for_views(optimizer: torch.optim.Optimizer, lrs: Dict[str, float], views: int, eps: float) -> None:
-    """Set every named group's learning rate for a step of `views` views, with Grendel-GS's
-    batch rule (a batch of M images: learning rate x √M, Adam betas to the power M, eps / √M, so
-    M images in one step move the parameters about as M single-image steps would); views = 1
-    gives the single-view values exactly. lrs: the single-view rate of each group, by name."""
-    root = math.sqrt(views)
-    for group in optimizer.param_groups:
-        group["lr"] = lrs[group["name"]] * root
-        group["betas"] = (ADAM_BETAS[0] ** views, ADAM_BETAS[1] ** views)
-        group["eps"] = eps / root
-
-
-def _check_int(name: str, value, lo: int, hi: Optional[int] = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError(f"{name} must be an int, got {value!r}")
-    if value < lo or (hi is not None and value > hi):
-        rng = f">= {lo}" if hi is None else f"in {lo}..{hi}"
-        raise ValueError(f"{name} must be {rng}, got {value}")
-    return value
-
-
-def _check_float(name: str, value, positive: bool = False) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0 or (positive and v == 0):
-        raise ValueError(f"{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}")
-    return v
-
-
 def _n_rest(degree: int) -> int:
     return (degree + 1) ** 2 - 1
-
-
-def knn_mean_sq_dist(points: Tensor, k: int = 3, chunk: int = 256, window: int = 8) -> Tensor:
-    """Mean squared distance of every point to its k nearest *other* points (exact).
-
-    Args:
-        points: [P, 3].
-        chunk: queries per block; window: curve neighbours per side for the first bound (>= k).
-    Returns:
-        [P] float64. With P <= k the mean is over the P - 1 others; a lone point gets 0.
-
-    Brute force is O(P^2) (minutes for the 100k-300k points of a COLMAP scene), so:
-    1. sort the points along a Z-order curve; the distances to the ``window`` curve neighbours
-       on each side bound every point's k-th neighbour distance from above;
-    2. for each block of ``chunk`` consecutive points, the true neighbours of its points lie in
-       the block's bounding box grown by its largest bound: search only the points in that box.
-    The result is exact whatever the distribution; only the speed depends on it.
-    """
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be [P,3], got {list(points.shape)}")
-    _check_int("window", window, max(k, 1))
-    P = points.shape[0]
-    out = torch.zeros(P, dtype=torch.float64, device=points.device)
-    kk = min(k, P - 1)
-    if kk <= 0:
-        return out
-    x = points.detach().to(torch.float64)
-    x = x - x.mean(dim=0)  # ranks below use |a|^2 + |b|^2 - 2ab: keep magnitudes small
-    order = _morton_order(x)
-    xs = x[order]
-    bound = _curve_bound(xs, kk, window).sqrt() * (1 + 1e-9) + 1e-12  # [P], margin for rounding
-    positions = torch.arange(P, device=x.device)
-    sorted_out = torch.empty(P, dtype=torch.float64, device=x.device)
-    for s in range(0, P, chunk):
-        q = xs[s:s + chunk]
-        r = bound[s:s + chunk].max()
-        lo, hi = q.min(dim=0).values - r, q.max(dim=0).values + r
-        cand = ((xs >= lo) & (xs <= hi)).all(dim=1).nonzero().squeeze(1)
-        sorted_out[s:s + chunk] = _block_knn(q, positions[s:s + chunk], xs[cand], cand, kk)
-    out[order] = sorted_out
-    return out
-
-
-def _morton_order(x: Tensor) -> Tensor:
-    """[P] permutation sorting points [P, 3] along a Z-order curve (10 bits per axis)."""
-    lo = x.min(dim=0).values
-    span = float((x.max(dim=0).values - lo).max())
-    q = ((x - lo) * (1023.0 / max(span, 1e-300))).long().clamp(0, 1023)
-    code = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return torch.argsort(code, stable=True)
-
-
-def _curve_bound(xs: Tensor, k: int, window: int) -> Tensor:
-    """[P] k-th smallest squared distance from each point of xs [P, 3] to its ``window``
-    predecessors and successors in the array: an upper bound of its k-th neighbour distance."""
-    P = xs.shape[0]
-    d = torch.full((P, 2 * window), math.inf, dtype=xs.dtype, device=xs.device)
-    for o in range(1, min(window, P - 1) + 1):
-        pair = ((xs[o:] - xs[:-o]) ** 2).sum(dim=1)  # between i and i + o
-        d[:-o, 2 * o - 2] = pair
-        d[o:, 2 * o - 1] = pair
-    return d.topk(k, dim=1, largest=False).values[:, -1]
-
-
-def _block_knn(q: Tensor, q_idx: Tensor, c: Tensor, c_idx: Tensor, k: int) -> Tensor:
-    """[Q] mean squared distance of queries q [Q, 3] to their k nearest candidates c [M, 3],
-    skipping the candidate with the query's own index (q_idx [Q], c_idx [M])."""
-    out = torch.empty(q.shape[0], dtype=q.dtype, device=q.device)
-    rows = max(1, _CHUNK_ELEMS // (4 * max(1, c.shape[0])))
-    centre = q.mean(dim=0)
-    cc = c - centre
-    csq = (cc * cc).sum(dim=1)
-    for s in range(0, q.shape[0], rows):
-        qc = q[s:s + rows] - centre
-        d2 = torch.addmm(csq[None, :], qc, cc.T, alpha=-2.0) + (qc * qc).sum(dim=1, keepdim=True)
-        d2[q_idx[s:s + rows, None] == c_idx[None, :]] = math.inf  # not its own neighbour
-        idx = d2.topk(k, dim=1, largest=False).indices  # ranked by the expansion ...
-        exact = ((q[s:s + rows, None, :] - c[idx]) ** 2).sum(dim=-1)  # ... measured exactly
-        out[s:s + rows] = exact.mean(dim=1)
-    return out
 
 
 class GS3DAdapter:
@@ -307,14 +181,14 @@ class GS3DAdapter:
         self.config = GS3DConfig() if config is None else config
         if not isinstance(self.config, GS3DConfig):
             raise ValueError(f"config must be a GS3DConfig, got {type(self.config).__name__}")
-        self.scene_extent = _check_float("scene_extent", scene_extent, positive=True)
+        self.scene_extent = check_float("scene_extent", scene_extent, positive=True)
         raw = dict(means=means, sh0=sh0, shN=shN, scales=scales, quats=quats, opacities=opacities)
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
         self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
         self._mean_reference: Optional[Tensor] = None  # see optimizer_step
-        self.active_sh_degree = _check_int("active_sh_degree", active_sh_degree, 0,
+        self.active_sh_degree = check_int("active_sh_degree", active_sh_degree, 0,
                                            self.config.sh_degree)
         self._build(raw)
 
@@ -365,7 +239,7 @@ class GS3DAdapter:
                      rgb: Optional[Tensor] = None, sh: Optional[Tensor] = None,
                      quats: Optional[Tensor] = None, config: Optional[GS3DConfig] = None,
                      dtype: Optional[torch.dtype] = None) -> "GS3DAdapter":
-        """Build from activated values (the DESIGN.md conventions).
+        """Build from activated values (the docs/design.md conventions).
 
         Args:
             means: [N, 3]. scales: [N, 3] > 0. opacities: [N] in (0, 1).
@@ -418,8 +292,9 @@ class GS3DAdapter:
 
     @classmethod
     def from_scene(cls, scene, config: Optional[GS3DConfig] = None, dtype: torch.dtype = torch.float32,
-                   device: Optional[torch.device | str] = None) -> "GS3DAdapter":
-        """Initialise from ``scene.points`` as the original 3DGS, or randomly without points.
+                   device: Optional[torch.device | str] = None, points=None) -> "GS3DAdapter":
+        """Initialise from ``scene.points`` (or ``points``, a PointCloud given in their place) as
+        the original 3DGS, or randomly without points.
 
         SH DC from the point colours, higher bands 0; isotropic scales sqrt(mean squared distance
         to the 3 nearest other points), floored at 1e-7 before the square root; identity
@@ -428,7 +303,7 @@ class GS3DAdapter:
         generator seeded with config.seed).
         """
         config = GS3DConfig() if config is None else config
-        points = getattr(scene, "points", None)
+        points = getattr(scene, "points", None) if points is None else points
         if points is None or len(points) == 0:
             xyz, rgb = cls._random_points(scene, config)
         else:
@@ -500,13 +375,13 @@ class GS3DAdapter:
     def set_views_per_step(self, views: int) -> None:
         """Scale the optimizer for steps of `views` views from the next set_step on (Grendel-GS's
         rule, see scale_for_views; MVGSConfig.views_scaling="sqrt" calls it every step)."""
-        self._views = _check_int("views", views, 1)
+        self._views = check_int("views", views, 1)
 
     def set_step(self, step: int) -> None:
         """Learning rates (the means' decay, times √M for M-view steps, see set_views_per_step)
         and the active SH degree for ``step``: pure functions of the step, so a resumed run
         continues exactly."""
-        self._step = _check_int("step", step, 0)
+        self._step = check_int("step", step, 0)
         scale_for_views(self.optimizer, self._base_lrs(), self._views, self.config.adam_eps)
         self.active_sh_degree = min(self.config.sh_degree, step // self.config.sh_degree_interval)
 
@@ -662,7 +537,7 @@ class GS3DAdapter:
             # +inf is allowed: no gradient-driven growth (boxes and pruning still run)
             raise ValueError(f"ctx.grad_threshold must be a number >= 0 (inf allowed), "
                              f"got {ctx.grad_threshold!r}")
-        extent = _check_float("scene_extent", ctx.scene_extent, positive=True)
+        extent = check_float("scene_extent", ctx.scene_extent, positive=True)
         n0 = self.num_primitives()
         g = self.mean_grads()
         max_scale = self.get_scales().detach().max(dim=1).values
@@ -703,7 +578,7 @@ class GS3DAdapter:
         sel = boxes_contain(self.params["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:
-            sel = top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+            sel = top_by_score(sel, g, check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
     def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor,
@@ -712,8 +587,7 @@ class GS3DAdapter:
         all growth candidates by mean gradient and keep the longest prefix whose net growth fits
         (measured against the count before pruning, so the result never exceeds the cap). Returns
         the three masks and how many candidates fell."""
-        caps = [c for c in (self.config.max_gaussians, max_primitives) if c is not None]
-        cap = min(_check_int("max_primitives", c, 0) for c in caps) if caps else None
+        cap = growth_cap(self.config.max_gaussians, max_primitives)
         if cap is None:
             return box_sel, clone_sel, split_sel, 0
         masks = [box_sel, clone_sel, split_sel]
@@ -770,35 +644,8 @@ class GS3DAdapter:
             self._swap_group(name, values[name], src, zero_moments=False)
 
     def _swap_group(self, name: str, value: Tensor, src: Optional[Tensor], zero_moments: bool) -> None:
-        """Replace one group's parameter by a new tensor, carrying its Adam state along.
-
-        src: [N_new] long, the old row each new row continues (-1 = new row: zero moments), or
-        None when the rows are the same. Adam's ``step`` (a 0-dim tensor shared by all rows) is
-        kept as it is. zero_moments: zero every row's moments (opacity reset).
-        """
-        group = next(g for g in self.optimizer.param_groups if g["name"] == name)
-        old = group["params"][0]
-        new = torch.nn.Parameter(value.detach().clone().contiguous())
-        state = self.optimizer.state.pop(old, None)
-        if state is not None:
-            self.optimizer.state[new] = {key: self._remap(v, old, src, zero_moments)
-                                         for key, v in state.items()}
-        group["params"][0] = new
-        self.params[name] = new
-
-    @staticmethod
-    def _remap(v: Any, old: Tensor, src: Optional[Tensor], zero: bool) -> Any:
-        if not (isinstance(v, Tensor) and v.shape == old.shape):
-            return v  # Adam's step counter, shared by all rows
-        rows = v.shape[0] if src is None else len(src)
-        out = v.new_zeros((rows,) + v.shape[1:])
-        if zero:
-            return out
-        if src is None:
-            return v.clone()
-        cont = src >= 0
-        out[cont] = v[src[cont]]
-        return out
+        """Replace one group's parameter, its Adam state carried along (ops.swap_param)."""
+        self.params[name] = swap_param(self.optimizer, name, value, src, zero_moments)
 
     def reset_opacity(self) -> None:
         """Cap every opacity at config.opacity_reset_value (0.01) and zero the opacity group's

@@ -48,7 +48,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import types
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -57,12 +57,14 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera
+from mvgs_plugin.checks import check_float, check_int
 from mvgs_plugin.data.scene import PointCloud
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
-from .gs3d import GS3DAdapter, GS3DConfig, make_adam, scale_for_views, _check_float, _check_int
+from .gs3d import GS3DAdapter, GS3DConfig
+from .ops import log_linear, make_adam, scale_for_views
 
 __all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
 
@@ -131,29 +133,29 @@ class GS4DConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.canonical, GS3DConfig):
             raise ValueError(f"canonical must be a GS3DConfig, got {type(self.canonical).__name__}")
-        _check_int("coarse_steps", self.coarse_steps, 0)
-        _check_int("fine_steps", self.fine_steps, 1)
+        check_int("coarse_steps", self.coarse_steps, 0)
+        check_int("fine_steps", self.fine_steps, 1)
         self.resolution = tuple(self.resolution)
         if len(self.resolution) != 4:
             raise ValueError(f"resolution must be (x, y, z, t), got {self.resolution!r}")
         for r in self.resolution:
-            _check_int("resolution entries", r, 2)
+            check_int("resolution entries", r, 2)
         self.multires = tuple(self.multires)
         if not self.multires:
             raise ValueError("multires must name at least one scale, got ()")
         for m in self.multires:
-            _check_int("multires entries", m, 1)
-        _check_int("features", self.features, 1)
-        _check_int("width", self.width, 1)
-        _check_int("prune_min_count", self.prune_min_count, 0)
-        _check_int("init_random_points", self.init_random_points, 0)
+            check_int("multires entries", m, 1)
+        check_int("features", self.features, 1)
+        check_int("width", self.width, 1)
+        check_int("prune_min_count", self.prune_min_count, 0)
+        check_int("init_random_points", self.init_random_points, 0)
         if self.growth_cap is not None:
-            _check_int("growth_cap", self.growth_cap, 0)
+            check_int("growth_cap", self.growth_cap, 0)
         for name in ("lr_planes_init", "lr_planes_final", "lr_mlp_init", "lr_mlp_final"):
-            _check_float(name, getattr(self, name), positive=True)
+            check_float(name, getattr(self, name), positive=True)
         for name in ("plane_tv_weight", "time_smoothness_weight", "l1_time_planes_weight"):
-            _check_float(name, getattr(self, name))
-        v = _check_float("min_bounds_fraction", self.min_bounds_fraction, positive=True)
+            check_float(name, getattr(self, name))
+        v = check_float("min_bounds_fraction", self.min_bounds_fraction, positive=True)
         if v > 1:
             raise ValueError(f"min_bounds_fraction must be in (0, 1], got {v}")
         for name in ("bounds", "init_box"):
@@ -292,11 +294,6 @@ def _xavier(w: Tensor, generator: Optional[torch.Generator]) -> None:
         w.copy_((2 * torch.rand(w.shape, generator=generator, dtype=torch.float64) - 1) * a)
 
 
-def _log_linear(step: int, start: int, length: int, init: float, final: float) -> float:
-    s = min(max((step - start) / length, 0.0), 1.0)
-    return math.exp((1 - s) * math.log(init) + s * math.log(final))
-
-
 def _check_time(cam: Camera) -> float:
     if cam.time is None:
         raise ValueError(f"camera {cam.name!r} (uid {cam.uid}) has no time; the 4DGS deformation "
@@ -313,9 +310,23 @@ class GS4DAdapter(GS3DAdapter):
     GS4DConfig (a plain GS3DConfig is taken as GS4DConfig(canonical=it), so the inherited
     ``from_tensors`` / ``from_ply`` build a 4DGS model with the default field).
 
-    Attributes (besides GS3DAdapter's; ``config`` is the canonical GS3DConfig):
-        config4d: the GS4DConfig; field: the HexPlaneField; field_optimizer: its Adam.
+    Attributes (besides GS3DAdapter's):
+        gs4d_config: the whole GS4DConfig (field, schedules, caps); canonical_config: its
+        ``canonical`` GS3DConfig, the settings of the canonical Gaussians (the inherited code reads
+        it as ``config``); field: the HexPlaneField; field_optimizer: its Adam.
     """
+
+    @property
+    def canonical_config(self) -> GS3DConfig:
+        """The canonical Gaussians' GS3DConfig (``gs4d_config.canonical``; ``config`` to the
+        inherited GS3DAdapter code)."""
+        return self.config
+
+    @property
+    def config4d(self) -> GS4DConfig:
+        """Deprecated name of gs4d_config (kept until the next release)."""
+        warnings.warn("GS4DAdapter.config4d is deprecated; use gs4d_config", DeprecationWarning, stacklevel=2)
+        return self.gs4d_config
 
     def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
                  opacities: Tensor, scene_extent: float, config=None, active_sh_degree: int = 0) -> None:
@@ -323,7 +334,7 @@ class GS4DAdapter(GS3DAdapter):
             config = GS4DConfig() if config is None else GS4DConfig(canonical=config)
         if not isinstance(config, GS4DConfig):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
-        self.config4d = config
+        self.gs4d_config = config
         super().__init__(means, sh0, shN, scales, quats, opacities, scene_extent, config.canonical,
                          active_sh_degree)
         bounds = (torch.tensor(config.bounds, dtype=torch.float64) if config.bounds is not None
@@ -331,7 +342,7 @@ class GS4DAdapter(GS3DAdapter):
         self._build_field(bounds)
 
     def _build_field(self, bounds: Tensor) -> None:
-        c, ref = self.config4d, self.params["means"]
+        c, ref = self.gs4d_config, self.params["means"]
         gen = torch.Generator().manual_seed(self.config.seed + 1)
         self.field = HexPlaneField(bounds, c.resolution, c.multires, c.features, c.width, c.zero_init_heads,
                                    gen, dtype=ref.dtype, device=ref.device)
@@ -359,11 +370,8 @@ class GS4DAdapter(GS3DAdapter):
         config = GS4DConfig() if config is None else config
         if not isinstance(config, GS4DConfig):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
-        source = scene
-        if config.init_random_points:
-            source = types.SimpleNamespace(points=cls._with_random_points(scene, config),
-                                           extent=scene.extent, center=scene.center)
-        base = GS3DAdapter.from_scene(source, config.canonical, dtype, device)
+        points = cls._with_random_points(scene, config) if config.init_random_points else None
+        base = GS3DAdapter.from_scene(scene, config.canonical, dtype, device, points=points)
         return cls.from_canonical(base, config)
 
     @staticmethod
@@ -394,14 +402,14 @@ class GS4DAdapter(GS3DAdapter):
     @property
     def deformation_active(self) -> bool:
         """Whether the current step is in the fine stage (the field moves the Gaussians)."""
-        return self._step > self.config4d.coarse_steps
+        return self._step > self.gs4d_config.coarse_steps
 
     def field_lrs(self, step: int) -> Dict[str, float]:
         """Learning rates of "planes" and "mlp" at ``step``: log-linear over the fine stage (held
         at the initial rates during the coarse stage), times the scene extent."""
-        c, e = self.config4d, self.scene_extent
-        return {"planes": e * _log_linear(step, c.coarse_steps, c.fine_steps, c.lr_planes_init, c.lr_planes_final),
-                "mlp": e * _log_linear(step, c.coarse_steps, c.fine_steps, c.lr_mlp_init, c.lr_mlp_final)}
+        c, e = self.gs4d_config, self.scene_extent
+        return {"planes": e * log_linear(step, c.coarse_steps, c.fine_steps, c.lr_planes_init, c.lr_planes_final),
+                "mlp": e * log_linear(step, c.coarse_steps, c.fine_steps, c.lr_mlp_init, c.lr_mlp_final)}
 
     def _set_field_lrs(self, step: int) -> None:
         scale_for_views(self.field_optimizer, self.field_lrs(step), self._views, self.config.adam_eps)
@@ -422,7 +430,7 @@ class GS4DAdapter(GS3DAdapter):
         p = dict(self.params)
         if not (force or self.deformation_active):
             return p
-        t = _check_float("t", t)
+        t = check_float("t", t)
         if t > 1:
             raise ValueError(f"t must be in [0, 1], got {t}")
         dx, ds, dq = self.field(p["means"], t)
@@ -473,9 +481,9 @@ class GS4DAdapter(GS3DAdapter):
         """Fine stage: plane_tv_weight * TV(space planes) + time_smoothness_weight * smoothness(time
         planes) + l1_time_planes_weight * |1 - time planes| (HexPlaneField.regularizers); None in
         the coarse stage."""
-        if step <= self.config4d.coarse_steps:
+        if step <= self.gs4d_config.coarse_steps:
             return None
-        c, r = self.config4d, self.field.regularizers()
+        c, r = self.gs4d_config, self.field.regularizers()
         return (c.plane_tv_weight * r["tv"] + c.time_smoothness_weight * r["time_smoothness"]
                 + c.l1_time_planes_weight * r["l1_time"])
 
@@ -484,7 +492,7 @@ class GS4DAdapter(GS3DAdapter):
         """GS3DAdapter.densify with the original 4DGS caps: no growth (gradient or boxes) once
         the model holds growth_cap Gaussians; prune rules only above prune_min_count (see
         _prune_mask)."""
-        capped = self.config4d.growth_cap is not None and self.num_primitives() >= self.config4d.growth_cap
+        capped = self.gs4d_config.growth_cap is not None and self.num_primitives() >= self.gs4d_config.growth_cap
         if capped:
             ctx = dataclasses.replace(ctx, grad_threshold=math.inf, boxes=None)
         report = super().densify(ctx)
@@ -492,7 +500,7 @@ class GS4DAdapter(GS3DAdapter):
         return report
 
     def _prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
-        if rows["means"].shape[0] <= self.config4d.prune_min_count:
+        if rows["means"].shape[0] <= self.gs4d_config.prune_min_count:
             return torch.zeros(rows["means"].shape[0], dtype=torch.bool, device=rows["means"].device)
         return super()._prune_mask(rows, radii, extent, prune_large)
 
@@ -515,7 +523,7 @@ class GS4DAdapter(GS3DAdapter):
                 sel |= boxes_contain(self.deformed(t)["means"], boxes.to(g.device))
         total = int(sel.sum())
         if ctx.max_new_from_boxes is not None:
-            sel = top_by_score(sel, g, _check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
+            sel = top_by_score(sel, g, check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
     # ---- optimisation -----------------------------------------------------------------------
@@ -546,7 +554,7 @@ class GS4DAdapter(GS3DAdapter):
             "canonical": super().state_dict(),
             "field": {k: v.detach().clone() for k, v in self.field.state_dict().items()},
             "field_optimizer": copy.deepcopy(self.field_optimizer.state_dict()),
-            "config4d": self.config4d.saved_values(),
+            "config4d": self.gs4d_config.saved_values(),
         }
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
@@ -561,7 +569,7 @@ class GS4DAdapter(GS3DAdapter):
         if unknown:
             raise ValueError(f"state config4d has unknown fields {sorted(unknown)}")
         super().load_state_dict(state["canonical"])
-        self.config4d = dataclasses.replace(self.config4d, canonical=self.config, **state["config4d"])
+        self.gs4d_config = dataclasses.replace(self.gs4d_config, canonical=self.config, **state["config4d"])
         self._build_field(state["field"]["bounds"])
         self.field.load_state_dict(state["field"])
         self.field_optimizer.load_state_dict(state["field_optimizer"])
@@ -588,7 +596,7 @@ class GS4DAdapter(GS3DAdapter):
     def save_deformation(self, path: str) -> None:
         """The deformation field alone (weights, box, shape), written atomically; with the
         canonical PLY it is the whole trained model."""
-        c = self.config4d
+        c = self.gs4d_config
         weights = {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()}
         data = {"format": _DEFORMATION_FORMAT, "field": weights, **{k: getattr(c, k) for k in _FIELD_SHAPE_KEYS}}
         save_atomic(data, path)
@@ -599,7 +607,7 @@ class GS4DAdapter(GS3DAdapter):
         if not isinstance(data, dict) or data.get("format") != _DEFORMATION_FORMAT:
             raise ValueError(f"{path} is not a {_DEFORMATION_FORMAT} file")
         for k in _FIELD_SHAPE_KEYS:
-            mine, theirs = getattr(self.config4d, k), data[k]
+            mine, theirs = getattr(self.gs4d_config, k), data[k]
             if (tuple(mine) if isinstance(mine, (tuple, list)) else mine) != \
                     (tuple(theirs) if isinstance(theirs, (tuple, list)) else theirs):
                 raise ValueError(f"{path}: field {k} is {theirs!r}, this model has {mine!r}")

@@ -1,6 +1,6 @@
 """Reading and writing Gaussians in the standard 3DGS PLY layout.
 
-Layout (DESIGN.md "PLY"; what the original 3DGS writes and the common viewers read): one
+Layout (docs/design.md "PLY"; what the original 3DGS writes and the common viewers read): one
 ``vertex`` element, binary little-endian, every property a float32, in this order:
 
     x y z  nx ny nz  f_dc_0..2  f_rest_0..(3*K'-1)  opacity  scale_0..2  rot_0..3

@@ -52,13 +52,15 @@ import torch
 from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
+from mvgs_plugin.checks import check_float, check_int
 from mvgs_plugin.densify import boxes_contain, check_boxes
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
-from reference_renderer import rasterization
+from mvgs_plugin.reference_renderer import rasterization
 
-from .gs3d import SH_C0, GS3DAdapter, make_adam, scale_for_views, _check_float, _check_int, knn_mean_sq_dist
-from .gs4d import _log_linear
+from .gs3d import SH_C0
+from .knn import knn_mean_sq_dist
+from .ops import growth_cap, log_linear, make_adam, scale_for_views, swap_param
 from .ply import write_gaussian_ply
 
 __all__ = ["ScaffoldConfig", "ScaffoldAdapter", "ScaffoldMLPs", "voxelize", "decode_children",
@@ -124,21 +126,21 @@ class ScaffoldConfig:
 
     def __post_init__(self) -> None:
         if self.voxel_size is not None:
-            _check_float("voxel_size", self.voxel_size, positive=True)
+            check_float("voxel_size", self.voxel_size, positive=True)
         for name in ("feat_dim", "n_offsets", "lr_max_steps", "growth_levels", "update_hierarchy_factor"):
-            _check_int(name, getattr(self, name), 1)
-        _check_int("seed", self.seed, 0)
-        _check_int("update_init_factor", self.update_init_factor,
+            check_int(name, getattr(self, name), 1)
+        check_int("seed", self.seed, 0)
+        check_int("update_init_factor", self.update_init_factor,
                    self.update_hierarchy_factor ** (self.growth_levels - 1))  # coarsest..finest >= 1 voxel
         if self.max_anchors is not None:
-            _check_int("max_anchors", self.max_anchors, 0)
+            check_int("max_anchors", self.max_anchors, 0)
         for name in ("lr_offsets_init", "lr_offsets_final", "lr_mlp_opacity_init", "lr_mlp_opacity_final",
                      "lr_mlp_color_init", "lr_mlp_color_final", "lr_mlp_cov_init", "lr_mlp_cov_final",
                      "adam_eps"):
-            _check_float(name, getattr(self, name), positive=True)
+            check_float(name, getattr(self, name), positive=True)
         for name in ("offset_init_std", "lr_features", "lr_scaling", "min_opacity", "scale_reg_weight"):
-            _check_float(name, getattr(self, name))
-        s = _check_float("success_threshold", self.success_threshold, positive=True)
+            check_float(name, getattr(self, name))
+        s = check_float("success_threshold", self.success_threshold, positive=True)
         if s > 1:
             raise ValueError(f"success_threshold must be in (0, 1], got {s}")
         if not callable(self.rasterize):
@@ -231,16 +233,14 @@ class ScaffoldAdapter:
 
     # Adam-state surgery shared with the 3DGS adapter: one parameter per anchor group, rows
     # remapped (kept rows carry their moments, new rows start at zero); MLP groups untouched.
-    _swap_group = GS3DAdapter._swap_group
-    _remap = staticmethod(GS3DAdapter._remap)
 
     def __init__(self, anchors: Tensor, features: Tensor, offsets: Tensor, scaling: Tensor,
                  scene_extent: float, voxel_size: float, config: Optional[ScaffoldConfig] = None) -> None:
         self.config = ScaffoldConfig() if config is None else config
         if not isinstance(self.config, ScaffoldConfig):
             raise ValueError(f"config must be a ScaffoldConfig, got {type(self.config).__name__}")
-        self.scene_extent = _check_float("scene_extent", scene_extent, positive=True)
-        self.voxel_size = _check_float("voxel_size", voxel_size, positive=True)
+        self.scene_extent = check_float("scene_extent", scene_extent, positive=True)
+        self.voxel_size = check_float("voxel_size", voxel_size, positive=True)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
         self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
@@ -361,23 +361,23 @@ class ScaffoldAdapter:
     def _lrs(self, step: int) -> Dict[str, float]:
         c, L = self.config, self.config.lr_max_steps
         return {
-            "offsets": _log_linear(step, 0, L, c.lr_offsets_init * self.scene_extent,
+            "offsets": log_linear(step, 0, L, c.lr_offsets_init * self.scene_extent,
                                    c.lr_offsets_final * self.scene_extent),
             "features": c.lr_features, "scaling": c.lr_scaling,
-            "mlp_opacity": _log_linear(step, 0, L, c.lr_mlp_opacity_init, c.lr_mlp_opacity_final),
-            "mlp_color": _log_linear(step, 0, L, c.lr_mlp_color_init, c.lr_mlp_color_final),
-            "mlp_cov": _log_linear(step, 0, L, c.lr_mlp_cov_init, c.lr_mlp_cov_final),
+            "mlp_opacity": log_linear(step, 0, L, c.lr_mlp_opacity_init, c.lr_mlp_opacity_final),
+            "mlp_color": log_linear(step, 0, L, c.lr_mlp_color_init, c.lr_mlp_color_final),
+            "mlp_cov": log_linear(step, 0, L, c.lr_mlp_cov_init, c.lr_mlp_cov_final),
         }
 
     def set_step(self, step: int) -> None:
         """Learning rates for ``step`` (pure functions of it)."""
-        self._step = _check_int("step", step, 0)
+        self._step = check_int("step", step, 0)
         scale_for_views(self.optimizer, self._lrs(step), self._views, self.config.adam_eps)
 
     def set_views_per_step(self, views: int) -> None:
         """Scale the optimizer for steps of `views` views from the next set_step on (Grendel-GS's
         rule, see adapters.gs3d.scale_for_views)."""
-        self._views = _check_int("views", views, 1)
+        self._views = check_int("views", views, 1)
 
     def learning_rates(self) -> Dict[str, float]:
         return {g["name"]: g["lr"] for g in self.optimizer.param_groups}
@@ -553,15 +553,15 @@ class ScaffoldAdapter:
         judged = self.offset_denom.reshape(-1) > t_child
         xyz = self.child_positions().reshape(-1, 3)
         feats = self.params["features"].detach().repeat_interleave(k, dim=0)  # [A*k, F]
-        caps = [c for c in (self.config.max_anchors, ctx.max_primitives) if c is not None]
-        budget = math.inf if not caps else max(0, min(_check_int("max_primitives", c, 0) for c in caps) - a0)
+        cap = growth_cap(self.config.max_anchors, ctx.max_primitives)
+        budget = math.inf if cap is None else max(0, cap - a0)
         added: List[Tuple[Tensor, Tensor, float]] = []  # (centres [Q,3], features [Q,F], cell edge)
         occupied = self.anchors
         box_new = 0
         if ctx.boxes is not None:
             sel = boxes_contain(xyz, check_boxes(ctx.boxes))
             cap = ctx.max_new_from_boxes
-            cap = None if cap is None else _check_int("max_new_from_boxes", cap, 0)
+            cap = None if cap is None else check_int("max_new_from_boxes", cap, 0)
             cells, f = self._seed(xyz, feats, g, sel, occupied, self.voxel_size, cap, budget)
             box_new, budget = len(cells), budget - len(cells)
             added.append((cells, f, self.voxel_size))
@@ -627,7 +627,7 @@ class ScaffoldAdapter:
                          torch.full((n_new,), -1, dtype=torch.long, device=dev)])
         for name in ANCHOR_GROUPS:
             value = torch.cat([self.params[name].detach()[keep], new_rows[name].to(dtype)])
-            self._swap_group(name, value, src, zero_moments=False)
+            self.params[name] = swap_param(self.optimizer, name, value, src, zero_moments=False)
         self.anchors = torch.cat([self.anchors[keep], centres.to(dtype)]).contiguous()
         zc = lambda t, m: torch.where(m, torch.zeros_like(t), t)  # noqa: E731
         pad = lambda t: torch.cat([t[keep], t.new_zeros((n_new,) + t.shape[1:])])  # noqa: E731

@@ -33,12 +33,11 @@ def worker(rank: int, procs: int, threads: int, port: int, args: dict, out: str)
     import torch
     import torch.distributed as dist
 
-    sys.path.insert(0, str(ROOT / "examples"))
-    from adapters.gs3d import GS3DAdapter
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter
     from mvgs_plugin import MVGS, MVGSConfig, Stage
     from mvgs_plugin.data import PointCloud
     from mvgs_plugin.distributed import Collective, abort_on_error
-    from train_3dgs import BUNDLED, load_scene
+    from mvgs_plugin.cli import BUNDLED, load_scene
 
     with abort_on_error():
         torch.set_num_threads(threads)

@@ -69,9 +69,8 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     evenly spaced points of the step count; returns the final metrics and the curve."""
     import torch
 
-    sys.path.insert(0, str(ROOT / "examples"))
-    import train_3dgs as ex  # the example's own CLI contract: same config as `train_3dgs.py --budget`
-    from adapters.gs3d import GS3DAdapter
+    from mvgs_plugin import cli as ex  # the examples' own CLI contract: same config as `train_3dgs.py --budget`
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter
     from mvgs_plugin import MVGS
 
     torch.set_num_threads(1)
@@ -82,7 +81,9 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
         argv += ["--views", str(views)]  # the candidates keep their own stage plans
     if data is not None:
         argv += ["--data", str(data)]
-    args = ex.parse_args(argv)
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--data", type=ex.scene_folder, default=ex.BUNDLED)
+    args = ex.common_args(parser, "out/bench").parse_args(argv)
     scene = ex.load_scene(args.data)
     config = ex.config_from_args(args, scene)
     adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))

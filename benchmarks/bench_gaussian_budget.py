@@ -22,8 +22,8 @@ from pathlib import Path
 
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
-from mvgs_plugin import MVGS, MVGSConfig, Stage
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin import CRDConfig, MVADConfig, MVGS, MVGSConfig, Stage
 from mvgs_plugin.data import PointCloud, load_nerf_synthetic
 from mvgs_plugin.testing import plane_scene
 
@@ -32,7 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def train(scene, factor: int, steps: int, width: float, rules: bool, seed: int, max_seconds: float):
     """Returns (Gaussians, test PSNR, steps run, training seconds)."""
-    cfg = MVGSConfig.multiview(seed=seed, grad_threshold_width=width or None, mvad=rules, crd=rules)
+    cfg = MVGSConfig.multiview(seed=seed, grad_threshold_width=width or None, 
+                                mvad=MVADConfig(enabled=rules), crd=CRDConfig(enabled=rules))
     cfg = cfg.with_total_steps(steps).with_views(4)
     cfg = dataclasses.replace(cfg, stages=tuple(Stage(s.factor * factor, s.views, s.steps) for s in cfg.stages))
     torch.manual_seed(seed)

@@ -35,10 +35,9 @@ def rss_mb() -> float:
 def run_one(views: int, chunk: int, steps: int, threads: int, gaussians: int) -> dict:
     import torch
 
-    sys.path.insert(0, str(ROOT / "examples"))
-    from adapters.gs3d import GS3DAdapter
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter
     from mvgs_plugin import MVGS, MVGSConfig, Stage
-    from train_3dgs import BUNDLED, load_scene
+    from mvgs_plugin.cli import BUNDLED, load_scene
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)

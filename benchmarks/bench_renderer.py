@@ -61,7 +61,7 @@ def standard_scene(n: int, size: int, n_cams: int, seed: int = 0, dtype=torch.fl
 
 
 def run_one(n: int, size: int, n_cams: int, backend: str, threads: int, repeats: int) -> dict:
-    from reference_renderer import rasterization
+    from mvgs_plugin.reference_renderer import rasterization
 
     torch.set_num_threads(threads)
     scene = standard_scene(n, size, n_cams)

@@ -70,7 +70,7 @@ def make_scene(n: int, big: bool):
 
 
 def run_one(n: int, big: bool, factor: int, views: int, threads: int, warmup: int, steps: int, chunk) -> dict:
-    from adapters.gs3d import GS3DAdapter, GS3DConfig
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
     from mvgs_plugin.config import MVGSConfig, Stage
     from mvgs_plugin.controller import MVGS
 

@@ -4,11 +4,11 @@ were tried against the forward-facing loss and not kept.
 
     # the model after `--stop-work` units of work, evaluated at every level and at full
     # resolution with the coarse level's screen-space dilation
-    python benchmarks/probe_handoff.py --data /tmp/scenes/forward --budget 3000 --stop-work 890
-    python benchmarks/probe_handoff.py --data /tmp/scenes/forward --budget 3000 --stop-work 890 --preset baseline
+    python benchmarks/probe_handoff.py --data scenes/forward --budget 3000 --stop-work 890
+    python benchmarks/probe_handoff.py --data scenes/forward --budget 3000 --stop-work 890 --preset baseline
     # trained to the end with one change
-    python benchmarks/probe_handoff.py --data /tmp/scenes/forward --budget 3000 --flat-beta
-    python benchmarks/probe_handoff.py --data /tmp/scenes/forward --budget 3000 --bake
+    python benchmarks/probe_handoff.py --data scenes/forward --budget 3000 --flat-beta
+    python benchmarks/probe_handoff.py --data scenes/forward --budget 3000 --bake
 
 --flat-beta: every level densifies with β scaled to the finest level's width (the default
 raises it on coarse levels). --bake: at each hand-off, every Gaussian is widened by the
@@ -21,16 +21,14 @@ from __future__ import annotations
 
 import argparse
 import resource
-import sys
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "examples"))
-from train_3dgs import BUNDLED, model_config  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, model_config  # noqa: E402
 
-from adapters.gs3d import GS3DAdapter  # noqa: E402
+from mvgs_plugin.adapters.gs3d import GS3DAdapter  # noqa: E402
 from mvgs_plugin import MVGS, MVGSConfig  # noqa: E402
 from mvgs_plugin.data import load_scene  # noqa: E402
 from mvgs_plugin.densify import resolution_threshold  # noqa: E402

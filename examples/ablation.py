@@ -2,8 +2,8 @@
 paper preset and our default, on one scene, same seed; writes a markdown table and plots.
 
     python examples/ablation.py --steps 600 --views 4 --out docs/ablation/tabletop
-    python examples/scenes/make_scene.py --variant reflective --out /work/scenes/reflective
-    python examples/ablation.py --data /work/scenes/reflective --steps 600 --out docs/ablation/reflective
+    python tools/make_scene.py --variant reflective --out scenes/reflective
+    python examples/ablation.py --data scenes/reflective --steps 600 --out docs/ablation/reflective
 
 Variants (our implementations of each rule, with their guards):
     baseline           plain 3DGS (1 view per step, full resolution)
@@ -12,7 +12,7 @@ Variants (our implementations of each rule, with their guards):
     +MVAD              ... plus multi-view augmented densification
     +CIG (= default)   ... plus the coarse-to-fine pyramid: the multiview preset (the default before
                        the equal-compute study)
-    paper              the released behaviour (MVGS_METHOD.md)
+    paper              the released behaviour (docs/method.md)
     baseline, equal time   plain 3DGS trained for as many steps as fit in the full run's time
 All but paper scale the gradient threshold to the rendered image width as MVGSConfig.multiview()
 does (--threshold-width, 0 for 3DGS's fixed threshold), so they differ only by MVGS's parts.
@@ -28,6 +28,7 @@ time excluded).
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import dataclasses
 import multiprocessing
 import resource
@@ -37,11 +38,12 @@ from typing import Optional
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_3dgs import BUNDLED, load_scene, model_config  # noqa: E402
+from mvgs_plugin.cli import (  # noqa: E402
+    BUNDLED, HelpFormatter, float_above, int_at_least, load_scene, model_config, scene_folder,
+)
 
-from adapters.gs3d import GS3DAdapter  # noqa: E402
-from mvgs_plugin import MVGS, MVGSConfig, Stage  # noqa: E402
+from mvgs_plugin.adapters.gs3d import GS3DAdapter  # noqa: E402
+from mvgs_plugin import CRDConfig, MVADConfig, MVGS, MVGSConfig, Stage  # noqa: E402
 from mvgs_plugin.io import atomic_write_text  # noqa: E402
 
 DEFAULT_WIDTH = MVGSConfig.multiview().grad_threshold_width
@@ -53,8 +55,8 @@ def variants(steps: int, views: int, seed: int, threshold_width: Optional[float]
     MVGS components; `paper` keeps the released one (β unscaled)."""
     base = MVGSConfig.baseline(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps)
     mvrl = dataclasses.replace(base, stages=(Stage(1, views, steps),), preset="custom")
-    crd = dataclasses.replace(mvrl, crd=True)
-    mvad = dataclasses.replace(crd, mvad=True)
+    crd = dataclasses.replace(mvrl, crd=CRDConfig(enabled=True))
+    mvad = dataclasses.replace(crd, mvad=MVADConfig(enabled=True))
     full = MVGSConfig.multiview(seed=seed, grad_threshold_width=threshold_width).with_total_steps(steps).with_views(views)
     paper = MVGSConfig.paper(seed=seed).with_total_steps(steps).with_views(views)
     return {"baseline": base, "+MVRL": mvrl, "+CRD": crd, "+MVAD": mvad, "+CIG (= default)": full, "paper": paper}
@@ -113,9 +115,10 @@ def run(data: Path, config: MVGSConfig, seed: int, factor: int = 1, curve_every:
 
 def run_isolated(*args) -> dict:
     """run() in a fresh process: peak memory per variant, and no state shared between them."""
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(1) as pool:
-        return pool.apply(run, args)
+    # An executor, not a Pool: a worker that cannot start (or dies) raises BrokenProcessPool here
+    # instead of being restarted for ever.
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(run, *args).result()
 
 
 def plots(out: Path, rows: dict) -> None:
@@ -195,23 +198,23 @@ def table(rows: dict, args) -> str:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=BUNDLED)
-    ap.add_argument("--steps", type=int, default=600)
-    ap.add_argument("--views", type=int, default=4)
-    ap.add_argument("--resolution-scale", type=int, default=1, help="train and evaluate at 1/s resolution")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=0,
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+    ap.add_argument("--steps", type=int_at_least(2), default=600, help="steps of every variant")
+    ap.add_argument("--views", type=int_at_least(1), default=4, help="views per step M at full resolution")
+    ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of every run")
+    ap.add_argument("--threads", type=int_at_least(0), default=0,
                     help="torch threads per variant (0: torch's default); 1 is steadier on a shared machine")
-    ap.add_argument("--threshold-width", type=float, default=DEFAULT_WIDTH,
+    ap.add_argument("--threshold-width", type=float_above(0, inclusive=True), default=DEFAULT_WIDTH,
                     help="image width the gradient threshold is meant for, for every variant but paper "
                          f"(0: never scaled, as 3DGS; default {DEFAULT_WIDTH:g}, as MVGSConfig.multiview())")
-    ap.add_argument("--curve-points", type=int, default=6, help="test evaluations along the PSNR-vs-time curves")
-    ap.add_argument("--max-minutes", type=float, default=30.0, help="stop a variant that trains longer than this")
+    ap.add_argument("--curve-points", type=int_at_least(1), default=6, help="test evaluations along the PSNR-vs-time curves")
+    ap.add_argument("--max-minutes", type=float_above(0), default=30.0, help="stop a variant that trains longer than this")
     ap.add_argument("--no-equal-time", action="store_true",
                     help="skip the extra baseline run as long as the full MVGS run")
-    ap.add_argument("--only", nargs="*", default=None, help="run only these variants")
-    ap.add_argument("--out", type=Path, default=Path("out/ablation"))
+    ap.add_argument("--only", nargs="*", default=None, help="run only these variants (default: all)")
+    ap.add_argument("--out", type=Path, default=Path("out/ablation"), help="output folder (tables, plots, runs)")
     args = ap.parse_args(argv)
     if args.resolution_scale < 1:
         raise ValueError(f"--resolution-scale must be >= 1, got {args.resolution_scale}")

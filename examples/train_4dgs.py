@@ -1,10 +1,10 @@
 """Train a 4DGS model (canonical Gaussians + HexPlane deformation) with MVGS, or as the plain
 4DGS baseline, on a dynamic scene in the D-NeRF layout, and evaluate it.
 
-    python examples/scenes/make_scene.py --variant moving --out /work/scenes/moving   # the scene
-    python examples/train_4dgs.py --data /work/scenes/moving --preset baseline --steps 600 --out out/4dgs
-    python examples/train_4dgs.py --data /work/scenes/moving --preset multiview --views 4 --steps 600
-    torchrun --nproc-per-node 2 examples/train_4dgs.py --data /work/scenes/moving --views 8 --threads 1
+    python tools/make_scene.py --variant moving --out scenes/moving   # the scene
+    python examples/train_4dgs.py --data scenes/moving --preset baseline --steps 600 --out out/4dgs
+    python examples/train_4dgs.py --data scenes/moving --preset multiview --views 4 --steps 600
+    torchrun --nproc-per-node 2 examples/train_4dgs.py --data scenes/moving --views 8 --threads 1
 
 Same CLI contract as train_3dgs.py (plus the 4DGS options below). Writes OUT/metrics.json (psnr,
 ssim, lpips or null, train_seconds, steps, num_gaussians, model_mb, peak_memory_mb, preset,
@@ -22,46 +22,37 @@ time bins) or "random".
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
-from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from train_3dgs import (  # noqa: E402
-    common_args, config_from_args, int_at_least, launch, load_scene, metrics_record, model_config,
-    rasterize_function,
-    train_and_evaluate, write_json,
+from mvgs_plugin import MVGSConfig
+from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
+from mvgs_plugin.cli import (
+    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, load_scene, metrics_record,
+    model_config, rasterize_function, scene_folder, train_and_evaluate, write_json,
 )
-
-from adapters.gs4d import GS4DAdapter, GS4DConfig  # noqa: E402
-from mvgs_plugin import MVGSConfig  # noqa: E402
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
 
 
 def parse_args(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, required=True,
-                    help="dynamic scene in the D-NeRF layout (frames with 'time')")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--data", type=scene_folder, required=True,
+                    help="dynamic scene in the D-NeRF layout (frames with 'time'); required")
     common_args(ap, "out/train_4dgs")  # --steps: coarse + fine together
     # 4DGS
-    ap.add_argument("--coarse-fraction", type=float, default=ORIGINAL_COARSE_FRACTION,
-                    help="share of the steps in the static coarse stage (default 3000/23000, the original's)")
+    ap.add_argument("--coarse-fraction", type=float_above(0, inclusive=True, high=0.999999), default=ORIGINAL_COARSE_FRACTION,
+                    help="share of the steps in the static coarse stage, in [0, 1) (default: 3000/23000, the original's)")
     ap.add_argument("--time-spread", choices=["random", "stratified"], default="stratified",
                     help="how the M views of a step spread over time (MVGSConfig.time_spread)")
     ap.add_argument("--init-random", type=int_at_least(0), default=0,
                     help="extra random initial points (the scene's points may miss the moving objects)")
-    ap.add_argument("--init-box", type=float, nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+    ap.add_argument("--init-box", type=float_above(-math.inf), nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                     help="box of the extra random points (default: the scene points' box widened to a cube)")
-    ap.add_argument("--export-times", type=float, nargs="*", default=[0.0, 0.5, 1.0],
-                    help="times at which to bake a PLY")
-    args = ap.parse_args(argv)
-    if not 0.0 <= args.coarse_fraction < 1.0:
-        ap.error(f"--coarse-fraction must be in [0, 1), got {args.coarse_fraction}")
-    for t in args.export_times:
-        if not 0.0 <= t <= 1.0:
-            ap.error(f"--export-times must be in [0, 1], got {t}")
-    return args
+    ap.add_argument("--export-times", type=float_above(0, inclusive=True, high=1.0), nargs="*", default=[0.0, 0.5, 1.0],
+                    help="times in [0, 1] at which to bake a PLY")
+    return ap.parse_args(argv)
 
 
 def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:

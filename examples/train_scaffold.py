@@ -3,7 +3,7 @@ baseline, and evaluate it.
 
     python examples/train_scaffold.py --preset baseline --steps 300 --resolution-scale 2 --out out/sc_base
     python examples/train_scaffold.py --preset multiview --views 4 --steps 300 --resolution-scale 2 --out out/sc_mvgs
-    python examples/train_scaffold.py --data /work/scenes/reflective --voxel-size 0.02
+    python examples/train_scaffold.py --data scenes/reflective --voxel-size 0.02
     torchrun --nproc-per-node 2 examples/train_scaffold.py --views 8 --threads 1   # views over 2 processes
 
 Same CLI contract as train_3dgs.py (plus the Scaffold options below). Writes OUT/metrics.json
@@ -19,33 +19,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from train_3dgs import (  # noqa: E402
-    BUNDLED, common_args, config_from_args, launch, load_scene, metrics_record, rasterize_function,
-    train_and_evaluate, write_json,
+from mvgs_plugin import MVGSConfig
+from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
+from mvgs_plugin.cli import (
+    BUNDLED, HelpFormatter, common_args, config_from_args, float_above, launch, load_scene, metrics_record,
+    rasterize_function, scene_folder, train_and_evaluate, write_json,
 )
-
-from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig  # noqa: E402
-from mvgs_plugin import MVGSConfig  # noqa: E402
 
 
 def parse_args(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     common_args(ap, "out/train_scaffold")  # --max-gaussians caps the anchors
-    ap.add_argument("--voxel-size", type=float, default=None,
+    ap.add_argument("--voxel-size", type=float_above(0), default=None,
                     help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
-    args = ap.parse_args(argv)
-    if args.voxel_size is not None and not args.voxel_size > 0:
-        ap.error(f"--voxel-size must be > 0, got {args.voxel_size}")
-    return args
+    return ap.parse_args(argv)
 
 
 def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:

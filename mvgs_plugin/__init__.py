@@ -9,7 +9,7 @@ imports a renderer or a model family.
 """
 
 from .camera import Camera, stack_cameras
-from .config import MVGSConfig, Stage
+from .config import CRDConfig, MVADConfig, MVGSConfig, Stage
 from .controller import MVGS, EvalResult, StepInfo
 from .distributed import Collective, DistributedError
 from .protocol import Adapter, DensifyContext, DensifyReport, DistributedAdapter, RenderResult
@@ -17,7 +17,7 @@ from .sampler import ViewSampler
 from .schedule import StagePlan, StepPlan, ViewSchedule
 
 __all__ = [
-    "MVGS", "MVGSConfig", "Stage", "StepInfo", "EvalResult", "Adapter", "RenderResult", "DensifyContext",
+    "MVGS", "MVGSConfig", "MVADConfig", "CRDConfig", "Stage", "StepInfo", "EvalResult", "Adapter", "RenderResult", "DensifyContext",
     "DensifyReport", "Camera", "stack_cameras", "ViewSampler", "StagePlan", "StepPlan", "ViewSchedule",
     "DistributedAdapter", "Collective", "DistributedError",
 ]

@@ -1,6 +1,6 @@
 """Pinhole cameras in the project's fixed convention.
 
-Convention (see DESIGN.md): OpenCV camera axes (x right, y down, z forward), a world-to-camera
+Convention (see docs/design.md): OpenCV camera axes (x right, y down, z forward), a world-to-camera
 rigid transform ``world_to_camera`` [4, 4] and a pinhole matrix ``K`` [3, 3] that maps camera
 coordinates to *pixel* coordinates in which pixel (i, j) (column i, row j) has its centre at
 (i + 0.5, j + 0.5). The image covers [0, width] x [0, height] in those coordinates.

@@ -2,7 +2,7 @@
 
 - ``MVGSConfig.baseline()``: the original 3DGS recipe (one view per step, one stage). With it the
   controller is plain 3DGS training, so baseline and MVGS run through the same code.
-- ``MVGSConfig.paper()``: the released MVGS behaviour (MVGS_METHOD.md): stages {8,4,2,1} with
+- ``MVGSConfig.paper()``: the released MVGS behaviour (docs/method.md): stages {8,4,2,1} with
   M {48,24,12,8}; schedules restart at every stage and opacities are reset at each hand-off;
   densification statistics from the last view of a step only.
 - ``MVGSConfig.multiview()``: the paper's method with our fixes: one continuous schedule, no
@@ -20,9 +20,13 @@ recipe; ``with_total_steps(n)`` rescales every step-valued field for short runs.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+import functools
 import math
+import warnings
+from dataclasses import dataclass, field
 from typing import Optional, Tuple, Union
+
+from .checks import check_int
 
 
 def _check_finite_above(name: str, value, low: float, what: str, optional: bool = False) -> None:
@@ -44,9 +48,7 @@ class Stage:
 
     def __post_init__(self):
         for name in ("factor", "views", "steps"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"Stage.{name} must be a positive int, got {v!r}")
+            check_int(f"Stage.{name}", getattr(self, name), 1)
 
 
 # The default's stage plan: (pyramid factor, views per step, share of the work).
@@ -67,6 +69,87 @@ def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[fl
     a, b = view_cost
     finest = min(t[0] for t in shares)
     return tuple(Stage(f, m, max(1, round(total_work * w / (m * (a + b * finest / f))))) for f, m, w in shares)
+
+
+
+@dataclass(frozen=True)
+class MVADConfig:
+    """Multi-view augmented densification (densify/mvad.py): the gradient threshold is halved on
+    a densification step whose cameras are far apart.
+
+    enabled: the rule is on.
+    tau: the discrepancy (chord on the unit sphere, 0..2) a pair of views needs.
+    rule: "any" pair (released code) or a fraction of the pairs.
+    rotation_weight: weight of the optical-axis angle / pi added to the chord (paper: 0).
+    center: "origin" (the released code normalises about the world origin) or "scene" (the
+        mean training camera centre, Scene.center).
+    """
+
+    enabled: bool = False
+    tau: float = 1.0
+    rule: Union[str, float] = "any"
+    rotation_weight: float = 0.0
+    center: str = "scene"
+
+    def __post_init__(self):
+        _check_finite_above("mvad.tau", self.tau, 0, "a finite discrepancy > 0 (a chord on the unit sphere is at most 2)")
+        if not (isinstance(self.rule, str) and self.rule == "any") and not (
+                not isinstance(self.rule, (str, bool)) and 0.0 < float(self.rule) <= 1.0):
+            raise ValueError(f"mvad.rule must be 'any' or a fraction in (0, 1], got {self.rule!r}")
+        if self.center not in ("origin", "scene"):
+            raise ValueError(f"mvad.center must be one of ('origin', 'scene'), got {self.center!r}")
+
+    def __bool__(self) -> bool:
+        """``enabled``, so that ``if config.mvad:`` (a bool in earlier releases) keeps its meaning."""
+        return self.enabled
+
+
+@dataclass(frozen=True)
+class CRDConfig:
+    """Cross-ray densification (densify/crd.py): clone what lies inside boxes where high-loss
+    rays of different views cross.
+
+    enabled: the rule is on.
+    window: (rows, columns) of the loss window at full resolution (paper: 20 x 40).
+    window_per_level: divide the window by the pyramid factor (ours) or keep it (paper).
+    forward_only: drop pairs whose closest points lie behind a camera.
+    max_miss: drop pairs whose rays pass further apart than this times the scene extent.
+    pad_by_miss: grow each box by half its pair's largest miss distance.
+    min_angle_deg: drop pairs whose rays are closer to parallel than this.
+    clip: clip boxes to the bounding box of the model's primitives.
+    max_new: cap on primitives one call may add, as a fraction of the current count.
+    """
+
+    enabled: bool = False
+    window: Tuple[int, int] = (20, 40)
+    window_per_level: bool = True
+    forward_only: bool = True
+    max_miss: Optional[float] = 0.05
+    pad_by_miss: bool = True
+    min_angle_deg: float = 1.0
+    clip: bool = True
+    max_new: Optional[float] = 0.05
+
+    def __post_init__(self):
+        object.__setattr__(self, "window", tuple(self.window))
+        if len(self.window) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
+                                            for v in self.window):
+            raise ValueError(f"crd.window must be (rows, columns) of positive ints, got {self.window!r}")
+        if self.max_new is not None and not 0.0 < self.max_new:
+            raise ValueError(f"crd.max_new must be None or > 0, got {self.max_new!r}")
+
+    def __bool__(self) -> bool:
+        """``enabled``, so that ``if config.crd:`` (a bool in earlier releases) keeps its meaning."""
+        return self.enabled
+
+
+# The flat field names of earlier releases: name -> (group, field). MVGSConfig(...) and
+# MVGSConfig.from_dict accept them until the next release; reading them warns.
+FLAT_NAMES = {
+    **{f"mvad_{n}": ("mvad", n) for n in ("tau", "rule", "rotation_weight", "center")},
+    **{f"crd_{n}": ("crd", n) for n in ("window", "window_per_level", "forward_only", "max_miss", "pad_by_miss",
+                                         "min_angle_deg", "clip", "max_new")},
+}
 
 
 @dataclass
@@ -103,8 +186,6 @@ class MVGSConfig:
         effect of its per-stage restart).
     background: "auto" (the colour the scene's RGBA images were composited on, else black),
         "black", "white", "random" (per view and step) or an (r, g, b) tuple.
-    max_views_rule: what happens when a stage asks for more views than there are training views:
-        "cap" (use them all; the only rule: repeats within a step are never allowed).
     seed: seeds the view sampler and random backgrounds.
     budget: None (the clocks count steps) or the run's budget of work in full-resolution view
         renders (set by with_budget()). Then every clock (learning-rate decay, SH degree,
@@ -154,24 +235,8 @@ class MVGSConfig:
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
 
-    Multi-view augmented densification (MVAD, densify/mvad.py):
-    mvad: halve the gradient threshold when the step's cameras are far apart.
-    mvad_tau: the discrepancy (chord on the unit sphere, 0..2) a pair needs.
-    mvad_rule: "any" pair (released code) or a fraction of the pairs.
-    mvad_rotation_weight: weight of the optical-axis angle / pi added to the chord (paper: 0).
-    mvad_center: "origin" (the released code normalises about the world origin) or "scene"
-        (the mean training camera centre, Scene.center).
-
-    Cross-ray densification (CRD, densify/crd.py):
-    crd: clone what lies inside boxes where high-loss rays of different views cross.
-    crd_window: (rows, columns) of the loss window at full resolution (paper: 20 x 40).
-    crd_window_per_level: divide the window by the pyramid factor (ours) or keep it (paper).
-    crd_forward_only: drop pairs whose closest points lie behind a camera.
-    crd_max_miss: drop pairs whose rays pass further apart than this times the scene extent.
-    crd_pad_by_miss: grow each box by half its pair's largest miss distance (see densify/crd.py).
-    crd_min_angle_deg: drop pairs whose rays are closer to parallel than this.
-    crd_clip: clip boxes to the bounding box of the model's primitives.
-    crd_max_new: cap on primitives one call may add, as a fraction of the current count.
+    mvad: multi-view augmented densification, an MVADConfig (off by default).
+    crd: cross-ray densification, a CRDConfig (off by default).
     """
 
     stages: Tuple[Stage, ...] = (Stage(1, 1, 30_000),)
@@ -190,7 +255,6 @@ class MVGSConfig:
     restart_per_stage: bool = False
     opacity_reset_at_handoff: bool = False
     background: Union[str, Tuple[float, float, float]] = "auto"
-    max_views_rule: str = "cap"
     seed: int = 0
     time_spread: str = "random"
     forward_rig: str = "pyramid"
@@ -201,28 +265,25 @@ class MVGSConfig:
     clock_unit: str = "steps"
     budget: Optional[float] = None
     view_cost: Tuple[float, float] = (0.1, 0.9)
-    mvad: bool = False
-    mvad_tau: float = 1.0
-    mvad_rule: Union[str, float] = "any"
-    mvad_rotation_weight: float = 0.0
-    mvad_center: str = "scene"
-    crd: bool = False
-    crd_window: Tuple[int, int] = (20, 40)
-    crd_window_per_level: bool = True
-    crd_forward_only: bool = True
-    crd_max_miss: Optional[float] = 0.05
-    crd_pad_by_miss: bool = True
-    crd_min_angle_deg: float = 1.0
-    crd_clip: bool = True
-    crd_max_new: Optional[float] = 0.05
+    mvad: "MVADConfig" = field(default_factory=MVADConfig)
+    crd: "CRDConfig" = field(default_factory=CRDConfig)
     preset: str = field(default="custom", compare=False)
 
     def __post_init__(self):
         self.stages = tuple(self.stages)
         if not self.stages or not all(isinstance(s, Stage) for s in self.stages):
             raise ValueError(f"stages must be a non-empty sequence of Stage, got {self.stages!r}")
-        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "max_views_rule": ("cap",),
-                   "mvad_center": ("origin", "scene"), "time_spread": ("random", "stratified"),
+        for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
+            value = getattr(self, group)
+            if isinstance(value, bool):  # the flat bool of earlier releases: the switch alone
+                warnings.warn(f"MVGSConfig({group}={value}): pass {kind.__name__}(enabled={value}) instead; a bool "
+                              "is accepted until the next release", DeprecationWarning, stacklevel=3)
+                setattr(self, group, kind(enabled=value))
+            elif isinstance(value, dict):
+                setattr(self, group, kind(**value))
+            elif not isinstance(value, kind):
+                raise ValueError(f"{group} must be a {kind.__name__}, got {value!r}")
+        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "time_spread": ("random", "stratified"),
                    "forward_rig": ("pyramid", "finest"), "views_scaling": ("none", "sqrt")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -233,11 +294,7 @@ class MVGSConfig:
             v = getattr(self, name)
             if name == "chunk_size" and v is None:
                 continue
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                what = "a positive int" if low == 1 else "an int >= 0"
-                raise ValueError(f"{name} must be {what}{' or None' if name == 'chunk_size' else ''}, got {v!r}")
-        _check_finite_above("mvad_tau", self.mvad_tau, 0, "a finite discrepancy > 0 (a chord on the unit sphere "
-                                                          "is at most 2)")
+            check_int(name, v, low)
         _check_finite_above("max_views_fraction", self.max_views_fraction, 0, "None or a fraction in (0, 1]",
                             optional=True)
         if self.max_views_fraction is not None and self.max_views_fraction > 1:
@@ -250,9 +307,6 @@ class MVGSConfig:
             raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold!r}")
         _check_finite_above("grad_threshold_width", self.grad_threshold_width, 0,
                             "None or a finite width in pixels > 0", optional=True)
-        if not (isinstance(self.mvad_rule, str) and self.mvad_rule == "any") and not (
-                not isinstance(self.mvad_rule, (str, bool)) and 0.0 < float(self.mvad_rule) <= 1.0):
-            raise ValueError(f"mvad_rule must be 'any' or a fraction in (0, 1], got {self.mvad_rule!r}")
         self.view_cost = tuple(float(v) for v in self.view_cost)
         if len(self.view_cost) != 2 or not all(0.0 <= v < float("inf") for v in self.view_cost) or not math.isclose(
                 sum(self.view_cost), 1.0):
@@ -268,11 +322,6 @@ class MVGSConfig:
             raise ValueError(f"clock_unit must be 'steps' or 'work', got {self.clock_unit!r}")
         if self.clock_unit == "work" and self.restart_per_stage:
             raise ValueError("clock_unit='work' needs one continuous clock (restart_per_stage=False)")
-        self.crd_window = tuple(self.crd_window)
-        if len(self.crd_window) != 2 or not all(isinstance(v, int) and v >= 1 for v in self.crd_window):
-            raise ValueError(f"crd_window must be (rows, columns) of positive ints, got {self.crd_window!r}")
-        if self.crd_max_new is not None and not 0.0 < self.crd_max_new:
-            raise ValueError(f"crd_max_new must be None or > 0, got {self.crd_max_new!r}")
         bg = self.background
         if isinstance(bg, str):
             if bg not in ("auto", "black", "white", "random"):
@@ -318,14 +367,15 @@ class MVGSConfig:
 
     @classmethod
     def paper(cls, **overrides) -> "MVGSConfig":
-        """The released MVGS code's behaviour (MVGS_METHOD.md §1, §2)."""
+        """The released MVGS code's behaviour (docs/method.md §1, §2)."""
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
         return cls(**{
             "stages": stages, "stats_from": "last", "restart_per_stage": True,
             "opacity_reset_at_handoff": True, "preset": "paper",
-            "mvad": True, "mvad_center": "origin", "crd": True, "crd_window_per_level": False,
-            "crd_forward_only": False, "crd_max_miss": None, "crd_pad_by_miss": False, "crd_min_angle_deg": 0.0,
-            "crd_clip": False, "crd_max_new": None, **overrides,
+            "mvad": MVADConfig(enabled=True, center="origin"),
+            "crd": CRDConfig(enabled=True, window_per_level=False, forward_only=False, max_miss=None,
+                             pad_by_miss=False, min_angle_deg=0.0, clip=False, max_new=None),
+            **overrides,
         })
 
     @classmethod
@@ -336,8 +386,8 @@ class MVGSConfig:
         where 3DGS set it), scaled to the width of every pyramid level (grad_threshold_width).
         M views at every level: it wins at equal steps and loses at equal compute."""
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
-        return cls(**{"stages": stages, "preset": "multiview", "mvad": True, "crd": True,
-                      "grad_threshold_width": 800.0, **overrides})
+        return cls(**{"stages": stages, "preset": "multiview", "mvad": MVADConfig(enabled=True),
+                      "crd": CRDConfig(enabled=True), "grad_threshold_width": 800.0, **overrides})
 
     @classmethod
     def default(cls, **overrides) -> "MVGSConfig":
@@ -475,16 +525,60 @@ class MVGSConfig:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["stages"] = [dataclasses.asdict(s) for s in self.stages]
-        d["crd_window"] = list(self.crd_window)
+        d["crd"]["window"] = list(self.crd.window)
         d["view_cost"] = list(self.view_cost)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "MVGSConfig":
+        """The config to_dict() wrote; also reads the flat layout of earlier releases (mvad: bool,
+        mvad_tau, crd_window, ..., max_views_rule) that their checkpoints and metrics hold."""
         d = dict(d)
+        d.pop("max_views_rule", None)
+        flat = {k: d.pop(k) for k in list(d) if k in FLAT_NAMES}
+        for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
+            value = d.get(group, {})
+            value = {"enabled": value} if isinstance(value, bool) else dict(value)
+            value.update({FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == group})
+            if "window" in value:
+                value["window"] = tuple(value["window"])
+            d[group] = kind(**value)
         d["stages"] = tuple(Stage(**s) for s in d["stages"])
         if isinstance(d.get("background"), list):
             d["background"] = tuple(d["background"])
         if "view_cost" in d:
             d["view_cost"] = tuple(d["view_cost"])
         return cls(**d)
+
+
+def _flat_init(init):
+    """MVGSConfig.__init__ that also takes the flat MVAD / CRD names (see FLAT_NAMES), merging
+    each into the group given beside it (or the default group), with a DeprecationWarning."""
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs):
+        flat = {k: kwargs.pop(k) for k in list(kwargs) if k in FLAT_NAMES}
+        if flat:
+            names = ", ".join(f"{k} -> {'.'.join(FLAT_NAMES[k])}" for k in sorted(flat))
+            warnings.warn(f"MVGSConfig: flat MVAD / CRD names are deprecated ({names}); pass "
+                          "mvad=MVADConfig(...) / crd=CRDConfig(...)", DeprecationWarning, stacklevel=2)
+            for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
+                sub = {FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == group}
+                if sub:
+                    base = kwargs.get(group, kind())
+                    base = kind(enabled=base) if isinstance(base, bool) else base
+                    kwargs[group] = dataclasses.replace(base, **sub)
+        init(self, *args, **kwargs)
+    return __init__
+
+
+def _flat_property(group: str, name: str) -> property:
+    def get(self):
+        warnings.warn(f"MVGSConfig.{group}_{name} is deprecated; read MVGSConfig.{group}.{name}",
+                      DeprecationWarning, stacklevel=2)
+        return getattr(getattr(self, group), name)
+    return property(get, doc=f"Deprecated: MVGSConfig.{group}.{name}.")
+
+
+MVGSConfig.__init__ = _flat_init(MVGSConfig.__init__)
+for _flat, (_group, _name) in FLAT_NAMES.items():
+    setattr(MVGSConfig, _flat, _flat_property(_group, _name))

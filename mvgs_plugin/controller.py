@@ -16,8 +16,9 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
 import torch
 
@@ -38,9 +39,20 @@ RUNTIME_FIELDS = ("chunk_size", "chunk_memory_mb", "divergence_factor")
 def config_differences(saved: MVGSConfig, current: MVGSConfig) -> List[tuple]:
     """(field, saved value, current value) for every field but RUNTIME_FIELDS that differs,
     the preset's name included."""
-    a, b = saved.to_dict(), current.to_dict()
+    a, b = _flat_dict(saved.to_dict()), _flat_dict(current.to_dict())
     return [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b))
             if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
+
+
+def _flat_dict(d: dict) -> dict:
+    """The nested groups of MVGSConfig.to_dict() (mvad, crd) as "mvad.tau"-style keys."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update({f"{k}.{kk}": vv for kk, vv in v.items()})
+        else:
+            out[k] = v
+    return out
 
 
 def _non_finite(t) -> int:
@@ -59,6 +71,22 @@ def _non_finite(t) -> int:
 # cannot make the next ordinary one look like an explosion.
 _LEVEL_DECAY = 0.9
 _LEVEL_FLOOR = 0.01
+
+
+class PhaseTimer:
+    """Wall seconds per phase of a step: ``with timer("render"): ...`` adds the block's time to
+    ``timer.seconds["render"]`` (an exception inside a block still counts its time)."""
+
+    def __init__(self, *phases: str):
+        self.seconds: Dict[str, float] = dict.fromkeys(phases, 0.0)
+
+    @contextmanager
+    def __call__(self, phase: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[phase] += time.perf_counter() - t0
 
 
 @dataclass
@@ -157,57 +185,59 @@ class MVGS:
         self.schedule.primitive_count = self.adapter.num_primitives()
         plan = self.schedule.next()
         adapter = self.adapter
-        times = {"render": 0.0, "backward": 0.0, "comm": 0.0, "loss": 0.0, "adapter": 0.0}
-        t0 = time.perf_counter()
-        if plan.handoff_reset:
-            adapter.reset_opacity()
-        if self.config.views_scaling == "sqrt":
-            adapter.set_views_per_step(len(plan.views))
-        adapter.set_step(plan.clock)
-        times["adapter"] += time.perf_counter() - t0
+        timer = PhaseTimer("render", "backward", "comm", "loss", "adapter")
+        with timer("adapter"):
+            if plan.handoff_reset:
+                adapter.reset_opacity()
+            if self.config.views_scaling == "sqrt":
+                adapter.set_views_per_step(len(plan.views))
+            adapter.set_step(plan.clock)
         maps = [] if plan.wants_maps else None
         dist = self.distributed
         mine = list(range(len(plan.views))) if dist is None else dist.positions(len(plan.views))
         error: Optional[BaseException] = None
         try:
-            total = self._render_and_backward(plan, mine, maps, times)
+            total = self._render_and_backward(plan, mine, maps, timer)
         except Exception as exc:
             if dist is None:
                 raise
             total, error = 0.0, exc  # reported to every rank below, then raised here
         if dist is not None:
-            t0 = time.perf_counter()
-            total, maps = self._combine_ranks(plan, error, total, maps)
-            times["comm"] = time.perf_counter() - t0
+            with timer("comm"):
+                total, maps = self._combine_ranks(plan, error, total, maps)
         self._check_gradients(plan)
         report, ctx = None, None
-        with torch.no_grad():
-            if plan.densify:
+        if plan.densify:
+            with torch.no_grad():
                 positions = adapter.positions()
                 bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
                 ctx = self.schedule.densify_context(plan, maps, adapter.num_primitives(), bounds)
-                t0 = time.perf_counter()
-                report = adapter.densify(ctx)
-                times["adapter"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
+                with timer("adapter"):
+                    report = adapter.densify(ctx)
+        with timer("adapter"):
             if plan.reset_opacity:
-                adapter.reset_opacity()
-        self._check_loss(plan, total)
-        try:
-            adapter.optimizer_step()
-        except FloatingPointError as exc:
-            raise FloatingPointError(f"step {plan.step}: after the optimizer step, {exc}") from exc
-        self._check_parameters(plan)
-        adapter.zero_grad()
-        times["adapter"] += time.perf_counter() - t0
-        return StepInfo(plan.step, plan.stage, plan.factor, plan.views, total, adapter.num_primitives(),
-                        report, plan.reset_opacity, None if ctx is None else ctx.grad_threshold,
-                        0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
-                        time.perf_counter() - t_step, times["render"], times["backward"], times["comm"],
-                        ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan),
-                        times["loss"], times["adapter"])
+                with torch.no_grad():
+                    adapter.reset_opacity()
+            self._check_loss(plan, total)
+            try:
+                adapter.optimizer_step()
+            except FloatingPointError as exc:
+                raise FloatingPointError(f"step {plan.step}: after the optimizer step, {exc}") from exc
+            self._check_parameters(plan)
+            adapter.zero_grad()
+        seconds = timer.seconds
+        return StepInfo(
+            step=plan.step, stage=plan.stage, factor=plan.factor, views=plan.views, loss=total,
+            num_primitives=adapter.num_primitives(), densify=report, opacity_reset=plan.reset_opacity,
+            threshold=None if ctx is None else ctx.grad_threshold,
+            boxes=0 if ctx is None or ctx.boxes is None else int(ctx.boxes.shape[0]),
+            seconds=time.perf_counter() - t_step, render_seconds=seconds["render"],
+            backward_seconds=seconds["backward"], comm_seconds=seconds["comm"],
+            mvad_fired=ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan),
+            loss_seconds=seconds["loss"], adapter_seconds=seconds["adapter"],
+        )
 
-    def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], times: Dict[str, float]) -> float:
+    def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], timer: "PhaseTimer") -> float:
         """Renders and backpropagates the step's views at positions `mine`, chunk by chunk (the
         gradients accumulate), folds in their statistics and appends their loss maps to `maps`.
         Returns the sum of their losses."""
@@ -215,35 +245,31 @@ class MVGS:
         for positions, collect in self._chunks(plan, mine):
             cams = [plan.cameras[i] for i in positions]
             gts = [plan.images[i] for i in positions]
-            t0 = time.perf_counter()
-            result = adapter.render(cams, plan.backgrounds[positions])
-            times["render"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            if maps is not None:
-                maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
-            # One batched loss for the chunk: the mean over its views times their number is the
-            # sum of the per-view losses (same image size), with one SSIM filter call.
-            images = result.images if isinstance(result.images, torch.Tensor) else torch.stack(list(result.images))
-            target = torch.stack(gts).to(images)
-            loss = plan.weight * len(gts) * photometric_loss(images, target, self.config.lambda_dssim)
-            if positions[0] == 0:  # the regulariser counts once per step (on one rank), not once per view
-                reg = adapter.regularization(plan.clock)
-                if reg is not None:
-                    loss = loss + reg
-            if not bool(torch.isfinite(loss)):
-                raise FloatingPointError(
-                    f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
-                    "stopping before the optimizer step"
-                )
-            times["loss"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            loss.backward()  # gradients accumulate; this chunk's graph is freed here
-            times["backward"] += time.perf_counter() - t0
+            with timer("render"):
+                result = adapter.render(cams, plan.backgrounds[positions])
+            with timer("loss"):
+                if maps is not None:
+                    maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
+                # One batched loss for the chunk: the mean over its views times their number is the
+                # sum of the per-view losses (same image size), with one SSIM filter call.
+                images = result.images if isinstance(result.images, torch.Tensor) else torch.stack(list(result.images))
+                target = torch.stack(gts).to(images)
+                loss = plan.weight * len(gts) * photometric_loss(images, target, self.config.lambda_dssim)
+                if positions[0] == 0:  # the regulariser counts once per step (on one rank), not once per view
+                    reg = adapter.regularization(plan.clock)
+                    if reg is not None:
+                        loss = loss + reg
+                if not bool(torch.isfinite(loss)):
+                    raise FloatingPointError(
+                        f"step {plan.step}: the loss is {loss.item()} for views {[c.name for c in cams]}; "
+                        "stopping before the optimizer step"
+                    )
+            with timer("backward"):
+                loss.backward()  # gradients accumulate; this chunk's graph is freed here
             total += loss.item()
             if collect:
-                t0 = time.perf_counter()
-                adapter.accumulate_stats(result)
-                times["adapter"] += time.perf_counter() - t0
+                with timer("adapter"):
+                    adapter.accumulate_stats(result)
             del result, loss
         return total
 

@@ -42,6 +42,7 @@ from typing import Callable, Dict, Iterator, List, Optional, Sequence, TypeVar
 import torch
 import torch.distributed as dist
 from torch import Tensor
+from .checks import check_int
 
 __all__ = ["Collective", "DistributedError", "shard", "backend_for", "init_from_env", "require_support",
            "abort_on_error", "DEFAULT_TIMEOUT"]
@@ -60,8 +61,7 @@ def shard(m: int, rank: int, world_size: int) -> List[int]:
     m % world_size ranks one view more. Rank 0 always holds position 0 (when m >= 1); with
     m < world_size the last ranks hold none (they still join every collective)."""
     for name, v, lo in (("m", m, 0), ("world_size", world_size, 1), ("rank", rank, 0)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+        check_int(name, v, lo)
     if rank >= world_size:
         raise ValueError(f"rank must be < world_size={world_size}, got {rank}")
     q, r = divmod(m, world_size)

@@ -24,6 +24,7 @@ import warnings
 from typing import Dict, List, Optional, Sequence
 
 import torch
+from .checks import check_int
 
 TIME_SPREADS = ("random", "stratified")
 
@@ -37,8 +38,7 @@ class ViewSampler:
 
     def __init__(self, n_views: int, seed: int = 0, times: Optional[Sequence[Optional[float]]] = None,
                  time_spread: str = "random"):
-        if isinstance(n_views, bool) or not isinstance(n_views, int) or n_views < 1:
-            raise ValueError(f"n_views must be a positive int, got {n_views!r}")
+        check_int("n_views", n_views, 1)
         if time_spread not in TIME_SPREADS:
             raise ValueError(f"time_spread must be one of {TIME_SPREADS}, got {time_spread!r}")
         self.n_views = n_views
@@ -66,8 +66,7 @@ class ViewSampler:
     def sample(self, m: int) -> List[int]:
         """M distinct indices. M larger than the number of views is capped to it (with a
         warning, once): a step then sees every view exactly once."""
-        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
-            raise ValueError(f"views per step must be a positive int, got {m!r}")
+        check_int("views per step", m, 1)
         if m > self.n_views:
             if not self._warned:
                 warnings.warn(f"{m} views per step requested but only {self.n_views} training views: using {self.n_views}")

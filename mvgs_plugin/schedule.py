@@ -196,7 +196,7 @@ class ViewSchedule:
             densify=densify,
             reset_opacity=collect and pos.crosses(cfg.opacity_reset_every),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
-            wants_maps=densify and cfg.crd,
+            wants_maps=densify and cfg.crd.enabled,
         )
 
     @property
@@ -232,15 +232,17 @@ class ViewSchedule:
         config.stage_growth (None: the count primitive_count had when next() began the stage)."""
         cfg = self.config
         threshold = self.base_threshold(plan)
-        if cfg.mvad:
+        if cfg.mvad.enabled:
+            mvad = cfg.mvad
             cams = [self.scene.train_cameras[i] for i in plan.views]
             centers = torch.stack([c.center for c in cams])
-            origin = torch.zeros(3, dtype=torch.float64) if cfg.mvad_center == "origin" else self.scene.center
-            axes = camera_axes(cams) if cfg.mvad_rotation_weight else None
-            threshold = mvad_threshold(centers, threshold, origin, cfg.mvad_tau, cfg.mvad_rule, axes,
-                                       cfg.mvad_rotation_weight)
+            origin = torch.zeros(3, dtype=torch.float64) if mvad.center == "origin" else self.scene.center
+            threshold = mvad_threshold(centers, threshold, origin=origin, tau=mvad.tau, rule=mvad.rule,
+                                       axes=camera_axes(cams) if mvad.rotation_weight else None,
+                                       rotation_weight=mvad.rotation_weight)
         boxes, cap = None, None
-        if cfg.crd and loss_maps is None:
+        crd = cfg.crd
+        if crd.enabled and loss_maps is None:
             if len(plan.recorded) == len(plan.views):
                 loss_maps = plan.recorded
             elif not self._warned_no_maps:
@@ -249,21 +251,21 @@ class ViewSchedule:
                               f"step's per-view loss maps ({len(plan.recorded)} of {len(plan.views)} recorded); "
                               "call plan.record(images, targets) after each chunk's backward, or pass "
                               "densify_context(plan, loss_maps). Said once per schedule.", stacklevel=2)
-        if cfg.crd and loss_maps is not None:
-            h, w = cfg.crd_window
-            if cfg.crd_window_per_level:
+        if crd.enabled and loss_maps is not None:
+            h, w = crd.window
+            if crd.window_per_level:
                 h, w = max(1, round(h / plan.factor)), max(1, round(w / plan.factor))
             maps = list(loss_maps)
             if len({tuple(m.shape) for m in maps}) == 1:
                 windows = best_windows(torch.stack(maps), (h, w))
             else:  # images of mixed sizes: one view at a time
                 windows = torch.cat([best_windows(m[None], (h, w)) for m in maps])
-            max_miss = None if cfg.crd_max_miss is None else cfg.crd_max_miss * float(self.scene.extent)
-            boxes, _ = cross_ray_boxes(plan.cameras, windows, cfg.crd_forward_only, max_miss,
-                                       cfg.crd_min_angle_deg, bounds if cfg.crd_clip else None,
-                                       cfg.crd_pad_by_miss)
-            if cfg.crd_max_new is not None:
-                cap = int(math.ceil(cfg.crd_max_new * primitive_count))
+            boxes, _ = cross_ray_boxes(
+                plan.cameras, windows, forward_only=crd.forward_only,
+                max_miss=None if crd.max_miss is None else crd.max_miss * float(self.scene.extent),
+                min_angle_deg=crd.min_angle_deg, bounds=bounds if crd.clip else None, pad_by_miss=crd.pad_by_miss)
+            if crd.max_new is not None:
+                cap = int(math.ceil(crd.max_new * primitive_count))
         return DensifyContext(
             step=plan.clock,
             grad_threshold=threshold,

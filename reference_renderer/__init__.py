@@ -4,7 +4,7 @@ Classic 3DGS image formation (EWA projection, 16x16 tiles, front-to-back alpha c
 model trained with it renders the same under gsplat or the original CUDA rasterizer. It does not
 depend on mvgs_plugin.
 
-    from reference_renderer import rasterization
+    from mvgs_plugin.reference_renderer import rasterization
     colors, alphas, meta = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, W, H)
 """
 

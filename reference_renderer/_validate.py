@@ -9,6 +9,8 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
+from mvgs_plugin.checks import check_int
+
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -66,9 +68,7 @@ def check_same(tensors: dict) -> None:
 
 
 def check_positive_int(name: str, v) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-        raise ValueError(f"{name} must be a positive int, got {v!r}")
-    return v
+    return check_int(name, v, 1)
 
 
 def check_scalar(name: str, v, lo: float = -math.inf, lo_open: bool = False) -> float:

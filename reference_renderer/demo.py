@@ -1,6 +1,6 @@
 """Renders a small procedural Gaussian scene from a ring of cameras and writes a PNG.
 
-    python -m reference_renderer.demo --out demo.png
+    python -m mvgs_plugin.reference_renderer.demo --out demo.png
 
 The scene is a torus knot of coloured, view-dependent (SH degree 1) Gaussians over a disc of flat
 ones; it exercises the whole pipeline (projection, SH, binning, compositing, backward) and prints

@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians to screen-space conics, radii and tile ranges (PyTorch).
 
-Follows DESIGN.md "Image formation": the classic 3DGS rules, which gsplat's projection shares.
+Follows docs/design.md "Image formation": the classic 3DGS rules, which gsplat's projection shares.
 Everything here is plain tensor code batched over cameras, so autograd provides the gradients
 from the screen-space quantities back to means, quaternions, scales and camera poses.
 """

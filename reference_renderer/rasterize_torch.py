@@ -1,6 +1,6 @@
 """Tile-based compositing in plain PyTorch: the readable reference and the fallback.
 
-Same rules as csrc/rasterize.cpp (DESIGN.md, "Image formation"); gradients come from autograd.
+Same rules as csrc/rasterize.cpp (docs/design.md, "Image formation"); gradients come from autograd.
 The sequential per-pixel loop becomes cumulative products over each tile's depth-sorted list:
 a Gaussian contributes when the transmittance including it stays >= 1e-4 (it is monotone, so that
 is exactly "stop before the one that would take it below"). Runs on any device torch supports.

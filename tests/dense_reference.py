@@ -1,6 +1,6 @@
 """Dense, float64, autograd-only reference for the image-formation rule.
 
-Written from DESIGN.md ("Conventions" -> "Image formation") only; it shares no code with
+Written from docs/design.md ("Conventions" -> "Image formation") only; it shares no code with
 ``reference_renderer``. Clarity over speed: every Gaussian is evaluated against every pixel
 ([H*W, N] tensors) and the tile rule is applied as a boolean mask, so the only things that
 make it "tiled" are the masks, not the loop structure.
@@ -425,7 +425,7 @@ def renderer_backends() -> list:
     """Backends of reference_renderer to parametrize the comparison tests over; an unusable
     renderer yields one entry whose test then fails (never a silent skip)."""
     try:
-        import reference_renderer
+        import mvgs_plugin.reference_renderer as reference_renderer
 
         names = list(reference_renderer.available_backends())
     except Exception as exc:  # noqa: BLE001 - reported through the failing entry

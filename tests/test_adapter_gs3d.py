@@ -12,11 +12,11 @@ import math
 import pytest
 import torch
 
-from adapters.gs3d import SH_C0, GS3DAdapter, GS3DConfig, knn_mean_sq_dist
+from mvgs_plugin.adapters.gs3d import SH_C0, GS3DAdapter, GS3DConfig, knn_mean_sq_dist
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data.scene import PointCloud, Scene
 from mvgs_plugin.protocol import Adapter, DensifyContext
-from reference_renderer import rasterization
+from mvgs_plugin.reference_renderer import rasterization
 
 W, H = 40, 32
 BETA = 2e-4

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
-from adapters.gs4d import PLANES, GS4DAdapter, GS4DConfig, HexPlaneField
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs4d import PLANES, GS4DAdapter, GS4DConfig, HexPlaneField
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.protocol import DensifyContext
@@ -55,7 +55,7 @@ def randomize_field(field: HexPlaneField, seed=1, scale=1.0) -> None:
 
 
 def fine(adapter: GS4DAdapter) -> GS4DAdapter:
-    adapter.set_step(adapter.config4d.coarse_steps + 1)
+    adapter.set_step(adapter.gs4d_config.coarse_steps + 1)
     return adapter
 
 
@@ -172,15 +172,15 @@ def test_coarse_stage_ignores_the_field():
     base = gaussians(20)
     a = GS4DAdapter.from_canonical(base, tiny_config(zero_init_heads=False))
     randomize_field(a.field)
-    a.set_step(a.config4d.coarse_steps)
-    base.set_step(a.config4d.coarse_steps)
+    a.set_step(a.gs4d_config.coarse_steps)
+    base.set_step(a.gs4d_config.coarse_steps)
     cams = [cam_at(0, 0.2)]
     out = a.render(cams, torch.zeros(1, 3))
     assert torch.equal(out.images, base.render(cams, torch.zeros(1, 3)).images)
     out.images.sum().backward()
     assert all(p.grad is None for p in a.field.parameters())
-    assert a.regularization(a.config4d.coarse_steps) is None
-    assert a.regularization(a.config4d.coarse_steps + 1) is not None
+    assert a.regularization(a.gs4d_config.coarse_steps) is None
+    assert a.regularization(a.gs4d_config.coarse_steps + 1) is not None
 
 
 # ---- per-view times, statistics -----------------------------------------------------------------
@@ -349,7 +349,7 @@ def test_exports_canonical_baked_and_deformation(tmp_path):
     # canonical PLY + deformation file = the model
     b = GS4DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0,
                              config=GS3DConfig(sh_degree=1))
-    b.config4d = a.config4d
+    b.gs4d_config = a.gs4d_config
     b.load_deformation(str(tmp_path / "deformation.pt"))
     b.set_step(a._step)
     assert torch.allclose(b.render([cam], torch.ones(1, 3)).images, want, atol=1e-6)
@@ -362,7 +362,7 @@ def test_bad_configuration_names_the_value():
         GS4DConfig(resolution=(8, 8, 8))
     with pytest.raises(ValueError, match="bounds must be"):
         GS4DConfig(bounds=((0, 0, 0), (1, -1, 1)))
-    with pytest.raises(ValueError, match="fine_steps must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="fine_steps must be a positive int, got 0"):
         GS4DConfig(fine_steps=0)
     with pytest.raises(ValueError, match="span no volume"):
         GS4DAdapter.from_canonical(GS3DAdapter.from_tensors(torch.zeros(3, 3), rgb=torch.rand(3, 3),
@@ -443,7 +443,7 @@ def test_mvgs_trains_across_the_stage_switch_with_crd_and_mvad():
 
 def _write_dnerf(root: Path, scene) -> None:
     """A scene in the D-NeRF layout: PNGs and transforms with OpenGL camera-to-world and times."""
-    from reference_renderer.demo import save_png
+    from mvgs_plugin.reference_renderer.demo import save_png
 
     for split, cams in (("train", scene.train_cameras), ("test", scene.test_cameras)):
         (root / split).mkdir(parents=True)

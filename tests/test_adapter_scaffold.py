@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from adapters.gs3d import SH_C0
-from adapters.ply import read_gaussian_ply
-from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig, decode_children, new_cells, voxelize
+from mvgs_plugin.adapters.gs3d import SH_C0
+from mvgs_plugin.adapters.ply import read_gaussian_ply
+from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig, decode_children, new_cells, voxelize
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.protocol import DensifyContext
 from mvgs_plugin.testing import check_adapter, look_at, synthetic_scene
@@ -92,7 +92,7 @@ def test_bad_input_errors():
     with pytest.raises(ValueError, match="grad_threshold"):
         ad.densify(DensifyContext(step=1, grad_threshold=math.nan, scene_extent=1.0))
     with pytest.raises(ValueError, match="needs a Camera"):
-        ad.export("/tmp/never.ply")
+        ad.export("never.ply")  # refused before anything is written
     scene = synthetic_scene()
     scene.points = None
     with pytest.raises(ValueError, match="no points"):

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from mvgs_plugin.config import MVGSConfig
+from mvgs_plugin.config import CRDConfig, MVGSConfig
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene
 
@@ -52,7 +52,7 @@ def test_stages_keep_their_share_of_the_work():
 
 
 def test_triggers_fire_where_the_work_clock_crosses_their_period(scene):
-    config = MVGSConfig.multiview(crd=False).with_views(4).with_budget(2000)
+    config = MVGSConfig.multiview(crd=CRDConfig()).with_views(4).with_budget(2000)
     got, schedule = plans(scene, config)
     # The work of each step from its stage, walked independently of the schedule.
     work, bounds = 0.0, []

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
-from mvgs_plugin import MVGS, MVGSConfig, Stage, ViewSchedule
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin import MVADConfig, MVGS, MVGSConfig, Stage, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.testing import check_adapter, synthetic_scene
 
@@ -83,7 +83,7 @@ def test_default_chunk_size_is_the_memory_bound(scene):
     assert [len(c) for c in schedule.next().chunks] == [1] * 6
     with pytest.raises(ValueError, match="chunk_memory_mb"):
         MVGSConfig(chunk_memory_mb=0)
-    with pytest.raises(ValueError, match="chunk_size must be a positive int or None"):
+    with pytest.raises(ValueError, match="chunk_size must be a positive int"):
         MVGSConfig(chunk_size=0)
 
 
@@ -427,16 +427,16 @@ def test_a_checkpoint_of_another_config_is_refused_or_its_overrides_named(scene,
     path = tmp_path / "base.pt"
     trainer.save_checkpoint(str(path))
 
-    other = dataclasses.replace(saved_config, seed=7, mvad=True)
+    other = dataclasses.replace(saved_config, seed=7, mvad=MVADConfig(enabled=True))
     fresh = MVGS(make(scene), scene, other)
     before = fresh.adapter.positions().clone()
     with pytest.raises(ValueError) as err:
         fresh.load_checkpoint(str(path))
     message = str(err.value)
-    assert "base.pt" in message and "mvad: checkpoint False, this run True" in message
+    assert "base.pt" in message and "mvad.enabled: checkpoint False, this run True" in message
     assert "seed: checkpoint 0, this run 7" in message
     assert fresh.step_count == 0 and torch.equal(fresh.adapter.positions(), before)
-    with pytest.warns(UserWarning, match=r"this run's values are kept: .*mvad: checkpoint False, this run True"):
+    with pytest.warns(UserWarning, match=r"this run's values are kept: .*mvad.enabled: checkpoint False, this run True"):
         fresh.load_checkpoint(str(path), strict=False)
     assert fresh.step_count == 1 and fresh.config.seed == 7
     assert torch.equal(fresh.adapter.positions(), trainer.adapter.positions())
@@ -498,7 +498,7 @@ def test_step_timing_splits_the_adapter_loss_and_controller_time(scene, monkeypa
     import mvgs_plugin.controller as controller
 
     monkeypatch.setattr(controller, "photometric_loss", slow(controller.photometric_loss))
-    config = MVGSConfig(stages=(Stage(1, 2, 2),), densify_from=1, densify_every=2, crd=False, chunk_size=1)
+    config = MVGSConfig(stages=(Stage(1, 2, 2),), densify_from=1, densify_every=2, chunk_size=1)
     trainer = MVGS(adapter, scene, config)
     trainer.step()
     info = trainer.step()  # densifies: 2 x statistics + densify + optimizer, 2 x loss

@@ -21,7 +21,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.distributed import Collective, abort_on_error, backend_for, init_from_env, require_support, shard
 from mvgs_plugin.io import load_checked
@@ -258,7 +258,7 @@ def test_shard_splits_every_step_into_contiguous_balanced_blocks():
                 assert blocks[0][0] == 0  # rank 0 holds the first view (it adds the regulariser)
     with pytest.raises(ValueError, match="rank must be < world_size=2, got 2"):
         shard(4, 2, 2)
-    with pytest.raises(ValueError, match=r"world_size must be an int >= 1, got 0"):
+    with pytest.raises(ValueError, match=r"world_size must be a positive int, got 0"):
         shard(4, 0, 0)
 
 

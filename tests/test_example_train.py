@@ -51,13 +51,15 @@ def test_bad_data_folder_is_named(tmp_path):
         example.main(["--data", str(tmp_path), "--steps", "2", "--out", str(tmp_path / "o"), "--no-progress"])
 
 
+@pytest.mark.slow
 def test_ablation_smoke(tmp_path, monkeypatch):
     """examples/ablation.py runs every variant and writes its table and plots (a few steps)."""
     spec = importlib.util.spec_from_file_location("ablation", EXAMPLE.parent / "ablation.py")
     ablation = importlib.util.module_from_spec(spec)
-    # Registered under its import name: each variant runs in a spawned process, which pickles
-    # ablation.run by name.
+    # Registered under its import name, its folder on the path the spawned processes inherit:
+    # each variant runs in one, which imports ablation.run by name.
     monkeypatch.setitem(sys.modules, "ablation", ablation)
+    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
     spec.loader.exec_module(ablation)
     rows = ablation.main(["--steps", "6", "--views", "2", "--curve-points", "2", "--out", str(tmp_path)])
     names = ["baseline", "+MVRL", "+CRD", "+MVAD", "+CIG (= default)", "paper"]
@@ -83,6 +85,7 @@ def test_ablation_smoke(tmp_path, monkeypatch):
     assert "--threshold-width 800" in table
 
 
+@pytest.mark.slow
 def test_train_3dgs_on_a_budget(tmp_path):
     """--budget: baseline and MVGS do the same work (full-resolution view renders) through
     densification and opacity resets; metrics.json says what was spent, in work and CPU time."""
@@ -147,9 +150,10 @@ def test_every_example_refuses_cuda_flags_this_machine_cannot_run(tmp_path, scri
     spec = importlib.util.spec_from_file_location(script[:-3], EXAMPLE.parent / script)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    (tmp_path / "empty").mkdir()  # an existing folder that holds no scene: the device check comes first
     for flags, message in ((["--device", "cuda"], "sees no CUDA device here"),
                            (["--rasterizer", "gsplat"], "needs --device cuda")):
         with pytest.raises(ValueError, match=message):
-            module.main(flags + ["--data", str(tmp_path / "none"), "--steps", "3", "--no-progress",
+            module.main(flags + ["--data", str(tmp_path / "empty"), "--steps", "3", "--no-progress",
                                  "--out", str(tmp_path / "out")])
     assert not (tmp_path / "out").exists()

@@ -3,16 +3,13 @@
 
 import json
 import os
-import sys
-from pathlib import Path
 
 import torch
 
-from adapters.ply import write_gaussian_ply
+from mvgs_plugin.adapters.ply import write_gaussian_ply
 from mvgs_plugin.io import atomic_write_text, save_atomic
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import train_3dgs  # noqa: E402
+from mvgs_plugin import cli  # noqa: E402
 
 
 def _mode(path) -> int:
@@ -32,7 +29,7 @@ def test_atomic_writers_use_the_plain_new_file_mode(tmp_path):
         n = 3
         write_gaussian_ply(tmp_path / "c.ply", torch.zeros(n, 3), torch.zeros(n, 1, 3), torch.zeros(n, 0, 3),
                            torch.zeros(n), torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1))
-        train_3dgs.write_json(tmp_path / "d.json", {"psnr": 1.0})
+        cli.write_json(tmp_path / "d.json", {"psnr": 1.0})
     finally:
         os.umask(old)
     for name in ("a.md", "b.pt", "c.ply", "d.json"):

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
@@ -129,13 +128,12 @@ def test_photo_consistency_keeps_the_points_on_a_textured_plane():
 
 
 def _train(scene, random_cube: bool = False, budget: float = 600):
-    sys.path.insert(0, str(ROOT / "examples"))
-    import train_3dgs
+    from mvgs_plugin.cli import model_config
 
-    from adapters.gs3d import GS3DAdapter
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter
 
     config = MVGSConfig.default().with_budget(budget)
-    model = train_3dgs.model_config(config, 0)
+    model = model_config(config, 0)
     if random_cube:  # the original 3DGS cube: centre of the cameras ± extent
         model = dataclasses.replace(model, random_init_half_size=float(scene.extent))
     trainer = MVGS(GS3DAdapter.from_scene(scene, model), scene, config)
@@ -156,6 +154,7 @@ def forward_runs(tmp_path_factory):
     return {"points": _train(with_points), "random": _train(without), "cube": _train(without, random_cube=True)}
 
 
+@pytest.mark.slow
 def test_a_forward_facing_scene_trains_from_random_init_close_to_its_points_run(forward_runs):
     """The default recipe on a budget of 600 view renders at 64 px. Measured when written:
     points 29.7 dB, random init where the cameras look 25.3 dB, the 3DGS cube 15.4 dB."""
@@ -169,7 +168,7 @@ def test_random_init_logs_what_it_chose(caplog):
     bare = type("S", (), {"train_cameras": forward.train_cameras, "center": forward.center,
                           "extent": forward.extent, "image": forward.image})()
     with caplog.at_level("INFO", logger="mvgs_plugin"):
-        from adapters.gs3d import GS3DAdapter, GS3DConfig
+        from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 
         GS3DAdapter._random_points(bare, GS3DConfig(random_init=200))
     assert any("training frusta between depth" in r.getMessage() and "candidates" in r.getMessage()
@@ -182,8 +181,8 @@ def test_dynamic_scenes_without_points_use_the_same_rule():
     """The 4DGS adapter initialises its canonical Gaussians through GS3DAdapter.from_scene, so a
     D-NeRF-style scene without points gets the same answer: a ring of timed cameras keeps the
     cube, a timed forward-facing rig gets points in front of its cameras."""
-    from adapters.gs4d import GS4DAdapter, GS4DConfig
-    from adapters.gs3d import GS3DConfig
+    from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
+    from mvgs_plugin.adapters.gs3d import GS3DConfig
     from mvgs_plugin.data import Scene
     from mvgs_plugin.testing import synthetic_scene
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.data import load_nerf_synthetic
 from mvgs_plugin.data.init import CONVERGING_SPREAD, axis_spread, is_forward_facing

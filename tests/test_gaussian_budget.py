@@ -17,9 +17,10 @@ import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.data import PointCloud, load_nerf_synthetic
 from mvgs_plugin.testing import plane_scene
@@ -51,6 +52,7 @@ def _train(name: str) -> tuple[int, float]:
     return adapter.num_primitives(), trainer.evaluate(factor=factor).psnr
 
 
+@pytest.mark.slow
 def test_plane_ends_with_far_fewer_gaussians_than_the_tabletop():
     # The two trainings run side by side in their own processes (one thread each: at 64 px a
     # second thread barely helps), which halves the test's wall time on two cores.

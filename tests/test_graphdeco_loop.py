@@ -16,7 +16,7 @@ import torch
 
 from mvgs_plugin.camera import stack_cameras
 from mvgs_plugin.data import load_scene
-from reference_renderer import rasterization
+from mvgs_plugin.reference_renderer import rasterization
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples" / "graphdeco_loop"))
@@ -90,7 +90,7 @@ def test_densify_and_prune_follows_the_3dgs_rules(scene):
     assert g.xyz_gradient_accum.shape == (g.get_xyz.shape[0], 1) and float(g.xyz_gradient_accum.abs().sum()) == 0
 
 
-@pytest.mark.parametrize("preset,views", [("default", None), ("multiview", 4)])
+@pytest.mark.parametrize("preset,views", [("default", None), pytest.param("multiview", 4, marks=pytest.mark.slow)])
 def test_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, scene, preset, views):
     steps = 300
     full, log = train_mvgs.training(scene, steps, preset, checkpoint_iterations=(120,), out=tmp_path, views=views)

@@ -22,8 +22,8 @@ import torch
 import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
-from adapters.gsplat_strategy import MVGSStrategy
-from mvgs_plugin import MVGSConfig
+from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
+from mvgs_plugin import CRDConfig, MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.losses import ssim
 
@@ -197,7 +197,7 @@ def mvad_expected(scene, data, base, width):
 
 def test_each_step_refines_once_with_the_schedules_threshold(tabletop):
     cfg, splats, optimizers = fresh_model(tabletop)
-    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(chunk_size=5, crd=False), steps=12)
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(chunk_size=5, crd=CRDConfig()), steps=12)
     state = strategy.initialize_state(scene_scale=tabletop.extent)
     expected, halved, counts = [], [], []
     for step, batches in zip(range(6), strategy.batches(chunked=True)):
@@ -220,7 +220,7 @@ def test_each_step_refines_once_with_the_schedules_threshold(tabletop):
 
 def test_a_refine_never_drops_unused_gradients(forward):
     cfg, splats, optimizers = fresh_model(forward)
-    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=4, crd=False), steps=12)
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=4, crd=CRDConfig()), steps=12)
     state = strategy.initialize_state(scene_scale=forward.extent)
     it = strategy.batches(chunked=True)
     step_once(strategy, splats, optimizers, state, next(it), order="before")  # step 1: no refine: fine
@@ -253,7 +253,7 @@ def test_call_counts_are_checked(forward):
 
 def test_opacity_resets_follow_the_schedule(forward):
     cfg, splats, optimizers = fresh_model(forward)
-    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(crd=False), steps=10)
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(crd=CRDConfig()), steps=10)
     state = strategy.initialize_state(scene_scale=forward.extent)
     ceiling = 2 * strategy.strategy.prune_opa
     reset_steps = []
@@ -313,7 +313,7 @@ def test_box_clone_copies_exactly_the_gaussians_inside(forward):
 
 def test_cross_ray_boxes_reach_the_strategy_through_renders(tabletop):
     cfg, splats, optimizers = fresh_model(tabletop)
-    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(crd_max_new=1.0), steps=12)
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(crd=CRDConfig(enabled=True, max_new=1.0)), steps=12)
     state = strategy.initialize_state(scene_scale=tabletop.extent)
     found = []
     for _, batch in zip(range(6), strategy.batches()):
@@ -344,8 +344,9 @@ def example_config(tmp_path, steps, preset, **kw):
     return cfg
 
 
-@pytest.mark.parametrize("module,preset", [(simple_trainer, "single"), (simple_trainer_mvgs, "default"),
-                                           (simple_trainer_mvgs, "multiview")])
+@pytest.mark.parametrize("module,preset", [pytest.param(simple_trainer, "single", marks=pytest.mark.slow),
+                                           (simple_trainer_mvgs, "default"),
+                                           pytest.param(simple_trainer_mvgs, "multiview", marks=pytest.mark.slow)])
 def test_example_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, monkeypatch, forward, module, preset):
     monkeypatch.setattr(module, "DefaultStrategy", Spy)
     steps = 300  # densification every 10 steps from 50 to 150, an opacity reset at 100

@@ -13,7 +13,7 @@ import torch
 
 from gsplat.strategy import DefaultStrategy  # the [dev] extra installs gsplat==1.5.3
 
-from reference_renderer import _cpp, available_backends, rasterization
+from mvgs_plugin.reference_renderer import _cpp, available_backends, rasterization
 
 W, H = 48, 40
 

@@ -27,8 +27,8 @@ import skimage.io
 import torch
 from plyfile import PlyData, PlyElement
 
-from adapters.gs3d import MAX_LOG_SCALE, GS3DAdapter, GS3DConfig
-from adapters.ply import ply_property_names, read_gaussian_ply, write_gaussian_ply
+from mvgs_plugin.adapters.gs3d import MAX_LOG_SCALE, GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.ply import ply_property_names, read_gaussian_ply, write_gaussian_ply
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data import PointCloud, Scene, load_colmap, load_nerf_synthetic

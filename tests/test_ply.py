@@ -9,7 +9,7 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from adapters import ply
+from mvgs_plugin.adapters import ply
 
 N = 5
 

@@ -22,7 +22,7 @@ except ImportError:  # pragma: no cover
 
 # ============================================================================ helpers
 def _renderer():
-    import reference_renderer  # an ImportError here is a test error, never a skip
+    import mvgs_plugin.reference_renderer as reference_renderer  # an ImportError here is a test error, never a skip
 
     return reference_renderer
 

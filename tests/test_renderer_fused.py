@@ -34,7 +34,7 @@ IN_NAMES = ("means", "quats", "scales", "sh")
 def _modules():
     """(rendering, _cpp, projection, rasterize_torch, sh); the compiled library must load (a
     missing compiler is a failure here, never a skip: these tests are about that library)."""
-    from reference_renderer import _cpp, projection, rasterize_torch, rendering, sh
+    from mvgs_plugin.reference_renderer import _cpp, projection, rasterize_torch, rendering, sh
 
     assert _cpp.load() is not None, f"the compiled backend is unavailable: {_cpp.build_error()}"
     return rendering, _cpp, projection, rasterize_torch, sh
@@ -561,7 +561,7 @@ GAUSS_KEYS = ("means", "quats", "scales", "opacities", "colors", "backgrounds")
 def render(backend, scene, grad=True, seed=5, **kw):
     """rasterization on ``scene`` (float64) with a fixed random loss; returns img, alpha, meta,
     gradients (including d/dmeans2d)."""
-    from reference_renderer import rasterization
+    from mvgs_plugin.reference_renderer import rasterization
 
     ins = {k: scene[k].detach().clone().requires_grad_(grad) for k in GAUSS_KEYS}
     img, acc, meta = rasterization(ins["means"], ins["quats"], ins["scales"], ins["opacities"], ins["colors"],

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from reference_renderer import available_backends, rasterization
-from reference_renderer.projection import project
+from mvgs_plugin.reference_renderer import available_backends, rasterization
+from mvgs_plugin.reference_renderer.projection import project
 
 BACKENDS = available_backends()
 F32, F64 = torch.float32, torch.float64

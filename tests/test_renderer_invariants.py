@@ -20,7 +20,7 @@ GRAD_KEYS = ("means", "quats", "scales", "opacities", "colors", "backgrounds")
 
 
 def _renderer():
-    import reference_renderer  # an ImportError here is a test error, never a skip
+    import mvgs_plugin.reference_renderer as reference_renderer  # an ImportError here is a test error, never a skip
 
     return reference_renderer
 

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from reference_renderer import available_backends, rasterization
+from mvgs_plugin.reference_renderer import available_backends, rasterization
 
 BACKENDS = available_backends()
 assert "torch" in BACKENDS, "the PyTorch backend must always be available"

@@ -13,8 +13,8 @@ import math
 import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter
-from mvgs_plugin import MVGSConfig, Stage
+from mvgs_plugin.adapters.gs3d import GS3DAdapter
+from mvgs_plugin import MVADConfig, MVGSConfig, Stage
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.densify import resolution_threshold
 from mvgs_plugin.schedule import ViewSchedule
@@ -86,7 +86,7 @@ def _thresholds(cfg: MVGSConfig, scene) -> list[tuple[int, float]]:
 def test_schedule_scales_the_threshold_per_pyramid_level():
     scene = synthetic_scene(n_train=8, size=32)  # 32 px at factor 1
     stages = (Stage(4, 2, 3), Stage(2, 2, 3), Stage(1, 2, 3))
-    base = dict(stages=stages, densify_from=0, densify_every=1, crd=False, mvad=False, grad_threshold=2e-4)
+    base = dict(stages=stages, densify_from=0, densify_every=1, grad_threshold=2e-4)
     plain = _thresholds(MVGSConfig(**base), scene)
     scaled = _thresholds(MVGSConfig(**base, grad_threshold_width=32), scene)
     assert [t for _, t in plain] == [2e-4] * 9
@@ -99,17 +99,17 @@ def test_schedule_scales_the_threshold_per_pyramid_level():
 
 def test_mvad_halves_the_scaled_threshold():
     scene = synthetic_scene(n_train=8, size=32)  # cameras on a ring: opposite views are 2 apart
-    cfg = MVGSConfig(stages=(Stage(1, 8, 2),), densify_from=0, densify_every=1, crd=False, mvad=True,
-                     mvad_center="scene", grad_threshold=2e-4, grad_threshold_width=64)
+    cfg = MVGSConfig(stages=(Stage(1, 8, 2),), densify_from=0, densify_every=1, mvad=MVADConfig(enabled=True, center="scene"),
+                     grad_threshold=2e-4, grad_threshold_width=64)
     for _, t in _thresholds(cfg, scene):  # all 8 ring views in every step: the rule fires
         assert t == pytest.approx(2e-4 * 2 / 2)
-    off = dataclasses.replace(cfg, mvad=False)
+    off = dataclasses.replace(cfg, mvad=MVADConfig(enabled=False))
     assert all(t == pytest.approx(4e-4) for _, t in _thresholds(off, scene))
     assert not math.isclose(2e-4 * 2 / 2, 4e-4)
 
 
 def _densify_infos(cfg: MVGSConfig, scene) -> list:
-    from adapters.gs3d import GS3DConfig
+    from mvgs_plugin.adapters.gs3d import GS3DConfig
     from mvgs_plugin import MVGS
 
     torch.manual_seed(0)
@@ -121,15 +121,15 @@ def _densify_infos(cfg: MVGSConfig, scene) -> list:
 
 def test_controller_hands_the_scaled_threshold_to_the_adapter_and_reports_mvad():
     scene = synthetic_scene(n_train=8, size=32)
-    cfg = MVGSConfig(stages=(Stage(2, 8, 4), Stage(1, 8, 4)), densify_from=0, densify_every=2, crd=False,
-                     mvad=True, grad_threshold=2e-4, grad_threshold_width=64)
+    cfg = MVGSConfig(stages=(Stage(2, 8, 4), Stage(1, 8, 4)), densify_from=0, densify_every=2,
+                     mvad=MVADConfig(enabled=True), grad_threshold=2e-4, grad_threshold_width=64)
     infos = _densify_infos(cfg, scene)
     assert [i.factor for i in infos] == [2, 2, 1, 1]
     for info in infos:  # width 32 / factor; the eight ring views always hold an opposite pair
         expected = 2e-4 * 64 / (32 / info.factor) / 2
         assert info.mvad_fired and info.threshold == pytest.approx(expected)
         assert info.densify.extra["grad_threshold"] == pytest.approx(expected)  # what the adapter used
-    off = _densify_infos(dataclasses.replace(cfg, mvad=False), scene)
+    off = _densify_infos(dataclasses.replace(cfg, mvad=MVADConfig(enabled=False)), scene)
     assert not any(i.mvad_fired for i in off)
     assert [i.threshold for i in off] == pytest.approx([2e-4 * 64 / (32 / i.factor) for i in off])
 

@@ -113,8 +113,6 @@ def test_with_views():
     ("background", "green", "background must be"),
     ("background", (2.0, 0.0, 0.0), "background must be"),
     ("stages", (), "stages must be a non-empty"),
-    ("mvad_tau", float("nan"), "mvad_tau must be a finite discrepancy > 0"),
-    ("mvad_tau", 0.0, "mvad_tau must be a finite discrepancy > 0"),
     ("densify_until", float("nan"), "densify_until must be an int >= 0"),
     ("densify_from", 2.5, "densify_from must be an int >= 0"),
     ("prune_large_after", -1, "prune_large_after must be an int >= 0"),

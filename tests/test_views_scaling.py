@@ -10,10 +10,10 @@ import math
 import pytest
 import torch
 
-from adapters.gs3d import GS3DAdapter, GS3DConfig
-from adapters.gs4d import GS4DAdapter, GS4DConfig
-from adapters.gsplat_strategy import MVGSStrategy
-from adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
+from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
+from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene

@@ -23,10 +23,10 @@ from typing import Dict, Optional
 import torch
 from torch import Tensor
 
-from adapters.gs3d import SH_C0, knn_mean_sq_dist
+from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.camera import Camera, stack_cameras
-from reference_renderer import rasterization
-from reference_renderer.projection import quat_to_rotmat
+from mvgs_plugin.reference_renderer import rasterization
+from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
 
 
 def inverse_sigmoid(x: Tensor) -> Tensor:

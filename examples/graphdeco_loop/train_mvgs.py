@@ -23,7 +23,6 @@ yours: same attributes, same methods). Lines marked `# MVGS` are what changes in
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import torch
@@ -36,8 +35,7 @@ from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from train_3dgs import BUNDLED, int_at_least  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, scene_folder  # noqa: E402
 
 
 def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
@@ -138,10 +136,11 @@ def evaluate(gaussians: GaussianModel, scene) -> float:
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder with points (default: the bundled one)")
-    ap.add_argument("--steps", type=int_at_least(2), default=1000, help="iterations (default: %(default)s)")
-    ap.add_argument("--preset", choices=["default", "multiview", "paper", "baseline"], default="default")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder with points (default: the bundled one)")
+    ap.add_argument("--steps", type=int_at_least(2), default=1000, help="iterations")
+    ap.add_argument("--preset", choices=["default", "multiview", "paper", "baseline"], default="default",
+                    help="the MVGS recipe (MVGSConfig.from_preset)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "
                     "the preset's)")
     args = ap.parse_args()

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,15 +33,14 @@ from typing import Dict, List, Optional, Tuple
 import torch
 from torch import Tensor
 
-from adapters.gs3d import SH_C0, knn_mean_sq_dist
-from adapters.gsplat_strategy import gsplat_batch
+from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
+from mvgs_plugin.adapters.gsplat_strategy import gsplat_batch
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
 from mvgs_plugin.sampler import ViewSampler
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from train_3dgs import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function  # noqa: E402
 
 @dataclass
 class Config:
@@ -230,8 +228,8 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--grow-grad2d", type=float_above(0.0), default=2e-4,
                     help="DefaultStrategy.grow_grad2d, the densification threshold (default: %(default)s, gsplat's)")
     ap.add_argument("--save-steps", type=int_at_least(1), nargs="*", default=[],
-                    help="write OUT/ckpt_<step>.pt after these steps (1-based)")
-    ap.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint this script wrote")
+                    help="write OUT/ckpt_<step>.pt after these steps (1-based; default: none)")
+    ap.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint this script wrote (default: start fresh)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy
 
-from adapters.gsplat_strategy import MVGSStrategy
+from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
 from common import (Config, TrainBatches, create_splats_with_optimizers, load_checkpoint, parse_config,
                     rasterize_splats, run, save_checkpoint)
 from mvgs_plugin.losses import ssim

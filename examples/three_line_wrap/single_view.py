@@ -11,17 +11,14 @@ it that rule is skipped with a warning; nothing else needs it).
 """
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-from adapters.gs3d import GS3DAdapter
+from mvgs_plugin.adapters.gs3d import GS3DAdapter
 from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from train_3dgs import BUNDLED, load_scene  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, load_scene, scene_folder  # noqa: E402
 
 
 def train(scene, steps: int, seed: int = 0) -> GS3DAdapter:
@@ -47,9 +44,9 @@ def train(scene, steps: int, seed: int = 0) -> GS3DAdapter:
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--data", type=Path, default=BUNDLED)
-    ap.add_argument("--steps", type=int, default=300)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+    ap.add_argument("--steps", type=int_at_least(1), default=300, help="training steps")
     args = ap.parse_args()
     model = train(load_scene(args.data), args.steps)
     print(f"trained {model.num_primitives()} Gaussians in {args.steps} steps")

@@ -11,6 +11,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
+from ..checks import check_int
 from ..camera import Camera
 from .scene import PointCloud, Scene
 
@@ -167,8 +168,7 @@ def _split(names: Sequence[str], test_every: Optional[int], test_names: Optional
         return wanted
     if test_every is None or test_every == 0:
         return set()
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
-        raise ValueError(f"test_every must be a non-negative int or None, got {test_every!r}")
+    check_int("test_every", test_every, 0)
     # the original 3DGS "llffhold": indices 0, k, 2k, ... of the name-sorted images
     return {n for i, n in enumerate(names) if i % test_every == 0}
 

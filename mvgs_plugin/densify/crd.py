@@ -77,7 +77,7 @@ def closest_points(o1: Tensor, d1: Tensor, o2: Tensor, d2: Tensor):
     return t1, t2, 0.5 * (p1 + p2), (p1 - p2).norm(dim=-1), sin2
 
 
-def cross_ray_boxes(cameras: Sequence, windows: Tensor, forward_only: bool = True,
+def cross_ray_boxes(cameras: Sequence, windows: Tensor, *, forward_only: bool = True,
                     max_miss: Optional[float] = None, min_angle_deg: float = 0.0,
                     bounds: Optional[Tensor] = None, pad_by_miss: bool = False) -> Tuple[Tensor, Tensor]:
     """Boxes from corresponding corner rays of every pair of views.

@@ -47,7 +47,7 @@ def pair_discrepancy(centers: Tensor, origin: Tensor, axes: Optional[Tensor] = N
     return r, valid
 
 
-def mvad_threshold(centers: Tensor, base_threshold: float, origin: Optional[Tensor] = None, tau: float = 1.0,
+def mvad_threshold(centers: Tensor, base_threshold: float, *, origin: Optional[Tensor] = None, tau: float = 1.0,
                    rule: Union[str, float] = "any", axes: Optional[Tensor] = None,
                    rotation_weight: float = 0.0) -> float:
     """beta_hat = beta - (beta / 2) * [rule fires].

@@ -50,10 +50,10 @@ Variants (``--variant``):
 
 Examples::
 
-    python examples/scenes/make_scene.py --out examples/scenes/tabletop
-    python examples/scenes/make_scene.py --variant moving --out /tmp/moving
-    python examples/scenes/make_scene.py --variant forward --out /tmp/forward --check-projection
-    python examples/scenes/make_scene.py --out examples/scenes/tabletop --no-render \\
+    python tools/make_scene.py --out examples/scenes/tabletop
+    python tools/make_scene.py --variant moving --out scenes/moving
+    python tools/make_scene.py --variant forward --out scenes/forward --check-projection
+    python tools/make_scene.py --out examples/scenes/tabletop --no-render \\
         --check-projection --check-noise
 """
 from __future__ import annotations
@@ -1051,7 +1051,7 @@ def pick_variant(mi, wanted: str | None) -> str:
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--out", required=True, help="output scene folder")
+    ap.add_argument("--out", required=True, help="output scene folder (required)")
     ap.add_argument("--variant", choices=VARIANTS, default="default",
                     help="scene variant (see the module docstring)")
     ap.add_argument("--n-train", type=int, default=None,

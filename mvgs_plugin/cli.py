@@ -1,0 +1,324 @@
+"""The command line the training examples share (examples/train_3dgs.py, train_4dgs.py,
+train_scaffold.py; the gsplat, graphdeco and three-line loops use parts of it).
+
+``common_args`` adds the flags every train_*.py script takes (preset, views, steps or budget,
+stages, the MVGS options, output, seed, threads, device, rasterizer); ``config_from_args`` turns
+them into an :class:`~mvgs_plugin.MVGSConfig`; ``launch`` runs a script in one process or on
+every torchrun rank; ``train_and_evaluate`` and ``metrics_record`` train, evaluate and build the
+``metrics.json`` record. Bad arguments end in an argparse usage error (exit code 2) naming the
+flag and the value, before any scene is read or folder written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from mvgs_plugin.adapters.gs3d import GS3DConfig
+from mvgs_plugin.config import MVGSConfig, Stage
+from mvgs_plugin.controller import MVGS
+from mvgs_plugin.data import load_scene
+from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
+from mvgs_plugin.io import atomic_write_text
+
+__all__ = [
+    "BUNDLED", "HelpFormatter", "common_args", "config_from_args", "launch", "train_and_evaluate",
+    "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
+    "parse_stages", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
+]
+
+# The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package.
+BUNDLED = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "tabletop"
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps a script's docstring as written and ends every option's help with its default
+    (unless the help already states it, or the option is an on/off switch)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (action.default is argparse.SUPPRESS or "default" in text or not action.option_strings
+                or action.required or isinstance(action.default, bool)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def scene_folder(text: str) -> Path:
+    """An argparse type for --data: an existing folder (what is in it the loaders check)."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{text!r} does not exist (expected a scene folder)")
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, expected a scene folder")
+    return path
+
+
+def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None) -> GS3DConfig:
+    """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
+    every 1000) compressed with the run, as the controller's densification clock is; rasterize:
+    the rasterizer (None: GS3DConfig's, the reference one)."""
+    clock = config.clock_length
+    extra = {} if rasterize is None else {"rasterize": rasterize}
+    return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
+                      sh_degree_interval=max(1, round(1000 * clock / 30_000)), **extra)
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Atomic JSON write: a crash never leaves a half-written metrics file."""
+    atomic_write_text(path, json.dumps(data, indent=2))
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: an int >= low (argparse turns the error into a usage message)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {value}")
+        return value
+    return parse
+
+
+def float_above(low: float, inclusive: bool = False, high: float = math.inf) -> Callable[[str], float]:
+    """An argparse type: a finite float > low (>= low when inclusive) and <= high."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value >= low if inclusive else value > low) and value <= high):
+            bound = "" if high == math.inf else f" and <= {high:g}"
+            raise argparse.ArgumentTypeError(f"expected a finite number {'>=' if inclusive else '>'} {low:g}{bound}, "
+                                             f"got {text!r}")
+        return value
+    return parse
+
+
+def check_device(args) -> None:
+    """Refuse --device / --rasterizer choices the machine it runs on cannot run, before any work."""
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device cuda: torch {torch.__version__} sees no CUDA device here "
+                         "(torch.cuda.is_available() is False); use --device cpu")
+    if args.rasterizer == "gsplat":
+        if args.device != "cuda":
+            raise ValueError("--rasterizer gsplat needs --device cuda (gsplat's rasterization runs on CUDA); on the "
+                             "CPU use --rasterizer reference, which has the same call shape")
+        import importlib.util
+
+        if importlib.util.find_spec("gsplat") is None:
+            raise ValueError("--rasterizer gsplat: gsplat is not installed; pip install gsplat")
+
+
+def rasterize_function(args):
+    """The rasterizer --rasterizer asks for (GS3DConfig.rasterize)."""
+    if args.rasterizer == "gsplat":
+        from gsplat import rasterization as gsplat_rasterization
+
+        return gsplat_rasterization
+    from mvgs_plugin.reference_renderer import rasterization
+
+    return rasterization
+
+
+def check_out(out: Path) -> None:
+    """Refuse an output folder that cannot be one, before any work: an existing file, a path
+    under a file, or a folder (or its nearest existing parent) this process cannot write."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is an existing file, expected a folder (new or existing)")
+    probe = out
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise ValueError(f"--out {out}: {probe} is a file, so the folder cannot be created under it")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: {probe} is not writable by this user")
+
+
+def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
+    """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
+    ap.add_argument("--preset", choices=["baseline", "paper", "default", "multiview"], default="default",
+                    help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
+                         "pyramid level with MVAD and CRD (wins at equal steps); paper: the released code; "
+                         "baseline: plain 3DGS")
+    ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
+    ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")
+    ap.add_argument("--budget", type=float_above(0), default=None,
+                    help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
+                         "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it (default: "
+                         "not set, --steps counts)")
+    ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--stages", type=parse_stages, default=None, metavar="F:M:STEPS,...",
+                    help="replace the preset's stage plan: pyramid factor, views per step and recipe steps per "
+                         "stage, e.g. 8:16:1000,4:8:1000,2:4:1000,1:1:30000 (then rescaled by --steps or --budget; default: "
+                         "the preset's plan)")
+    ap.add_argument("--mvad", action=argparse.BooleanOptionalAction, default=None,
+                    help="multi-view augmented densification on/off (default: as the preset)")
+    ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
+                    help="cross-ray densification on/off (default: as the preset)")
+    ap.add_argument("--threshold-width", type=float_above(0, inclusive=True), default=None,
+                    help="image width in pixels the gradient threshold is meant for; it is scaled to the "
+                         "rendered width (0: never scaled, as 3DGS; default: as the preset, 800 for default)")
+    ap.add_argument("--forward-rig", choices=["pyramid", "finest"], default=None,
+                    help="on a forward-facing rig (nearly parallel optical axes): keep the stage plan (pyramid) "
+                         "or train at full resolution only (finest) (default: as the preset, finest for default)")
+    ap.add_argument("--views-scaling", choices=["none", "sqrt"], default=None,
+                    help="optimizer for M-view steps: none (the summed loss, single-view rates) or sqrt (Grendel-GS: "
+                         "learning rates x sqrt(M), Adam betas ** M, eps / sqrt(M)) (default: as the preset, none)")
+    ap.add_argument("--max-views-fraction", type=float_above(0, high=1.0), default=None,
+                    help="sparse-view guard: cap every step's views at this fraction of the training views "
+                         "(at least 1; default: no cap)")
+    ap.add_argument("--stage-growth", type=float_above(1), default=None,
+                    help="cap densification within a stage at this multiple of the count the stage began with "
+                         "(default: no cap)")
+    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
+                    help="cap on the model's primitives (Gaussians; anchors for Scaffold-GS); densification "
+                         "keeps the candidates with the largest gradients that fit (default: no cap)")
+    ap.add_argument("--out", type=Path, default=Path(out),
+                    help="output folder (created; metrics.json, test/*.png and the model are written there)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0,
+                    help="seed of the view order, the model's random draws and torch")
+    ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="where the model trains (cuda: the model, renders and optimizer on the GPU)")
+    ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
+                    help="reference: this package's renderer (CPU or CUDA tensors); gsplat: gsplat's CUDA "
+                         "rasterization (needs --device cuda and gsplat installed)")
+    ap.add_argument("--dist-timeout", type=float_above(0), default=DEFAULT_TIMEOUT,
+                    help="under torchrun: seconds a rank waits for the others before stopping with an error")
+    return ap
+
+
+def parse_stages(text: str) -> tuple:
+    """"F:M:STEPS,..." -> (Stage, ...) for --stages (argparse reports a ValueError as a usage error)."""
+    try:
+        stages = tuple(Stage(*(int(v) for v in part.split(":"))) for part in text.split(","))
+    except (TypeError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(f"--stages must be F:M:STEPS[,F:M:STEPS...] with positive ints, got "
+                                         f"{text!r} ({exc})") from None
+    return stages
+
+
+def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
+    """The MVGSConfig the common CLI asks for: preset, --views, resolved for the scene's rig
+    (MVGSConfig.for_scene with --forward-rig, when a scene is given), rescaled to --steps (or run on --budget),
+    --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
+    if getattr(args, "stages", None):
+        preset_overrides = {**preset_overrides, "stages": args.stages}
+    for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth"):
+        if getattr(args, name, None) is not None:
+            preset_overrides = {**preset_overrides, name: getattr(args, name)}
+    config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
+    if args.views is not None:
+        config = config.with_views(args.views)
+    if args.resolution_scale != 1:
+        s = args.resolution_scale
+        config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
+    if scene is not None:
+        config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
+    if args.budget is not None:
+        config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
+    else:
+        config = config.with_total_steps(args.steps)
+    for rule in ("mvad", "crd"):  # --mvad/--no-mvad, --crd/--no-crd switch the preset's rule, keeping its settings
+        if getattr(args, rule) is not None:
+            config = dataclasses.replace(config, **{rule: dataclasses.replace(getattr(config, rule),
+                                                                              enabled=getattr(args, rule))})
+    if args.threshold_width is not None:
+        config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
+    return config
+
+
+def save_test_renders(out: Path, result) -> None:
+    """OUT/test/<view>.png for every evaluated view (atomic writes)."""
+    (out / "test").mkdir(parents=True, exist_ok=True)
+    from mvgs_plugin.reference_renderer.demo import save_png
+
+    for row in result.per_view:
+        save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
+
+
+def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
+    """Trains on every rank (each on its share of a step's views under torchrun; progress bar
+    unless --no-progress), writes OUT/checkpoint.pt when args.checkpoint is set (every rank takes
+    part, rank 0 writes), then evaluates on rank 0 and writes OUT/test/<view>.png. Returns
+    (trainer, training wall seconds, test result), the result None on the other ranks: the
+    model is the same on every rank."""
+    trainer = MVGS(adapter, scene, config, distributed=dist)
+    t0, c0 = time.perf_counter(), time.process_time()
+    trainer.fit(progress=not args.no_progress)
+    seconds = time.perf_counter() - t0
+    trainer.cpu_seconds = time.process_time() - c0  # user + sys of this process, all its threads
+    if getattr(args, "checkpoint", False):
+        trainer.save_checkpoint(str(args.out / "checkpoint.pt"))
+    if not trainer.is_main:
+        return trainer, seconds, None
+    result = trainer.evaluate(factor=args.resolution_scale)
+    save_test_renders(args.out, result)
+    return trainer, seconds, result
+
+
+def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, **extra) -> dict:
+    """The metrics.json every train_*.py script writes: test PSNR/SSIM/LPIPS, training seconds,
+    steps, primitives, peak memory, the run's settings and per-view results; `extra` adds the
+    model family's own entries (model size, anchors, ...)."""
+    return {
+        "psnr": result.psnr,
+        "ssim": result.ssim,
+        "lpips": result.lpips,
+        "train_seconds": train_seconds,
+        "cpu_seconds": getattr(trainer, "cpu_seconds", None),
+        "steps": trainer.step_count,
+        "budget": config.budget,
+        "work": trainer.schedule.work_done,
+        "num_gaussians": trainer.adapter.num_primitives(),
+        **extra,
+        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "preset": args.preset,
+        "data": str(args.data),
+        "threads": torch.get_num_threads(),
+        "device": getattr(args, "device", "cpu"),
+        "rasterizer": getattr(args, "rasterizer", "reference"),
+        "world_size": 1 if trainer.distributed is None else trainer.distributed.world_size,
+        "config": config.to_dict(),
+        "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
+    }
+
+
+def launch(args, run: Callable) -> dict:
+    """run(args, dist) in one process (dist None; returns its metrics), or on every rank when
+    torchrun started more than one (dist a Collective; the training script itself is
+    unchanged), after which the process exits with code 0. Every train_*.py example starts
+    this way."""
+    check_out(args.out)
+    check_device(args)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    dist = init_from_env(device=args.device, timeout=args.dist_timeout)  # None unless torchrun started > 1 process
+    if dist is None:
+        return run(args, None)
+    with abort_on_error():  # an error ends this rank at once; the others' next collective then fails
+        run(args, dist)
+        dist.close()  # every rank waits for rank 0's evaluation and writes, then all leave together
+    # The process ends here: even after the ranks left the group together, gloo's threads now
+    # and then abort the interpreter's teardown ("terminate called without an active exception",
+    # SIGABRT, about 1 in 15 two-rank runs); every output is written and closed by now.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)

@@ -1,0 +1,117 @@
+"""The command line of every script a user runs, and the install's import names.
+
+- `--help` states every option's default (switches excepted), read from the help text a user sees;
+- bad values end in an argparse usage error (exit code 2) naming the flag, before any work;
+- the installed package answers to `mvgs_plugin.adapters` / `mvgs_plugin.reference_renderer`
+  only: no top-level `adapters` or `reference_renderer` that could collide with other packages.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mvgs_plugin.adapters.ops import growth_cap, log_linear
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = [
+    "examples/train_3dgs.py", "examples/train_4dgs.py", "examples/train_scaffold.py", "examples/ablation.py",
+    "examples/graphdeco_loop/train_mvgs.py", "examples/gsplat_loop/simple_trainer.py",
+    "examples/gsplat_loop/simple_trainer_mvgs.py", "examples/three_line_wrap/mvgs.py",
+    "examples/three_line_wrap/single_view.py", "tools/make_scene.py",
+]
+
+
+def _run(args, cwd=ROOT, timeout=120):
+    return subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def _options(help_text: str):
+    """(flags, takes a value, help) for each option block of argparse's --help output."""
+    section = help_text.split("options:", 1)[1]
+    blocks = re.split(r"\n(?=  -)", "\n" + section)
+    out = []
+    for block in blocks:
+        block = block.strip("\n")
+        if not block.startswith("  -"):
+            continue
+        head = block.strip().split("  ")[0]  # "--steps STEPS" / "--mvad, --no-mvad"
+        flags = [t for t in re.split(r"[ ,]+", head) if t.startswith("-")]
+        takes_value = any(not t.startswith("-") for t in re.split(r"[ ,]+", head) if t)
+        out.append((flags, takes_value, " ".join(block.split())))
+    return out
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_help_states_every_default(script):
+    r = _run([script, "--help"])
+    assert r.returncode == 0, r.stderr
+    options = _options(r.stdout)
+    assert len(options) >= 3, r.stdout
+    missing = [flags for flags, takes_value, text in options
+               if takes_value and "--help" not in flags and "default" not in text.lower() and "required" not in text]
+    assert not missing, f"{script}: options whose help gives no default: {missing}"
+
+
+@pytest.mark.parametrize("script, argv, flag", [
+    ("examples/train_3dgs.py", ["--data", "/nonexistent/scene"], "--data"),
+    ("examples/train_3dgs.py", ["--steps", "0"], "--steps"),
+    ("examples/train_3dgs.py", ["--budget", "nan"], "--budget"),
+    ("examples/train_3dgs.py", ["--stages", "8:x:100"], "--stages"),
+    ("examples/train_3dgs.py", ["--preset", "fast"], "--preset"),
+    ("examples/train_4dgs.py", ["--data", str(ROOT / "README.md")], "--data"),
+    ("examples/train_4dgs.py", ["--data", str(ROOT), "--coarse-fraction", "1.5"], "--coarse-fraction"),
+    ("examples/train_4dgs.py", ["--data", str(ROOT), "--export-times", "2"], "--export-times"),
+    ("examples/train_scaffold.py", ["--voxel-size", "-1"], "--voxel-size"),
+    ("examples/ablation.py", ["--steps", "many"], "--steps"),
+    ("examples/graphdeco_loop/train_mvgs.py", ["--data", "/nonexistent/scene"], "--data"),
+    ("examples/three_line_wrap/mvgs.py", ["--steps", "-3"], "--steps"),
+])
+def test_bad_arguments_are_usage_errors(script, argv, flag, tmp_path):
+    r = _run([script, *argv, "--out", str(tmp_path / "out")] if "train_" in script and "loop" not in script
+             else [script, *argv])
+    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
+    assert "usage:" in r.stderr and f"argument {flag}" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_data_folder_says_it_does_not_exist():
+    r = _run(["examples/train_3dgs.py", "--data", "/nonexistent/scene"])
+    assert "'/nonexistent/scene' does not exist" in r.stderr
+
+
+def test_installed_names_are_namespaced(tmp_path):
+    """From outside the repository (so the checkout's folders are not on sys.path) the
+    package's parts import under mvgs_plugin and the bare names are not installed."""
+    code = ("import importlib.util as u, mvgs_plugin.adapters.gs3d, mvgs_plugin.adapters.scaffold, "
+            "mvgs_plugin.adapters.gs4d, mvgs_plugin.reference_renderer as r;"
+            "print(u.find_spec('adapters') is None, u.find_spec('reference_renderer') is None, "
+            "hasattr(r, 'rasterization'))")
+    r = _run(["-c", code], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "True", "True"]
+
+
+def test_no_adapter_imports_another_adapters_private_names():
+    pattern = re.compile(r"from \.(\w+) import ([^\n(]+|\([^)]*\))")
+    for path in (ROOT / "adapters").glob("*.py"):
+        for module, names in pattern.findall(path.read_text()):
+            private = [n.strip() for n in names.strip("()").replace("\n", " ").split(",") if n.strip().startswith("_")]
+            assert not private, f"{path.name} imports {private} from .{module}"
+
+
+def test_log_linear_is_geometric_interpolation():
+    for step, want in ((0, 1.0), (10, 1.0), (15, math.sqrt(1e-2)), (20, 1e-2), (99, 1e-2)):
+        assert math.isclose(log_linear(step, 10, 10, 1.0, 1e-2), want, rel_tol=1e-12)
+
+
+def test_growth_cap_takes_the_lower_set_cap():
+    assert growth_cap(None, None) is None
+    assert growth_cap(7, None) == 7 and growth_cap(None, 3) == 3 and growth_cap(7, 3) == 3
+    with pytest.raises(ValueError, match="max_primitives"):
+        growth_cap(True, 3)
