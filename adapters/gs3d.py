@@ -40,13 +40,15 @@ from mvgs_plugin.reference_renderer import rasterization
 from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
 
 from .knn import knn_mean_sq_dist
-from .ops import growth_cap, make_adam, scale_for_views, swap_param
+from .ops import growth_cap, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import read_gaussian_ply, write_gaussian_ply
 
-__all__ = ["GS3DConfig", "GS3DAdapter", "knn_mean_sq_dist", "SH_C0", "PARAM_NAMES"]
+__all__ = ["GS3DConfig", "GS3DAdapter", "knn_mean_sq_dist", "SH_C0", "PARAM_NAMES", "STAT_NAMES"]
 
 SH_C0 = 0.28209479177387814  # the degree-0 real SH basis constant, 1 / (2 sqrt(pi))
 PARAM_NAMES = ("means", "sh0", "shN", "scales", "quats", "opacities")
+# The densification statistics and how two ranks' values combine (see statistics()).
+STAT_NAMES = {"grad_accum": "sum", "denom": "sum", "max_radii2D": "max"}
 _STATE_FORMAT = "mvgs-gs3d/1"
 # Config fields tied to the running process (a function, backend options): never saved or loaded.
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
@@ -170,7 +172,8 @@ class GS3DAdapter:
     Attributes:
         params: dict name -> nn.Parameter (replaced, not resized, when N changes).
         optimizer: the Adam optimizer, one group per name in PARAM_NAMES.
-        grad_accum, denom, max_radii2D: [N] densification statistics (see accumulate_stats).
+        stats: the [N] densification statistics by name, STAT_NAMES (see accumulate_stats); each is
+            also an attribute (``adapter.grad_accum``).
         scene_extent: the scene scale of the learning rate of the means.
         active_sh_degree: SH degree rendered now.
     """
@@ -230,9 +233,7 @@ class GS3DAdapter:
 
     def _reset_stats(self) -> None:
         n, ref = self.num_primitives(), self.params["means"]
-        self.grad_accum = torch.zeros(n, dtype=ref.dtype, device=ref.device)
-        self.denom = torch.zeros(n, dtype=ref.dtype, device=ref.device)
-        self.max_radii2D = torch.zeros(n, dtype=ref.dtype, device=ref.device)
+        self.stats: Dict[str, Tensor] = {name: torch.zeros(n, dtype=ref.dtype, device=ref.device) for name in STAT_NAMES}
 
     @classmethod
     def from_tensors(cls, means: Tensor, *, scales: Tensor, opacities: Tensor, scene_extent: float,
@@ -480,12 +481,11 @@ class GS3DAdapter:
     def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
         """grad_accum and denom [N] add up over disjoint sets of views; max_radii2D [N] is a
         maximum."""
-        return {"grad_accum": (self.grad_accum, "sum"), "denom": (self.denom, "sum"),
-                "max_radii2D": (self.max_radii2D, "max")}
+        return {name: (self.stats[name], STAT_NAMES[name]) for name in STAT_NAMES}
 
     def load_statistics(self, stats: Dict[str, Tensor]) -> None:
         """Replace grad_accum, denom and max_radii2D by [N] tensors (cast to the model's dtype)."""
-        names = ("grad_accum", "denom", "max_radii2D")
+        names = tuple(STAT_NAMES)
         if set(stats) != set(names):
             raise ValueError(f"statistics must be exactly {list(names)}, got {sorted(stats)}")
         n, ref = self.num_primitives(), self.params["means"]
@@ -494,7 +494,7 @@ class GS3DAdapter:
             if tuple(t.shape) != (n,):
                 raise ValueError(f"statistics[{name!r}] must be [{n}], got {list(t.shape)}")
         for name in names:
-            setattr(self, name, torch.as_tensor(stats[name]).to(device=ref.device, dtype=ref.dtype).clone())
+            self.stats[name] = torch.as_tensor(stats[name]).to(device=ref.device, dtype=ref.dtype).clone()
 
     def mean_grads(self) -> Tensor:
         """[N] accumulated NDC gradient norm per visit (0 where never visible)."""
@@ -690,8 +690,7 @@ class GS3DAdapter:
             "format": _STATE_FORMAT,
             "params": {k: p.detach().clone() for k, p in self.params.items()},
             "optimizer": copy.deepcopy(self.optimizer.state_dict()),
-            "stats": {"grad_accum": self.grad_accum.clone(), "denom": self.denom.clone(),
-                      "max_radii2D": self.max_radii2D.clone()},
+            "stats": {name: t.clone() for name, t in self.stats.items()},
             "step": self._step,
             "active_sh_degree": self.active_sh_degree,
             "scene_extent": self.scene_extent,
@@ -722,7 +721,7 @@ class GS3DAdapter:
             self.config = old_config
             raise
         n = raw["means"].shape[0]
-        for key in ("grad_accum", "denom", "max_radii2D"):
+        for key in STAT_NAMES:
             if tuple(state["stats"][key].shape) != (n,):
                 self.config = old_config
                 raise ValueError(f"stats[{key!r}] must be [{n}], got {list(state['stats'][key].shape)}")
@@ -732,8 +731,8 @@ class GS3DAdapter:
         self.active_sh_degree = int(state["active_sh_degree"])
         self._build(raw)
         self.optimizer.load_state_dict(state["optimizer"])
-        for key in ("grad_accum", "denom", "max_radii2D"):
-            setattr(self, key, state["stats"][key].to(device=ref.device, dtype=ref.dtype).clone())
+        for key in STAT_NAMES:
+            self.stats[key] = state["stats"][key].to(device=ref.device, dtype=ref.dtype).clone()
         self._generator.set_state(state["generator"])
 
     def export(self, path: str, camera: Optional[Camera] = None) -> None:
@@ -746,3 +745,6 @@ class GS3DAdapter:
     def __repr__(self) -> str:
         return (f"GS3DAdapter(N={self.num_primitives()}, sh_degree={self.active_sh_degree}/"
                 f"{self.config.sh_degree}, extent={self.scene_extent:.4g}, step={self._step})")
+
+
+stats_in_one_dict(GS3DAdapter, STAT_NAMES)

@@ -21,7 +21,7 @@ from torch import Tensor
 from mvgs_plugin.checks import check_int
 
 __all__ = ["ADAM_BETAS", "make_adam", "scale_for_views", "log_linear", "swap_param", "remap_state",
-           "growth_cap"]
+           "growth_cap", "stats_in_one_dict"]
 
 ADAM_BETAS = (0.9, 0.999)  # torch's and the original's
 
@@ -86,6 +86,17 @@ def remap_state(v: Any, old: Tensor, src: Optional[Tensor], zero: bool) -> Any:
     cont = src >= 0
     out[cont] = v[src[cont]]
     return out
+
+
+def stats_in_one_dict(cls: type, names) -> type:
+    """Give an adapter class one attribute per densification statistic, each stored in the
+    instance's dict ``self.stats`` (name -> tensor), so the statistics are reset, saved, summed
+    across ranks and loaded as one dict while ``adapter.grad_accum`` etc. still read and write."""
+    for name in names:
+        setattr(cls, name, property(lambda self, n=name: self.stats[n],
+                                    lambda self, value, n=name: self.stats.__setitem__(n, value),
+                                    doc=f"The {name!r} entry of self.stats."))
+    return cls
 
 
 def growth_cap(*caps: Optional[int]) -> Optional[int]:

@@ -60,7 +60,7 @@ from mvgs_plugin.reference_renderer import rasterization
 
 from .gs3d import SH_C0
 from .knn import knn_mean_sq_dist
-from .ops import growth_cap, log_linear, make_adam, scale_for_views, swap_param
+from .ops import growth_cap, log_linear, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import write_gaussian_ply
 
 __all__ = ["ScaffoldConfig", "ScaffoldAdapter", "ScaffoldMLPs", "voxelize", "decode_children",
@@ -283,10 +283,10 @@ class ScaffoldAdapter:
 
     def _reset_all_stats(self) -> None:
         a, k, ref = self.num_primitives(), self.config.n_offsets, self.anchors
-        z = lambda *s: torch.zeros(*s, dtype=ref.dtype, device=ref.device)  # noqa: E731
-        self.offset_grad_accum, self.offset_denom = z(a, k), z(a, k)
-        self.opacity_accum, self.anchor_denom = z(a), z(a)
-        self.views_seen = z(())
+        shapes = {"offset_grad_accum": (a, k), "offset_denom": (a, k), "opacity_accum": (a,), "anchor_denom": (a,),
+                  "views_seen": ()}
+        self.stats: Dict[str, Tensor] = {name: torch.zeros(shapes[name], dtype=ref.dtype, device=ref.device)
+                                         for name in STAT_NAMES}
 
     @classmethod
     def from_scene(cls, scene, config: Optional[ScaffoldConfig] = None, dtype: torch.dtype = torch.float32,
@@ -470,18 +470,18 @@ class ScaffoldAdapter:
     # ---- distributed training (mvgs_plugin.protocol.DistributedAdapter) -------------------
     def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
         """All five statistics add up over disjoint sets of views."""
-        return {name: (getattr(self, name), "sum") for name in STAT_NAMES}
+        return {name: (self.stats[name], "sum") for name in STAT_NAMES}
 
     def load_statistics(self, stats: Dict[str, Tensor]) -> None:
         if set(stats) != set(STAT_NAMES):
             raise ValueError(f"statistics must be exactly {list(STAT_NAMES)}, got {sorted(stats)}")
         for name in STAT_NAMES:
-            want = tuple(getattr(self, name).shape)
+            want = tuple(self.stats[name].shape)
             if tuple(torch.as_tensor(stats[name]).shape) != want:
                 got = list(torch.as_tensor(stats[name]).shape)
                 raise ValueError(f"statistics[{name!r}] must be {list(want)}, got {got}")
         for name in STAT_NAMES:
-            setattr(self, name, torch.as_tensor(stats[name]).to(self.anchors).clone())
+            self.stats[name] = torch.as_tensor(stats[name]).to(self.anchors).clone()
 
     def gradient_parameters(self) -> Dict[str, Tensor]:
         out: Dict[str, Tensor] = dict(self.params)
@@ -647,7 +647,7 @@ class ScaffoldAdapter:
             "params": {k: p.detach().clone() for k, p in self.params.items()},
             "mlps": copy.deepcopy(self.mlps.state_dict()),
             "optimizer": copy.deepcopy(self.optimizer.state_dict()),
-            "stats": {name: getattr(self, name).clone() for name in STAT_NAMES},
+            "stats": {name: self.stats[name].clone() for name in STAT_NAMES},
             "step": self._step, "voxel_size": self.voxel_size, "scene_extent": self.scene_extent,
             "config": self.config.saved_values(),
             "generator": self._generator.get_state(),
@@ -705,3 +705,6 @@ class ScaffoldAdapter:
     def __repr__(self) -> str:
         return (f"ScaffoldAdapter(anchors={self.num_primitives()}, k={self.config.n_offsets}, "
                 f"voxel={self.voxel_size:.4g}, step={self._step})")
+
+
+stats_in_one_dict(ScaffoldAdapter, STAT_NAMES)

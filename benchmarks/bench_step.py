@@ -15,7 +15,7 @@ process user+sys time per step (about threads x step when every thread is busy).
     python benchmarks/bench_step.py                        # 1 and 2 threads, all rows
     python benchmarks/bench_step.py --quick --threads 1    # 10k rows only, 3 steps
     python benchmarks/bench_step.py --chunk-size 8 --json step.json
-    git worktree add /tmp/before HEAD~3 && python benchmarks/bench_step.py --before /tmp/before
+    git worktree add ../before HEAD~3 && python benchmarks/bench_step.py --before ../before
 
 --before DIR also times every configuration with the packages of another checkout (imported
 from DIR first; its compiled kernels build from its own sources), interleaved with this tree's
