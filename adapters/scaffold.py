@@ -376,7 +376,7 @@ class ScaffoldAdapter:
 
     def set_views_per_step(self, views: int) -> None:
         """Scale the optimizer for steps of `views` views from the next set_step on (Grendel-GS's
-        rule, see adapters.gs3d.scale_for_views)."""
+        rule, see adapters.ops.scale_for_views)."""
         self._views = check_int("views", views, 1)
 
     def learning_rates(self) -> Dict[str, float]:

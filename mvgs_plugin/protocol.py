@@ -146,7 +146,7 @@ class ScaledViewsAdapter(Protocol):
     """An optional method for MVGSConfig.views_scaling="sqrt": MVGS calls it before every
     set_step with the step's number of views M; the adapter then sets its optimizer for an M-view
     step (Grendel-GS's rule: learning rates x √M, Adam betas to the power M, eps / √M; M = 1 gives
-    the single-view values). The bundled adapters implement it (adapters.gs3d.scale_for_views)."""
+    the single-view values). The bundled adapters implement it (mvgs_plugin.adapters.ops.scale_for_views)."""
 
     def set_views_per_step(self, views: int) -> None:
         """Scale the optimizer for steps of `views` views from the next set_step on."""
