@@ -542,7 +542,7 @@ class GS3DAdapter:
         g = self.mean_grads()
         max_scale = self.get_scales().detach().max(dim=1).values
         small = max_scale <= self.config.percent_dense * extent
-        box_sel, dropped_box_cap = self._box_selection(ctx, g)
+        box_sel, dropped_box_cap = self.box_selection(ctx, g)
         clone_sel = (g >= beta) & small
         split_sel = (g >= beta) & ~small
         box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, g,
@@ -552,7 +552,7 @@ class GS3DAdapter:
         n_new = new_rows["means"].shape[0]
         all_rows = {k: torch.cat([self.params[k].detach(), new_rows[k]]) for k in PARAM_NAMES}
         radii = torch.cat([self.max_radii2D, self.max_radii2D.new_zeros(n_new)])
-        prune = self._prune_mask(all_rows, radii, extent, ctx.prune_large)
+        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large)
         parents = torch.cat([split_sel, split_sel.new_zeros(n_new)])
         keep = ~(prune | parents)
         src = torch.cat([torch.arange(n0, device=keep.device),
@@ -567,7 +567,9 @@ class GS3DAdapter:
                    "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap},
         )
 
-    def _box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
+    # ---- densification hooks: what a subclass may override (GS4DAdapter tests the boxes at the
+    # views' times and prunes with the 4DGS rules) -------------------------------------------
+    def box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
         """[N] bool: Gaussians strictly inside a CRD box, capped by ctx.max_new_from_boxes (the
         largest mean gradients kept); and how many the cap dropped."""
         n = self.num_primitives()
@@ -628,7 +630,10 @@ class GS3DAdapter:
         out["scales"] = torch.log(s / (0.8 * k))
         return out
 
-    def _prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+        """[rows] bool: the rows (raw attributes after growth) densify() removes: opacity below
+        config.min_opacity, and with prune_large world size above config.max_world_size x extent
+        or screen radius above config.max_screen_size."""
         c = self.config
         prune = torch.sigmoid(rows["opacities"]) < c.min_opacity
         if prune_large:

@@ -39,7 +39,7 @@ rasterizer call); densification statistics are gathered per view on the deformed
 fold into the canonical rows they came from (one visit per view). Cross-ray boxes are found by
 the controller in world space from views at different times; in the fine stage a canonical
 Gaussian counts as inside a box when its *deformed* position at any of the triggering step's
-view times is inside (see :meth:`GS4DAdapter._box_selection`), and its clone shares its
+view times is inside (see :meth:`GS4DAdapter.box_selection`), and its clone shares its
 canonical position and so its whole trajectory.
 """
 
@@ -491,7 +491,7 @@ class GS4DAdapter(GS3DAdapter):
     def densify(self, ctx: DensifyContext) -> DensifyReport:
         """GS3DAdapter.densify with the original 4DGS caps: no growth (gradient or boxes) once
         the model holds growth_cap Gaussians; prune rules only above prune_min_count (see
-        _prune_mask)."""
+        prune_mask)."""
         capped = self.gs4d_config.growth_cap is not None and self.num_primitives() >= self.gs4d_config.growth_cap
         if capped:
             ctx = dataclasses.replace(ctx, grad_threshold=math.inf, boxes=None)
@@ -499,12 +499,12 @@ class GS4DAdapter(GS3DAdapter):
         report.extra["growth_capped"] = capped
         return report
 
-    def _prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
         if rows["means"].shape[0] <= self.gs4d_config.prune_min_count:
             return torch.zeros(rows["means"].shape[0], dtype=torch.bool, device=rows["means"].device)
-        return super()._prune_mask(rows, radii, extent, prune_large)
+        return super().prune_mask(rows, radii, extent, prune_large)
 
-    def _box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
+    def box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
         """Cross-ray boxes for moving content. The boxes come from rays of views taken at
         different times, so they are approximate where content moves between those times; a
         canonical Gaussian is selected when its deformed position at any time of the step's views
@@ -512,7 +512,7 @@ class GS4DAdapter(GS3DAdapter):
         canonical positions. The cap keeps the largest mean gradients."""
         times = sorted({c.time for c in ctx.cameras if c.time is not None})
         if ctx.boxes is None or not self.deformation_active or not times:
-            return super()._box_selection(ctx, g)
+            return super().box_selection(ctx, g)
         boxes = torch.as_tensor(ctx.boxes)
         if boxes.ndim != 3 or tuple(boxes.shape[1:]) != (2, 3) or not bool(torch.isfinite(boxes).all()) \
                 or bool((boxes[:, 0] > boxes[:, 1]).any()):
