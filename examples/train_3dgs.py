@@ -39,7 +39,6 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     common_args(ap, "out/train_3dgs")
-    ap.add_argument("--checkpoint", action="store_true", help="also write OUT/checkpoint.pt after training")
     return ap.parse_args(argv)
 
 

@@ -34,7 +34,7 @@ from mvgs_plugin.io import atomic_write_text
 __all__ = [
     "BUNDLED", "HelpFormatter", "common_args", "config_from_args", "launch", "train_and_evaluate",
     "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
-    "parse_stages", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
+    "parse_stages", "checkpoint_file", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
 ]
 
 # The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package.
@@ -201,7 +201,22 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "rasterization (needs --device cuda and gsplat installed)")
     ap.add_argument("--dist-timeout", type=float_above(0), default=DEFAULT_TIMEOUT,
                     help="under torchrun: seconds a rank waits for the others before stopping with an error")
+    ap.add_argument("--checkpoint", action="store_true", help="also write OUT/checkpoint.pt after training")
+    ap.add_argument("--checkpoint-every", type=int_at_least(1), default=None, metavar="K",
+                    help="write OUT/checkpoint.pt every K steps as well (replaced atomically; --resume continues "
+                         "from it; default: only with --checkpoint, at the end)")
+    ap.add_argument("--resume", type=checkpoint_file, default=None, metavar="CHECKPOINT",
+                    help="continue the run a checkpoint was written by (same data and flags; it is refused "
+                         "otherwise, naming the settings that differ; default: start fresh)")
     return ap
+
+
+def checkpoint_file(text: str) -> Path:
+    """An argparse type for --resume: an existing file (its content MVGS.load_checkpoint checks)."""
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"{text!r} is not an existing file (expected a checkpoint.pt)")
+    return path
 
 
 def parse_stages(text: str) -> tuple:
@@ -255,17 +270,27 @@ def save_test_renders(out: Path, result) -> None:
 
 def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     """Trains on every rank (each on its share of a step's views under torchrun; progress bar
-    unless --no-progress), writes OUT/checkpoint.pt when args.checkpoint is set (every rank takes
-    part, rank 0 writes), then evaluates on rank 0 and writes OUT/test/<view>.png. Returns
+    unless --no-progress), from args.resume when given; writes OUT/checkpoint.pt every
+    args.checkpoint_every steps and at the end, or only at the end with args.checkpoint (every
+    rank takes part, rank 0 writes), then evaluates on rank 0 and writes OUT/test/<view>.png.
+    The seconds cover the steps this process ran (after a resume, the rest of the run). Returns
     (trainer, training wall seconds, test result), the result None on the other ranks: the
     model is the same on every rank."""
     trainer = MVGS(adapter, scene, config, distributed=dist)
+    if getattr(args, "resume", None) is not None:
+        trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
+    path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
+
+    def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
+        if every and trainer.step_count % every == 0 and trainer.step_count < trainer.total_steps:
+            trainer.save_checkpoint(path)
+
     t0, c0 = time.perf_counter(), time.process_time()
-    trainer.fit(progress=not args.no_progress)
+    trainer.fit(callback=periodic if every else None, progress=not args.no_progress)
     seconds = time.perf_counter() - t0
     trainer.cpu_seconds = time.process_time() - c0  # user + sys of this process, all its threads
-    if getattr(args, "checkpoint", False):
-        trainer.save_checkpoint(str(args.out / "checkpoint.pt"))
+    if getattr(args, "checkpoint", False) or every:
+        trainer.save_checkpoint(path)
     if not trainer.is_main:
         return trainer, seconds, None
     result = trainer.evaluate(factor=args.resolution_scale)
