@@ -37,8 +37,11 @@ __all__ = [
     "parse_stages", "checkpoint_file", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
 ]
 
-# The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package.
-BUNDLED = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "tabletop"
+# The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package:
+# beside the package in a checkout or editable install, else relative to the working directory
+# (a wheel install running the examples from the repository's root).
+_BESIDE_PACKAGE = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "tabletop"
+BUNDLED = _BESIDE_PACKAGE if _BESIDE_PACKAGE.is_dir() else Path("examples") / "scenes" / "tabletop"
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
