@@ -26,7 +26,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Optional, Tuple, Union
 
-from .checks import check_int
+from .checks import check_int, is_int
 
 
 def _check_finite_above(name: str, value, low: float, what: str, optional: bool = False) -> None:
@@ -132,8 +132,7 @@ class CRDConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "window", tuple(self.window))
-        if len(self.window) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
-                                            for v in self.window):
+        if len(self.window) != 2 or not all(is_int(v) and v >= 1 for v in self.window):
             raise ValueError(f"crd.window must be (rows, columns) of positive ints, got {self.window!r}")
         if self.max_new is not None and not 0.0 < self.max_new:
             raise ValueError(f"crd.max_new must be None or > 0, got {self.max_new!r}")
@@ -535,14 +534,10 @@ class MVGSConfig:
         mvad_tau, crd_window, ..., max_views_rule) that their checkpoints and metrics hold."""
         d = dict(d)
         d.pop("max_views_rule", None)
-        flat = {k: d.pop(k) for k in list(d) if k in FLAT_NAMES}
-        for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
-            value = d.get(group, {})
-            value = {"enabled": value} if isinstance(value, bool) else dict(value)
-            value.update({FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == group})
-            if "window" in value:
-                value["window"] = tuple(value["window"])
-            d[group] = kind(**value)
+        for group in ("mvad", "crd"):  # earlier releases: a bool beside flat names, read without a warning
+            if isinstance(d.get(group), bool):
+                d[group] = {"enabled": d[group]}
+        d = _merge_flat_names(d, {k: d.pop(k) for k in list(d) if k in FLAT_NAMES})
         d["stages"] = tuple(Stage(**s) for s in d["stages"])
         if isinstance(d.get("background"), list):
             d["background"] = tuple(d["background"])
@@ -551,9 +546,20 @@ class MVGSConfig:
         return cls(**d)
 
 
+def _merge_flat_names(kwargs: dict, flat: dict) -> dict:
+    """kwargs with every flat MVAD / CRD name of `flat` (see FLAT_NAMES) merged into its group:
+    the group given in kwargs (a config, a dict or the bool of earlier releases) or the default."""
+    for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
+        sub = {FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == group}
+        if sub:
+            base = kwargs.get(group, kind())
+            base = kind(enabled=base) if isinstance(base, bool) else kind(**base) if isinstance(base, dict) else base
+            kwargs[group] = dataclasses.replace(base, **sub)
+    return kwargs
+
+
 def _flat_init(init):
-    """MVGSConfig.__init__ that also takes the flat MVAD / CRD names (see FLAT_NAMES), merging
-    each into the group given beside it (or the default group), with a DeprecationWarning."""
+    """MVGSConfig.__init__ that also takes the flat MVAD / CRD names, with a DeprecationWarning."""
     @functools.wraps(init)
     def __init__(self, *args, **kwargs):
         flat = {k: kwargs.pop(k) for k in list(kwargs) if k in FLAT_NAMES}
@@ -561,13 +567,7 @@ def _flat_init(init):
             names = ", ".join(f"{k} -> {'.'.join(FLAT_NAMES[k])}" for k in sorted(flat))
             warnings.warn(f"MVGSConfig: flat MVAD / CRD names are deprecated ({names}); pass "
                           "mvad=MVADConfig(...) / crd=CRDConfig(...)", DeprecationWarning, stacklevel=2)
-            for group, kind in (("mvad", MVADConfig), ("crd", CRDConfig)):
-                sub = {FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == group}
-                if sub:
-                    base = kwargs.get(group, kind())
-                    base = kind(enabled=base) if isinstance(base, bool) else base
-                    kwargs[group] = dataclasses.replace(base, **sub)
-        init(self, *args, **kwargs)
+        init(self, *args, **_merge_flat_names(kwargs, flat))
     return __init__
 
 

@@ -42,6 +42,7 @@ from typing import Callable, Dict, Iterator, List, Optional, Sequence, TypeVar
 import torch
 import torch.distributed as dist
 from torch import Tensor
+
 from .checks import check_int
 
 __all__ = ["Collective", "DistributedError", "shard", "backend_for", "init_from_env", "require_support",

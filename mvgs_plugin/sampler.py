@@ -24,6 +24,7 @@ import warnings
 from typing import Dict, List, Optional, Sequence
 
 import torch
+
 from .checks import check_int
 
 TIME_SPREADS = ("random", "stratified")
