@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -58,6 +59,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.checks import check_float, check_int
+from mvgs_plugin.data.init import random_init_points
 from mvgs_plugin.data.scene import PointCloud
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import save_atomic
@@ -65,6 +67,8 @@ from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
 from .gs3d import GS3DAdapter, GS3DConfig
 from .ops import log_linear, make_adam, scale_for_views
+
+LOG = logging.getLogger("mvgs_plugin")
 
 __all__ = ["GS4DConfig", "GS4DAdapter", "HexPlaneField", "PLANES", "SPACE_PLANES", "TIME_PLANES"]
 
@@ -103,7 +107,9 @@ class GS4DConfig:
         act only when the model (after growth) has more Gaussians than this (0 = always, as 3DGS).
     Initialisation (from_scene): init_random_points extra points uniform in init_box
         (((x0, y0, z0), (x1, y1, z1)); None = the scene points' bounding box widened to a cube,
-        or without points scene.center ± scene.extent), colours uniform in [0, 1]; for scenes
+        or without points where the cameras look, as mvgs_plugin.data.init.random_init_points
+        places them: the cube scene.center ± scene.extent around the scene, photo-consistent
+        points in the frusta of a forward-facing rig), colours uniform in [0, 1]; for scenes
         whose point cloud misses the moving objects (4DGS draws 2000 random points in
         [-1.3, 1.3]^3 for D-NeRF).
     """
@@ -388,9 +394,11 @@ class GS4DAdapter(GS3DAdapter):
                 raise ValueError("init_random_points: the scene points span no volume; give init_box")
             c = (lo + hi) / 2
             box = torch.stack([c - half, c + half])
-        else:  # no points: the 3DGS random-init cube, scene.center ± extent
-            c, half = torch.as_tensor(scene.center, dtype=torch.float64), float(scene.extent)
-            box = torch.stack([c - half, c + half])
+        else:  # no points: where the cameras look (the 3DGS cube around the scene, the frusta of a forward rig)
+            gen = torch.Generator().manual_seed(config.canonical.seed + 2)
+            new_xyz, new_rgb, description = random_init_points(scene, config.init_random_points, gen)
+            LOG.info("4DGS extra points: %s", description)
+            return PointCloud(new_xyz, new_rgb)
         gen = torch.Generator().manual_seed(config.canonical.seed + 2)
         n = config.init_random_points
         u = torch.rand(n, 3, generator=gen, dtype=torch.float64)

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,6 +54,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
 from mvgs_plugin.checks import check_float, check_int
+from mvgs_plugin.data.init import random_init_points
 from mvgs_plugin.densify import boxes_contain, check_boxes
 from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
@@ -62,6 +64,8 @@ from .gs3d import SH_C0
 from .knn import knn_mean_sq_dist
 from .ops import growth_cap, log_linear, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import write_gaussian_ply
+
+LOG = logging.getLogger("mvgs_plugin")
 
 __all__ = ["ScaffoldConfig", "ScaffoldAdapter", "ScaffoldMLPs", "voxelize", "decode_children",
            "new_cells", "ANCHOR_GROUPS", "MLP_NAMES"]
@@ -82,7 +86,10 @@ class ScaffoldConfig:
         feat_dim (32), n_offsets k (10), use_distance (feed |a - c| to the three MLPs; off in the
         original's defaults), offset_init_std (0 = the original's zero offsets; > 0 draws
         N(0, std^2) offsets, which lets a fresh model grow, e.g. in conformance tests), prefilter
-        (decode only anchors passing the frustum test), seed (MLP init, growing draws).
+        (decode only anchors passing the frustum test), seed (MLP init, growing draws),
+        random_init (points drawn for a scene without a point cloud, where the cameras look as
+        mvgs_plugin.data.init.random_init_points places them, before voxelisation; the
+        graphdeco-based Scaffold-GS starts such scenes from random points too).
     Learning rates (Adam, eps adam_eps; "init -> final" decay log-linearly over lr_max_steps):
         offsets 0.01 -> 1e-4 times the scene extent, features 0.0075, scaling 0.007, MLPs opacity
         0.002 -> 2e-5, colour 0.008 -> 5e-5, covariance 0.004 -> 0.004.
@@ -102,6 +109,7 @@ class ScaffoldConfig:
     offset_init_std: float = 0.0
     prefilter: bool = True
     seed: int = 0
+    random_init: int = 10_000
     lr_offsets_init: float = 0.01
     lr_offsets_final: float = 1e-4
     lr_features: float = 0.0075
@@ -127,7 +135,7 @@ class ScaffoldConfig:
     def __post_init__(self) -> None:
         if self.voxel_size is not None:
             check_float("voxel_size", self.voxel_size, positive=True)
-        for name in ("feat_dim", "n_offsets", "lr_max_steps", "growth_levels", "update_hierarchy_factor"):
+        for name in ("feat_dim", "n_offsets", "lr_max_steps", "growth_levels", "update_hierarchy_factor", "random_init"):
             check_int(name, getattr(self, name), 1)
         check_int("seed", self.seed, 0)
         check_int("update_init_factor", self.update_init_factor,
@@ -291,7 +299,8 @@ class ScaffoldAdapter:
     @classmethod
     def from_scene(cls, scene, config: Optional[ScaffoldConfig] = None, dtype: torch.dtype = torch.float32,
                    device: Optional[torch.device | str] = None) -> "ScaffoldAdapter":
-        """Anchors = unique voxel centres of scene.points; features 0; offsets 0 (or
+        """Anchors = unique voxel centres of scene.points (without points: of config.random_init
+        points where the cameras look, drawn with config.seed); features 0; offsets 0 (or
         N(0, offset_init_std^2)); scaling log(sqrt(mean squared distance to the 3 nearest other
         anchors)) repeated 6 times (floored at 1e-7 before the root, as 3DGS). device: where the
         anchors and MLPs live (default: the CPU); made on the CPU, then moved, so a seed gives
@@ -299,8 +308,11 @@ class ScaffoldAdapter:
         config = ScaffoldConfig() if config is None else config
         points = getattr(scene, "points", None)
         if points is None or len(points) == 0:
-            raise ValueError("Scaffold-GS places anchors on the scene's point cloud; the scene has no points")
-        xyz = points.xyz.to(torch.float64)
+            gen = torch.Generator().manual_seed(config.seed + 1)
+            xyz, _, description = random_init_points(scene, config.random_init, gen)
+            LOG.info("Scaffold-GS anchors from %s", description)
+        else:
+            xyz = points.xyz.to(torch.float64)
         voxel = config.voxel_size
         if voxel is None:
             voxel = float(knn_mean_sq_dist(xyz, k=3).sqrt().median())

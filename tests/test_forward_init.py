@@ -14,7 +14,7 @@ import torch
 
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin.camera import Camera
-from mvgs_plugin.data import load_nerf_synthetic
+from mvgs_plugin.data import load_nerf_synthetic, load_scene
 from mvgs_plugin.data.init import FAR_OVER_NEAR, init_region, photo_consistent, random_init_points
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -151,7 +151,10 @@ def forward_runs(tmp_path_factory):
         shutil.copy(FORWARD / f"transforms_{name}.json", bare)
     without = load_nerf_synthetic(bare)
     assert without.points is None
-    return {"points": _train(with_points), "random": _train(without), "cube": _train(without, random_cube=True)}
+    triangulated = load_scene(bare, init="triangulate", threads=1)
+    assert triangulated.points_origin.startswith("triangulated"), triangulated.points_origin
+    return {"points": _train(with_points), "random": _train(without), "cube": _train(without, random_cube=True),
+            "triangulate": _train(triangulated)}
 
 
 @pytest.mark.slow
@@ -161,6 +164,15 @@ def test_a_forward_facing_scene_trains_from_random_init_close_to_its_points_run(
     r = forward_runs
     assert r["random"] >= r["points"] - 5.0, r
     assert r["random"] >= r["cube"] + 5.0, r
+
+
+@pytest.mark.slow
+def test_triangulated_init_trains_within_3_db_of_the_points_run(forward_runs):
+    """Issue 25's bar on the 64 px forward scene: pycolmap's tracks from the posed views plus the
+    photo-consistent fill, against the generator's own surface points and the frusta rule."""
+    r = forward_runs
+    assert r["triangulate"] >= r["points"] - 3.0, r
+    assert r["triangulate"] >= r["random"], r
 
 
 def test_random_init_logs_what_it_chose(caplog):

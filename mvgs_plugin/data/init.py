@@ -191,22 +191,30 @@ def is_forward_facing(cameras: Sequence[Camera]) -> bool:
     return axis_spread(cameras) < CONVERGING_SPREAD
 
 
-def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) -> InitRegion:
+def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
+                kind: Optional[str] = None) -> InitRegion:
     """Where random initial points should go for this rig (see the module docstring).
 
     Args:
         cameras: the training cameras.
         center, extent: the scene normalisation (:func:`~mvgs_plugin.data.camera_normalization`),
             the cube of the original 3DGS.
+        kind: None (the rig decides), or "frusta" to use the frusta whatever the axis spread
+            (the cube is still returned, with the reason, when no depth is seen by half of the
+            cameras or the axes have no common direction).
     """
+    if kind not in (None, "frusta"):
+        raise ValueError(f"init_region kind must be None or 'frusta', got {kind!r}")
     if not cameras:
         raise ValueError("init_region needs at least one camera")
     cube = lambda why: _cube(center, extent, why)  # noqa: E731
     d = camera_axes(cameras)
     d = d / torch.linalg.norm(d, dim=1, keepdim=True)  # unit viewing directions
     spread = axis_spread(cameras)
-    if spread >= CONVERGING_SPREAD:
+    if spread >= CONVERGING_SPREAD and kind is None:
         return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
+    if float(torch.linalg.norm(d.mean(0))) < 0.5:
+        return cube(f"frusta asked for, but the optical axes share no direction (axis spread {spread:.3f})")
     centers = torch.stack([c.center for c in cameras])
     radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
     if not radius > 0:
@@ -222,7 +230,9 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float) 
     far = FAR_OVER_NEAR * near
     return InitRegion(
         "frusta", f"random init: the {len(cameras)} training frusta between depth {near:.4g} and {far:.4g}, "
-                  f"uniform in disparity (forward-facing rig: axis spread {spread:.3f} < {CONVERGING_SPREAD}; "
-                  f"near = the first depth half of the cameras see)",
+                  f"uniform in disparity ("
+                  + (f"forward-facing rig: axis spread {spread:.3f} < {CONVERGING_SPREAD}" if spread < CONVERGING_SPREAD
+                     else f"asked for; axis spread {spread:.3f}")
+                  + "; near = the first depth half of the cameras see)",
         near=near, far=far, cameras=tuple(cameras))
 

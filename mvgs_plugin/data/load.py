@@ -2,25 +2,51 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import Optional
 
 from .colmap import load_colmap
 from .nerf import is_dynamic, load_dnerf, load_nerf_synthetic
 from .scene import Scene
 
+LOG = logging.getLogger("mvgs_plugin")
 
-def load_scene(path) -> Scene:
+
+def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
+               init_cache=None, threads: Optional[int] = None) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json; D-NeRF when its frames carry a time) or COLMAP (sparse/, sparse/0, or
     cameras.bin / cameras.txt at the top). Raises ValueError naming the folder when it does not
-    exist or holds neither."""
+    exist or holds neither.
+
+    A scene without a point file (points3d.ply beside the jsons, COLMAP's points3D) gets initial
+    points by ``init`` (:func:`~mvgs_plugin.data.triangulate.initial_points`): "triangulate"
+    (default: pycolmap from the training views at their poses, the uncovered space filled with
+    photo-consistent points, falling back to "random" with the reason when too few tracks are
+    found), "random" (the 3DGS cube for rigs around the scene, the training frusta for
+    forward-facing ones), "frusta" or "cube"; ``init_points`` of them (tracks beyond it are all
+    kept), seeded by ``init_seed``. None leaves ``scene.points`` None (the adapters then draw
+    random points themselves). ``init_cache``: a folder to keep the triangulation in for the
+    next run (None: a temporary folder; the scene folder is never written). ``threads``:
+    pycolmap's threads (default: torch's). What was done is in ``scene.points_origin`` and logged
+    to the "mvgs_plugin" logger.
+    """
     path = Path(path)
     if not path.exists():
         raise ValueError(f"scene folder {path} does not exist")
     if not path.is_dir():
         raise ValueError(f"scene path {path} is a file, expected a folder (COLMAP or NeRF-synthetic)")
     if (path / "transforms_train.json").exists():
-        return load_dnerf(path) if is_dynamic(path) else load_nerf_synthetic(path)
-    if (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
-        return load_colmap(path)
-    raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
+        scene = load_dnerf(path) if is_dynamic(path) else load_nerf_synthetic(path)
+    elif (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
+        scene = load_colmap(path)
+    else:
+        raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
+    if scene.points is None and init is not None:
+        from .triangulate import initial_points
+
+        made = initial_points(scene, init, init_points, init_seed, init_cache, threads)
+        scene.points, scene.points_origin = made.points, made.description
+        LOG.info("%s: %s", path, made.description)
+    return scene

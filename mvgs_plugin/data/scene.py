@@ -87,6 +87,8 @@ class Scene:
         self.train_cameras = list(train_cameras)
         self.test_cameras = list(test_cameras)
         self.points = points
+        # how the initial points came to be (load_scene sets it when it made them)
+        self.points_origin = "no points" if points is None else f"{len(points)} points given with the scene"
         self.background = check_background(background)
         self.source = None if source is None else Path(source)
         if not self.train_cameras:
@@ -171,6 +173,14 @@ class Scene:
                                  f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
             self._cache[key] = img
         return self._cache[key]
+
+    def image_file(self, cam: Camera) -> Optional[Path]:
+        """The file the image of ``cam`` is read from, or None for an image given as a tensor."""
+        base = self._by_uid.get(getattr(cam, "uid", None))
+        if base is None:
+            raise KeyError(f"camera {cam!r} is not part of this scene")
+        src = self._sources[base.uid]
+        return None if isinstance(src, torch.Tensor) else Path(src)
 
     def clear_cache(self) -> None:
         """Forget decoded images loaded from files (in-memory images are kept)."""
