@@ -37,6 +37,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from mvgs_plugin.cli import repo_path  # noqa: E402
 from mvgs_plugin.io import atomic_write_text  # noqa: E402
 RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
@@ -199,8 +200,9 @@ def main(argv=None) -> list:
     # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each.
     with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:
         rows = pool.starmap(train, jobs)
-    scene = str(args.data or "bundled tabletop")
-    atomic_write_text(args.out / "runs.json", json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
+    scene = repo_path(args.data) if args.data else "bundled tabletop"
+    recorded = {k: repo_path(v) if isinstance(v, Path) else str(v) for k, v in vars(args).items()}  # no machine paths
+    atomic_write_text(args.out / "runs.json", json.dumps({"args": recorded,
                                                     "runs": rows}, indent=1))
     atomic_write_text(args.out / "equal_compute.md", table(rows, scene))
     plot(rows, args.out / "psnr_vs_cpu.png")

@@ -202,7 +202,10 @@ def main() -> None:
     if args.json:
         raw = [dict(r, key=list(k)) for k, r in cache.items() if r is not None]  # key ends with src (None: here)
         targets = [dict(threads=t, target=n, measured=v, met=m) for t, n, v, m in checks]
-        Path(args.json).write_text(json.dumps(dict(args=vars(args), results=raw, targets=targets), indent=1))
+        from mvgs_plugin.cli import without_machine_paths
+
+        text = json.dumps(dict(args=vars(args), results=raw, targets=targets), indent=1)
+        Path(args.json).write_text(without_machine_paths(text))  # the --before checkout as .../name
 
 
 if __name__ == "__main__":

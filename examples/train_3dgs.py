@@ -30,8 +30,8 @@ import sys
 
 from mvgs_plugin.adapters.gs3d import GS3DAdapter
 from mvgs_plugin.cli import (
-    BUNDLED, HelpFormatter, common_args, config_from_args, launch, load_scene, metrics_record, model_config,
-    rasterize_function, scene_folder, train_and_evaluate, write_json,
+    BUNDLED, HelpFormatter, common_args, config_from_args, launch, metrics_record, model_config,
+    rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
 )
 
 
@@ -47,7 +47,7 @@ def main(argv=None) -> dict:
 
 
 def run(args, dist) -> dict:
-    scene = load_scene(args.data)
+    scene = scene_from_args(args)
     config = config_from_args(args, scene)
     model = model_config(config, args.seed, args.max_gaussians, rasterize_function(args))
     adapter = GS3DAdapter.from_scene(scene, model, device=args.device)

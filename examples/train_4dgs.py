@@ -29,8 +29,8 @@ import sys
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
-    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, load_scene, metrics_record,
-    model_config, rasterize_function, scene_folder, train_and_evaluate, write_json,
+    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, metrics_record,
+    model_config, rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
 )
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
@@ -74,7 +74,7 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
-    scene = load_scene(args.data)
+    scene = scene_from_args(args)
     untimed = [c.name for c in scene.train_cameras + scene.test_cameras if c.time is None]
     if untimed:
         raise ValueError(f"{args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "

@@ -26,8 +26,8 @@ import torch
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin.cli import (
-    BUNDLED, HelpFormatter, common_args, config_from_args, float_above, launch, load_scene, metrics_record,
-    rasterize_function, scene_folder, train_and_evaluate, write_json,
+    BUNDLED, HelpFormatter, common_args, config_from_args, float_above, launch, metrics_record,
+    rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
 )
 
 
@@ -56,7 +56,7 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
-    scene = load_scene(args.data)
+    scene = scene_from_args(args)
     config = config_from_args(args, scene)
     model_cfg = scaffold_config(config, args)
     model_cfg = dataclasses.replace(model_cfg, rasterize=rasterize_function(args))

@@ -6,7 +6,10 @@ stages, the MVGS options, output, seed, threads, device, rasterizer); ``config_f
 them into an :class:`~mvgs_plugin.MVGSConfig`; ``launch`` runs a script in one process or on
 every torchrun rank; ``train_and_evaluate`` and ``metrics_record`` train, evaluate and build the
 ``metrics.json`` record. Bad arguments end in an argparse usage error (exit code 2) naming the
-flag and the value, before any scene is read or folder written.
+flag and the value, before any scene is read or folder written; bad input found later (a scene
+folder that holds no scene, an --out that cannot be a folder, a checkpoint that does not fit,
+a --resolution-scale that leaves images too small) ends the same way, one line on stderr and
+exit code 2, with the traceback only under --debug (:class:`UsageError`, :func:`launch`).
 """
 
 from __future__ import annotations
@@ -28,13 +31,16 @@ from mvgs_plugin.adapters.gs3d import GS3DConfig
 from mvgs_plugin.config import MVGSConfig, Stage
 from mvgs_plugin.controller import MVGS
 from mvgs_plugin.data import load_scene
+from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text
 
 __all__ = [
+    "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
     "BUNDLED", "HelpFormatter", "common_args", "config_from_args", "launch", "train_and_evaluate",
     "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
     "parse_stages", "checkpoint_file", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
+    "scene_from_args",
 ]
 
 # The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package:
@@ -42,6 +48,50 @@ __all__ = [
 # (a wheel install running the examples from the repository's root).
 _BESIDE_PACKAGE = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "tabletop"
 BUNDLED = _BESIDE_PACKAGE if _BESIDE_PACKAGE.is_dir() else Path("examples") / "scenes" / "tabletop"
+
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository, for a checkout or an editable install
+# --resolution-scale may not leave an image's short side under this many pixels: below it a test
+# view is a few pixels of average colour and its PSNR says nothing
+MIN_IMAGE_SIDE = 16
+
+
+class UsageError(ValueError):
+    """Bad input a user can fix (a flag's value, a scene folder, a checkpoint): launch() prints
+    it as one line, "prog: error: message", and exits with code 2 (argparse's way), unless
+    --debug asks for the traceback."""
+
+
+def repo_path(path) -> str:
+    """A path as benchmark records keep it: relative to the repository when inside it, else
+    '.../' and its last two parts (never the machine's absolute path)."""
+    p = Path(path)
+    if not p.is_absolute():
+        return p.as_posix()
+    try:
+        return p.resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        return ".../" + "/".join(p.parts[-2:] if len(p.parts) > 3 else p.parts[-1:])
+
+
+def without_machine_paths(text: str) -> str:
+    """``text`` with every absolute path under /work, /tmp, /home or /root replaced by
+    :func:`repo_path` (benchmark records that name other checkouts or scene folders)."""
+    import re
+
+    return re.sub(r"(?<![\w.])/(?:work|tmp|home|root)/[\w./-]*[\w-]", lambda m: repo_path(m.group(0)), text)
+
+
+def check_resolution(scene, scale: int) -> None:
+    """Refuse a --resolution-scale that leaves any image's short side under MIN_IMAGE_SIDE."""
+    from mvgs_plugin.camera import scaled_size
+
+    for cam in scene.cameras:
+        w, h = scaled_size(cam.width, cam.height, scale)
+        if min(w, h) < MIN_IMAGE_SIDE:
+            most = max(1, min(cam.width, cam.height) // MIN_IMAGE_SIDE)
+            raise UsageError(f"--resolution-scale {scale} makes the {cam.width}x{cam.height} images {w}x{h}; the "
+                             f"short side must stay >= {MIN_IMAGE_SIDE} px (use at most {most})")
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -64,6 +114,18 @@ def scene_folder(text: str) -> Path:
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} is a file, expected a scene folder")
     return path
+
+
+def scene_from_args(args):
+    """The scene of --data, with initial points by --init (cached in --init-cache, else OUT/init)
+    when it has no point file; the init's threads follow --threads."""
+    cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
+    try:
+        scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads)
+    except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
+        raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
+    check_resolution(scene, args.resolution_scale)
+    return scene
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None) -> GS3DConfig:
@@ -165,6 +227,14 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it (default: "
                          "not set, --steps counts)")
     ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
+    ap.add_argument("--init", choices=list(INIT_METHODS), default="triangulate",
+                    help="initial points of a scene without a point file: triangulate (pycolmap from the training "
+                         "views at their poses, the rest filled with photo-consistent points; falls back to random "
+                         "with the reason when too few tracks are found), random (the 3DGS cube when the cameras "
+                         "surround the scene, the training frusta when they face one way), frusta or cube")
+    ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
+                    help="folder the triangulation (features and points) is kept in and read back from by the next "
+                         "run (default: OUT/init; the scene folder is never written unless DIR is in it)")
     ap.add_argument("--stages", type=parse_stages, default=None, metavar="F:M:STEPS,...",
                     help="replace the preset's stage plan: pyramid factor, views per step and recipe steps per "
                          "stage, e.g. 8:16:1000,4:8:1000,2:4:1000,1:1:30000 (then rescaled by --steps or --budget; default: "
@@ -208,6 +278,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--checkpoint-every", type=int_at_least(1), default=None, metavar="K",
                     help="write OUT/checkpoint.pt every K steps as well (replaced atomically; --resume continues "
                          "from it; default: only with --checkpoint, at the end)")
+    ap.add_argument("--debug", action="store_true",
+                    help="show the full traceback of an input error (bad data, --out, checkpoint) instead of one line")
     ap.add_argument("--resume", type=checkpoint_file, default=None, metavar="CHECKPOINT",
                     help="continue the run a checkpoint was written by (same data and flags; it is refused "
                          "otherwise, naming the settings that differ; default: start fresh)")
@@ -281,7 +353,10 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     model is the same on every rank."""
     trainer = MVGS(adapter, scene, config, distributed=dist)
     if getattr(args, "resume", None) is not None:
-        trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
+        try:
+            trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
+        except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
+            raise UsageError(f"--resume {args.resume}: {err}") from err
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
@@ -315,10 +390,11 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "budget": config.budget,
         "work": trainer.schedule.work_done,
         "num_gaussians": trainer.adapter.num_primitives(),
+        "init": getattr(trainer.scene, "points_origin", None),
         **extra,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "preset": args.preset,
-        "data": str(args.data),
+        "data": repo_path(args.data) if Path(args.data).resolve().is_relative_to(ROOT) else str(args.data),
         "threads": torch.get_num_threads(),
         "device": getattr(args, "device", "cpu"),
         "rasterizer": getattr(args, "rasterizer", "reference"),
@@ -332,9 +408,25 @@ def launch(args, run: Callable) -> dict:
     """run(args, dist) in one process (dist None; returns its metrics), or on every rank when
     torchrun started more than one (dist a Collective; the training script itself is
     unchanged), after which the process exits with code 0. Every train_*.py example starts
-    this way."""
-    check_out(args.out)
-    check_device(args)
+    this way. A UsageError (or a ValueError from the --out and --device checks) ends the
+    process with one line on stderr and exit code 2, as argparse does, unless args.debug."""
+    try:
+        return _launch(args, run)
+    except UsageError as err:
+        if getattr(args, "debug", False):
+            raise
+        message = " ".join(str(err).split())  # one line, whatever the message held
+        print(f"{Path(sys.argv[0]).name}: error: {message}", file=sys.stderr)
+        sys.stderr.flush()
+        raise SystemExit(2) from None
+
+
+def _launch(args, run: Callable) -> dict:
+    try:
+        check_out(args.out)
+        check_device(args)
+    except ValueError as err:
+        raise UsageError(str(err)) from err
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

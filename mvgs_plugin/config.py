@@ -29,12 +29,15 @@ from typing import Optional, Tuple, Union
 from .checks import check_int, is_int
 
 
-def _check_finite_above(name: str, value, low: float, what: str, optional: bool = False) -> None:
+def _check_finite_above(name: str, value, low: float, what: str, optional: bool = False,
+                        inclusive: bool = False) -> None:
     """Raise ValueError("<name> must be <what>, got <value>") unless value is a real number (not a
-    bool) with low < value < inf, or None when optional."""
+    bool) with low < value < inf (low <= value with inclusive), or None when optional. NaN and
+    infinities never pass."""
     if optional and value is None:
         return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low < value < float("inf"):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not (
+            low <= value if inclusive else low < value):
         raise ValueError(f"{name} must be {what}, got {value!r}")
 
 
@@ -98,6 +101,7 @@ class MVADConfig:
             raise ValueError(f"mvad.rule must be 'any' or a fraction in (0, 1], got {self.rule!r}")
         if self.center not in ("origin", "scene"):
             raise ValueError(f"mvad.center must be one of ('origin', 'scene'), got {self.center!r}")
+        _check_finite_above("mvad.rotation_weight", self.rotation_weight, 0, "a finite weight >= 0", inclusive=True)
 
     def __bool__(self) -> bool:
         """``enabled``, so that ``if config.mvad:`` (a bool in earlier releases) keeps its meaning."""
@@ -134,8 +138,12 @@ class CRDConfig:
         object.__setattr__(self, "window", tuple(self.window))
         if len(self.window) != 2 or not all(is_int(v) and v >= 1 for v in self.window):
             raise ValueError(f"crd.window must be (rows, columns) of positive ints, got {self.window!r}")
-        if self.max_new is not None and not 0.0 < self.max_new:
-            raise ValueError(f"crd.max_new must be None or > 0, got {self.max_new!r}")
+        _check_finite_above("crd.max_new", self.max_new, 0, "None or a finite fraction > 0", optional=True)
+        _check_finite_above("crd.max_miss", self.max_miss, 0, "None or a finite multiple of the extent > 0",
+                            optional=True)
+        _check_finite_above("crd.min_angle_deg", self.min_angle_deg, 0, "a finite angle in [0, 90) degrees", inclusive=True)
+        if self.min_angle_deg >= 90:
+            raise ValueError(f"crd.min_angle_deg must be a finite angle in [0, 90) degrees, got {self.min_angle_deg!r}")
 
     def __bool__(self) -> bool:
         """``enabled``, so that ``if config.crd:`` (a bool in earlier releases) keeps its meaning."""
@@ -302,8 +310,7 @@ class MVGSConfig:
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
-        if not self.grad_threshold > 0:
-            raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold!r}")
+        _check_finite_above("grad_threshold", self.grad_threshold, 0, "a finite threshold > 0")
         _check_finite_above("grad_threshold_width", self.grad_threshold_width, 0,
                             "None or a finite width in pixels > 0", optional=True)
         self.view_cost = tuple(float(v) for v in self.view_cost)

@@ -344,15 +344,16 @@ class MVGS:
     # ---- the whole run --------------------------------------------------------------------
     def fit(self, steps: Optional[int] = None, callback: Optional[Callable[[StepInfo], None]] = None,
             progress: bool = True) -> "MVGS":
-        """Runs the remaining steps (or `steps` more) with a progress bar (rank 0 only). In a
-        distributed run every rank must call it with the same `steps`."""
+        """Runs the remaining steps (or `steps` more) with a progress bar (rank 0 only, and only
+        when stderr is a terminal: a log file or a pipe gets no bar). In a distributed run every
+        rank must call it with the same `steps`."""
         remaining = self.total_steps - self.step_count
         n = remaining if steps is None else min(steps, remaining)
         bar = None
         if progress and self.is_main:
             from tqdm import tqdm
 
-            bar = tqdm(total=n, desc="MVGS", unit="step", dynamic_ncols=True)
+            bar = tqdm(total=n, desc="MVGS", unit="step", dynamic_ncols=True, disable=None)  # None: a TTY only
         for _ in range(n):
             info = self.step()
             if callback is not None:

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import tempfile
 import time
 
 import numpy as np
@@ -63,19 +61,14 @@ def ring_cameras(n: int, size: int, radius: float = 3.2, height: float = 1.6):
 
 
 def save_png(path: str, image: np.ndarray) -> None:
-    """Writes an 8-bit PNG atomically (a crash never leaves a truncated file at `path`)."""
-    from skimage.io import imsave
+    """Writes an 8-bit PNG atomically (a crash never leaves a truncated file at `path`), with the
+    mode the umask gives a new file (mvgs_plugin.io.write_atomic)."""
+    from PIL import Image
 
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=folder)
-    os.close(fd)
-    try:
-        imsave(tmp, (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8), check_contrast=False)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from mvgs_plugin.io import write_atomic
+
+    pixels = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+    write_atomic(path, lambda f: pixels.save(f, format="PNG"), binary=True, make_folder=True)
 
 
 def main() -> None:

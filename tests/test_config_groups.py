@@ -72,10 +72,46 @@ def test_the_new_spelling_does_not_warn():
     (lambda: MVADConfig(center="camera"), "mvad.center must be one of"),
     (lambda: CRDConfig(window=(0, 3)), "crd.window must be"),
     (lambda: CRDConfig(window=(True, 3)), "crd.window must be"),
-    (lambda: CRDConfig(max_new=0.0), "crd.max_new must be None or > 0"),
+    (lambda: CRDConfig(max_new=0.0), "crd.max_new must be None or a finite fraction > 0"),
+    (lambda: CRDConfig(min_angle_deg=90.0), "crd.min_angle_deg must be a finite angle in \\[0, 90\\)"),
     (lambda: MVGSConfig(mvad="yes"), "mvad must be a MVADConfig"),
     (lambda: MVGSConfig(max_views_rule="cap"), "max_views_rule"),
 ])
 def test_bad_group_values_name_the_field(make, pattern):
     with pytest.raises((ValueError, TypeError), match=pattern):
         make()
+
+
+def _float_fields(cls):
+    """Names of the fields whose annotation admits a float (scalar or tuple of floats)."""
+    return [f.name for f in dataclasses.fields(cls) if "float" in str(f.type)]
+
+
+@pytest.mark.parametrize("cls, group", [(MVADConfig, "mvad"), (CRDConfig, "crd"), (MVGSConfig, None)])
+def test_every_float_field_of_every_config_refuses_nan_and_infinity(cls, group):
+    """Walks the dataclass fields, so a float field added later is covered without a new test."""
+    names = _float_fields(cls)
+    assert names, cls
+    base = cls()
+    types = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+    for name in names:
+        default = getattr(base, name)
+        for bad in (float("nan"), float("inf"), float("-inf")):
+            if isinstance(default, tuple):
+                value = tuple(bad for _ in default)
+            elif "Tuple[float, float, float]" in types[name]:  # e.g. background: "auto" or (r, g, b)
+                value = (bad, bad, bad)
+            else:
+                value = bad
+            field = name if group is None else f"{group}.{name}"
+            with pytest.raises(ValueError, match=rf"\b{field.split('.')[-1]}\b"):
+                if group is None:
+                    dataclasses.replace(base, **{name: value})
+                else:  # nested: through MVGSConfig, as a user builds it
+                    MVGSConfig(**{group: dataclasses.replace(base, **{name: value})})
+
+
+@pytest.mark.parametrize("flat", ["mvad_rotation_weight", "crd_min_angle_deg", "crd_max_miss", "mvad_tau"])
+def test_the_flat_aliases_refuse_nan_too(flat):
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match=flat.split("_", 1)[1]):
+        MVGSConfig(**{flat: float("nan")})

@@ -24,6 +24,7 @@ import torch.multiprocessing as mp
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.distributed import Collective, abort_on_error, backend_for, init_from_env, require_support, shard
+from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import load_checked
 from mvgs_plugin.testing import check_adapter, check_distributed_support, synthetic_scene
 
@@ -395,7 +396,7 @@ def test_train_3dgs_under_torchrun(tmp_path):
     assert metrics["world_size"] == 2 and metrics["steps"] == 4
     state = load_checked(str(out / "checkpoint.pt"))
     example = _load_example()
-    scene = example.load_scene(example.BUNDLED)
+    scene = load_scene(example.BUNDLED)
     config = MVGSConfig.from_dict(state["config"])
     trainer = MVGS(GS3DAdapter.from_scene(scene, example.model_config(config, 0)), scene, config)
     trainer.load_checkpoint(str(out / "checkpoint.pt"))

@@ -47,8 +47,8 @@ def test_train_3dgs_writes_metrics_renders_and_ply(tmp_path, preset, layout):
 
 def test_bad_data_folder_is_named(tmp_path):
     example = load_example()
-    with pytest.raises(ValueError, match="neither a COLMAP scene"):
-        example.main(["--data", str(tmp_path), "--steps", "2", "--out", str(tmp_path / "o"), "--no-progress"])
+    with pytest.raises(ValueError, match="neither a COLMAP scene"):  # --debug: the exception, not one line
+        example.main(["--data", str(tmp_path), "--steps", "2", "--out", str(tmp_path / "o"), "--no-progress", "--debug"])
 
 
 @pytest.mark.slow
@@ -134,9 +134,9 @@ def test_device_flags_this_machine_cannot_run_stop_before_any_work(tmp_path, mon
 
     assert not torch.cuda.is_available()
     example = load_example()
-    monkeypatch.setattr(example, "load_scene", lambda path: pytest.fail("loaded a scene before checking the device"))
+    monkeypatch.setattr(example, "scene_from_args", lambda args: pytest.fail("loaded a scene before checking the device"))
     with pytest.raises(ValueError, match=message):
-        example.main(flags + ["--steps", "3", "--no-progress", "--out", str(tmp_path / "out")])
+        example.main(flags + ["--steps", "3", "--no-progress", "--out", str(tmp_path / "out"), "--debug"])
     assert not (tmp_path / "out").exists()
 
 
@@ -155,5 +155,5 @@ def test_every_example_refuses_cuda_flags_this_machine_cannot_run(tmp_path, scri
                            (["--rasterizer", "gsplat"], "needs --device cuda")):
         with pytest.raises(ValueError, match=message):
             module.main(flags + ["--data", str(tmp_path / "empty"), "--steps", "3", "--no-progress",
-                                 "--out", str(tmp_path / "out")])
+                                 "--out", str(tmp_path / "out"), "--debug"])
     assert not (tmp_path / "out").exists()

@@ -358,13 +358,13 @@ def test_bad_out_is_refused_before_any_work(tmp_path, monkeypatch, where):
     example = load_example()
     calls = []
     monkeypatch.setattr(example, "run", lambda *a: calls.append("run"))
-    monkeypatch.setattr(example, "load_scene", lambda *a: calls.append("load_scene"))
+    monkeypatch.setattr(example, "scene_from_args", lambda *a: calls.append("load_scene"))
     blocker = tmp_path / "a_file"
     blocker.write_text("keep me")
     out = blocker if where == "file" else blocker / "sub" / "dir"
     t0 = time.perf_counter()
     with pytest.raises(ValueError) as info:
-        example.main(["--out", str(out), "--steps", "2", "--no-progress"])
+        example.main(["--out", str(out), "--steps", "2", "--no-progress", "--debug"])
     assert time.perf_counter() - t0 < 1.0
     msg = str(info.value)
     assert str(out) in msg and (str(blocker) in msg) and "file" in msg, msg
@@ -381,7 +381,7 @@ def test_malformed_transforms_json_is_named(tmp_path, content):
     file.write_bytes(content)
     out = tmp_path / "out"
     for load in (lambda: example.main(["--data", str(scene_dir), "--steps", "2", "--out", str(out),
-                                        "--no-progress"]),
+                                        "--no-progress", "--debug"]),
                  lambda: load_nerf_synthetic(scene_dir)):
         with pytest.raises(ValueError) as info:
             load()

@@ -1,0 +1,129 @@
+"""The door as a new user meets it (issue 25, part 2): an input error is one line on stderr and
+exit code 2 (a traceback only with --debug), a --resolution-scale that leaves images too small
+is refused, the main job prints one line when stderr is not a terminal, every output gets the
+mode a plain open() gives, and benchmark records carry no machine path."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+TINY = ["--steps", "3", "--resolution-scale", "4", "--no-progress"]
+
+
+def run(script: str, *argv: str, cwd=None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, str(EXAMPLES / script), *argv], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=300)
+
+
+def one_error_line(proc: subprocess.CompletedProcess, script: str, *needles: str) -> str:
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith(f"{script}: error: "), lines[0]
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+@pytest.fixture()
+def folders(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    pngs = tmp_path / "pngs"
+    pngs.mkdir()
+    for name in ("r_000.png", "r_001.png"):
+        (pngs / name).write_bytes((ROOT / "examples" / "scenes" / "tabletop" / "train" / name).read_bytes())
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    return empty, pngs, afile
+
+
+@pytest.mark.parametrize("script", ["train_3dgs.py", "train_scaffold.py", "train_4dgs.py"])
+def test_a_folder_without_a_scene_is_one_line_and_exit_2(script, folders, tmp_path):
+    empty, pngs, _ = folders
+    one_error_line(run(script, "--data", str(empty), "--out", str(tmp_path / "o1"), *TINY), script,
+                   str(empty), "neither a COLMAP scene")
+    if script == "train_3dgs.py":
+        one_error_line(run(script, "--data", str(pngs), "--out", str(tmp_path / "o2"), *TINY), script, str(pngs))
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()  # nothing written
+
+
+def test_an_out_that_is_a_file_is_one_line_and_the_file_is_kept(folders):
+    _, _, afile = folders
+    one_error_line(run("train_3dgs.py", "--out", str(afile), *TINY), "train_3dgs.py", str(afile), "existing file")
+    assert afile.read_text() == "keep me"
+
+
+def test_debug_shows_the_traceback(folders, tmp_path):
+    empty, _, _ = folders
+    proc = run("train_3dgs.py", "--data", str(empty), "--out", str(tmp_path / "o"), "--debug", *TINY)
+    assert proc.returncode != 0 and "Traceback" in proc.stderr and "UsageError" in proc.stderr
+    help_text = run("train_3dgs.py", "--help").stdout
+    assert "--debug" in help_text and "--init {triangulate,random,frusta,cube}" in " ".join(help_text.split())
+
+
+def test_a_resolution_scale_that_leaves_images_under_16_px_is_refused(tmp_path):
+    line = one_error_line(run("train_3dgs.py", "--resolution-scale", "1000", "--steps", "3", "--out", str(tmp_path / "o")),
+                          "train_3dgs.py", "--resolution-scale 1000", "128x128")
+    # the sizes it names are the camera's own arithmetic, and the largest scale it offers works
+    from mvgs_plugin.camera import scaled_size
+
+    assert f"images {'x'.join(map(str, scaled_size(128, 128, 1000)))}" in line and "at most 8" in line
+    assert not (tmp_path / "o").exists()
+    from mvgs_plugin.cli import MIN_IMAGE_SIDE
+
+    assert min(scaled_size(128, 128, 8)) >= MIN_IMAGE_SIDE > min(scaled_size(128, 128, 9))
+
+
+def test_the_main_job_prints_one_line_when_stderr_is_not_a_terminal(tmp_path):
+    proc = run("train_3dgs.py", "--steps", "3", "--resolution-scale", "4", "--out", str(tmp_path / "o"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("default: test PSNR "), proc.stderr
+    assert proc.stdout == ""
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_output_of_the_main_job_gets_the_plain_new_file_mode(tmp_path):
+    old = os.umask(0o027)  # an unusual umask, so a hard-coded 0o644 would fail too
+    try:
+        plain = tmp_path / "plain.txt"
+        plain.write_text("x")
+        expected = os.stat(plain).st_mode & 0o777
+        out = tmp_path / "o"
+        _load("train_3dgs").main(["--out", str(out), "--checkpoint", *TINY])
+    finally:
+        os.umask(old)
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert {p.suffix for p in files} >= {".png", ".json", ".ply", ".pt"}, files
+    wrong = {str(p.relative_to(out)): oct(os.stat(p).st_mode & 0o777) for p in files
+             if os.stat(p).st_mode & 0o777 != expected}
+    assert not wrong and expected == 0o640, wrong
+
+
+def test_benchmark_records_keep_paths_relative_to_the_repository(tmp_path):
+    from mvgs_plugin.cli import repo_path, without_machine_paths
+
+    assert repo_path(ROOT / "examples" / "scenes" / "tabletop") == "examples/scenes/tabletop"
+    assert repo_path("scenes/forward") == "scenes/forward"
+    outside = tmp_path / "scenes" / "forward"
+    assert repo_path(outside) == ".../scenes/forward" and str(tmp_path) not in repo_path(outside)
+    text = json.dumps({"data": str(outside), "cmd": f"python x.py --data {ROOT / 'examples'} --out {tmp_path}/o."})
+    cleaned = json.loads(without_machine_paths(text))
+    assert cleaned == {"data": ".../scenes/forward", "cmd": f"python x.py --data examples --out .../{tmp_path.name}/o."}
