@@ -78,6 +78,8 @@ class Scene:
 
     Attributes:
         center: [3] float64 and extent (float): see :func:`camera_normalization`.
+        points_origin: where ``points`` came from, for logs and metrics.json ("N points given
+            with the scene", or what :func:`~mvgs_plugin.data.load_scene` made for a scene without).
     """
 
     def __init__(self, train_cameras: Sequence[Camera], test_cameras: Sequence[Camera],

@@ -181,7 +181,7 @@ def triangulate(scene: Scene, work_dir, threads: Optional[int] = None, exhaustiv
 
     ``work_dir`` receives the staged images, the feature database (database.db), the view pairs
     and the model; it is created if missing and must not hold an earlier database. ``threads``: pycolmap's
-    threads (default: torch's). Raises RuntimeError when pycolmap fails.
+    threads (default: torch's). pycolmap's failures arrive as RuntimeError or ValueError.
     """
     import pycolmap
 
@@ -195,7 +195,20 @@ def triangulate(scene: Scene, work_dir, threads: Optional[int] = None, exhaustiv
     seconds = {}
     t0 = time.perf_counter()
     names = _stage_images(scene, cameras, image_dir)
+    level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # pycolmap's INFO lines are many and say nothing to a trainer
+    try:
+        return _run_pycolmap(scene, cameras, names, work, threads, exhaustive_max, neighbours, seconds, t0)
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _run_pycolmap(scene: Scene, cameras: list, names: list, work: Path, threads: int, exhaustive_max: int,
+                  neighbours: int, seconds: dict, t0: float) -> Tracks:
+    """triangulate()'s pycolmap part: features, matches, tracks (logging already quietened)."""
+    import pycolmap
+
+    db_path, image_dir = work / "database.db", work / "images"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
