@@ -75,11 +75,13 @@ def repo_path(path) -> str:
 
 
 def without_machine_paths(text: str) -> str:
-    """``text`` with every absolute path under /work, /tmp, /home or /root replaced by
-    :func:`repo_path` (benchmark records that name other checkouts or scene folders)."""
+    """``text`` with every absolute path inside this repository (wherever it was cloned) or under
+    /work, /tmp, /home or /root replaced by :func:`repo_path` (benchmark records that name other
+    checkouts or scene folders)."""
     import re
 
-    return re.sub(r"(?<![\w.])/(?:work|tmp|home|root)/[\w./-]*[\w-]", lambda m: repo_path(m.group(0)), text)
+    roots = "|".join(sorted({re.escape(str(ROOT)), re.escape(ROOT.as_posix())} | {"/(?:work|tmp|home|root)"}))
+    return re.sub(rf"(?<![\w.])(?:{roots})(?:/[\w./-]*[\w-])?(?![\w/])", lambda m: repo_path(m.group(0)), text)
 
 
 def check_resolution(scene, scale: int) -> None:

@@ -127,3 +127,12 @@ def test_benchmark_records_keep_paths_relative_to_the_repository(tmp_path):
     text = json.dumps({"data": str(outside), "cmd": f"python x.py --data {ROOT / 'examples'} --out {tmp_path}/o."})
     cleaned = json.loads(without_machine_paths(text))
     assert cleaned == {"data": ".../scenes/forward", "cmd": f"python x.py --data examples --out .../{tmp_path.name}/o."}
+
+
+def test_records_written_from_a_clone_anywhere_lose_its_path(monkeypatch):
+    # CI clones the repository outside /work, /tmp, /home and /root: its own paths still go
+    import mvgs_plugin.cli as cli
+
+    monkeypatch.setattr(cli, "ROOT", Path("/check/work/main"))
+    text = "python b.py --data /check/work/main/examples/scenes/tabletop --out /check/work/main and /check/work/mainly/x"
+    assert cli.without_machine_paths(text) == "python b.py --data examples/scenes/tabletop --out . and /check/work/mainly/x"
