@@ -146,10 +146,11 @@ class ViewSchedule:
     point count is assumed, or UNKNOWN_PRIMITIVES without points (small chunks: safe, slower).
     """
 
-    def __init__(self, scene, config: MVGSConfig):
+    def __init__(self, scene, config: MVGSConfig, load_images: bool = True):
         if not scene.train_cameras:
             raise ValueError("scene has no training cameras")
         self.scene = scene
+        self.load_images = load_images  # False: plans carry no images (a loop that loads its own data)
         self.config = config = config.for_scene(scene)
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
@@ -183,7 +184,8 @@ class ViewSchedule:
             self.stage_start_count = self.primitive_count
         ids = self.sampler.sample(min(pos.stage.views, len(self.scene.train_cameras)))
         cams = [self._camera(i, pos.stage.factor) for i in ids]
-        images = [self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
+        images = ([self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
+                  if self.load_images else [])
         chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
         collect = pos.clock < cfg.densify_until
         densify = collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)

@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "downsample", "check_background"]
+__all__ = ["image_size", "read_rgb", "downsample", "downsample_batch", "check_background"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8, CC are not frames.
@@ -154,3 +154,48 @@ def downsample(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
     out = resize(arr, (height, width, arr.shape[2]), order=1, mode="symmetric",
                  anti_aliasing=True, preserve_range=True)
     return torch.from_numpy(np.ascontiguousarray(out, dtype=np.float32))
+
+
+def _symmetric_index(n: int, pad: int, device) -> torch.Tensor:
+    """Indices of a length-n axis padded by `pad` on each side with scipy's "reflect" rule
+    (edge sample repeated: c b a | a b c | c b a), for any pad (repeats the reflection)."""
+    idx = torch.arange(-pad, n + pad, device=device) % (2 * n)
+    return torch.where(idx < n, idx, 2 * n - 1 - idx)
+
+
+def _blur_axis(x: torch.Tensor, sigma: float, dim: int) -> torch.Tensor:
+    """Gaussian filter along `dim` as scipy.ndimage.gaussian_filter1d (truncate 4, reflect)."""
+    if sigma <= 0:
+        return x
+    radius = int(4.0 * sigma + 0.5)
+    t = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    w = torch.exp(-0.5 * (t / sigma) ** 2)
+    w = (w / w.sum()).to(x.dtype).to(x.device)
+    n = x.shape[dim]
+    xp = x.index_select(dim, _symmetric_index(n, radius, x.device)).movedim(dim, -1)
+    out = xp.unfold(-1, 2 * radius + 1, 1) @ w  # [..., n]
+    return out.movedim(-1, dim)
+
+
+def downsample_batch(images: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """:func:`downsample` for a batch [C, H, W, ch] (or [H, W, ch]) on its own device and dtype,
+    in torch: the same Gaussian prefilter (sigma = (s - 1) / 2 per axis, truncated at 4 sigma,
+    mirrored edges) and the same full-frame linear resampling (bilinear, pixel centres at +0.5),
+    so a GPU loop's targets match the package's cached pyramid images to float32 rounding
+    (tested against skimage). Any value range (the filter is linear with non-negative weights)."""
+    import torch.nn.functional as F
+
+    single = images.ndim == 3
+    x = images[None] if single else images
+    if x.ndim != 4:
+        raise ValueError(f"images must be [C, H, W, ch] or [H, W, ch], got {list(images.shape)}")
+    h0, w0 = x.shape[1], x.shape[2]
+    if (w0, h0) == (width, height):
+        return images.clone()
+    dtype = x.dtype if x.dtype.is_floating_point else torch.float32
+    x = x.to(dtype)
+    x = _blur_axis(x, max(0.0, (h0 / height - 1) / 2), 1)
+    x = _blur_axis(x, max(0.0, (w0 / width - 1) / 2), 2)
+    out = F.interpolate(x.permute(0, 3, 1, 2), size=(height, width), mode="bilinear", align_corners=False)
+    out = out.permute(0, 2, 3, 1).contiguous()
+    return out[0] if single else out
