@@ -1,38 +1,51 @@
 """MVGS for a gsplat-style trainer: :class:`MVGSStrategy` wraps gsplat's ``DefaultStrategy``.
 
 gsplat's ``simple_trainer.py`` keeps its Gaussians in a ``ParameterDict`` (``splats``), one Adam
-per parameter, and densifies with a strategy object called around backward. MVGSStrategy has the
-strategy's two hooks and adds a batch source, so such a loop trains with MVGS by changing the
-line that builds the strategy, the line that builds the data iterator, and (for cross-ray
-densification) one keyword (see ``examples/gsplat_loop/``)::
+per parameter, its data in a ``Dataset`` read through a ``DataLoader``, and densifies with a
+strategy object called around backward. MVGSStrategy *is* a ``DefaultStrategy`` (a subclass:
+the trainer's ``isinstance`` checks and its reads of ``absgrad`` keep working) that drives the
+one it wraps from an MVGS schedule. gsplat's own trainer adopts it with four added lines
+(``docs/gsplat_loop.md`` shows them as a patch of gsplat 1.5.3's ``examples/simple_trainer.py``)::
 
-    strategy = MVGSStrategy(DefaultStrategy(...), scene, "default", steps=max_steps)
-    trainloader_iter = strategy.batches()          # per step: M views at the stage's level
+    from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
+    self.cfg.strategy = MVGSStrategy(self.cfg.strategy, self.trainset, "multiview", steps=cfg.max_steps)
+    trainloader = self.cfg.strategy.loader(trainloader)   # after the DataLoader(...) call
     ...
-    strategy.step_post_backward(..., info=info, packed=packed, renders=colors)
+    strategy.step_post_backward(..., info=info, packed=packed, renders=colors)   # for CRD
+
+The data stays the user's: their Dataset and DataLoader settings (workers, pinning) load the
+items; the schedule picks which (``batch_sampler()``, indices per step, plain torch) and
+``at_level`` brings a loaded batch to the step's pyramid level (images resampled as the
+package's pyramid, intrinsics scaled). ``loader(trainloader)`` does both, so the loop body does
+not change. ``batches()`` serves the package's own loader (a :class:`~mvgs_plugin.data.Scene`).
 
 What reaches the wrapped strategy, and how:
 
-- **M views per step.** A batch holds the step's M cameras (``camtoworld`` [M, 4, 4], ``K``
-  [M, 3, 3], ``image`` [M, H, W, 3] in 0..255 as gsplat's Dataset gives them); one render call
-  gives one ``info`` for all of them, and the strategy's statistics count every view.
-- **The loss reduction: keep gsplat's mean.** The strategy multiplies the screen-space gradient
-  by ``info["n_cameras"]`` because simple_trainer's loss averages over the batch; with a mean,
-  every view's statistic is then exactly its single-view gradient (tested against one render
-  per view). MVGS's paper sums the per-view losses instead; under Adam a constant factor on the
-  loss changes the update only through eps (1e-15 in simple_trainer), so the mean trains the
-  same model and keeps the statistics in the units 2e-4 was set for. A summed loss would make
-  them M times too large.
-- **The pyramid.** A batch's cameras are the stage's scaled cameras (intrinsics divided by the
-  factor) and its images the matching downsampled targets; the strategy normalises gradients by
-  the batch's own width and height.
+- **M views per step.** One render call of the step's M cameras gives one ``info``; the
+  strategy's statistics count every view. **Keep gsplat's mean over the batch**: its
+  ``x n_cameras`` then makes each view's statistic exactly its single-view gradient (tested
+  against one render per view). Under Adam a constant factor on the loss changes the update
+  only through eps, so the mean trains as the paper's sum does.
+- **Chunks.** A step's views may be rendered and backpropagated in chunks (memory): weight a
+  chunk's mean loss by ``len(chunk) / M`` (``chunks()`` gives the slices and weights). The
+  parameter gradients are then the unchunked step's, and the wrapper hands the strategy
+  ``n_cameras = M`` for each chunk, so the statistics are the unchunked step's too (both tested).
+  Call ``step_post_backward`` once per chunk; the step ends when its M views are reported.
+- **Either hook order.** ``step_post_backward`` may come after the optimizer step (gsplat's
+  order) or before it: a refine or opacity reset due while gradients are unused is deferred to
+  the start of the next step (its batch), so no gradient is dropped and the model is the same
+  in both orders (tested). gsplat's own DefaultStrategy refines at once in the second order and
+  loses that step's update.
+- **The pyramid.** A batch's cameras are the stage's scaled cameras (the x row of K times W'/W,
+  the y row times H'/H) and its images the matching targets; the strategy normalises gradients
+  by the batch's own width and height.
 - **One clock.** The strategy's step-valued fields (``refine_start_iter``, ``refine_stop_iter``,
   ``refine_every``, ``reset_every``, ``refine_scale2d_stop_iter``, ``pause_refine_after_reset``)
   are read once, as the user set them for a run of ``steps`` single-view steps, and become the
   schedule's densification window, interval, opacity-reset period and size-pruning start
   (keeping their fraction of the run when the schedule's clock counts work). From then on the
   schedule alone decides when statistics are collected, when the strategy refines and when
-  opacities are reset; the ``step`` passed to the hooks is not used.
+  opacities are reset; the loop's ``step`` only labels log lines.
 - **MVAD.** The strategy's ``grow_grad2d`` is β; each refine runs with the schedule's threshold
   for that step (β scaled to the image width when the preset says so, halved when the step's
   cameras are far apart).
@@ -41,14 +54,10 @@ What reaches the wrapped strategy, and how:
   ``crd_max_new`` of the count, largest mean gradient first) is copied with gsplat's
   ``ops.duplicate``, the copies starting with empty statistics. Without ``renders`` the rule is
   skipped with one warning.
-- **Chunked views.** ``batches(chunked=True)`` yields each step as a list of batches of at most
-  the schedule's chunk size (views rendered and backpropagated together). Call
-  ``step_post_backward`` once per batch, after the optimizer step (as simple_trainer orders
-  it): statistics are gathered from every batch and the strategy refines once, at the step's
-  last call.
-- **No gradient lost.** Refining and resetting opacities replace parameters (gsplat's ops make
-  new tensors without gradients). A call that would do so while a parameter still holds a
-  gradient the optimizer has not consumed raises instead of dropping it.
+- **Mistakes said once.** A step whose gradient reaches only some of the views rendered
+  together (a loss on ``colors[0]``), or reaches one batch position far more than the others
+  over many steps (an SSIM term on ``colors[0]`` beside an L1 on all), gets one warning; with
+  ``verbose`` the refine lines carry the loop's step.
 
 How the wrapped strategy is driven: never through its private methods. Each call runs the
 strategy's own ``step_post_backward`` on a shallow copy whose clock fields are set so that its
@@ -61,30 +70,49 @@ so a single-view loop on 1.5.3 runs without resets while this wrapper resets on 
 
 What cannot reach a third-party strategy: ``MCMCStrategy`` (and any strategy without a gradient
 threshold) has nothing for MVAD or CRD to act on and relocates instead of cloning; it is refused.
-``stats_from="last"`` (the paper preset) needs ``batches(chunked=True)``: an unchunked batch
-renders all views in one call, so its statistics come from all of them (said once).
+``stats_from="last"`` (the paper preset) takes the statistics of the step's last call; they are
+the last view's only when that view is rendered alone (``chunks()`` and ``batches(chunked=True)``
+do so; otherwise said once).
 """
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import copy
 import dataclasses
+import io
+import math
+import re
 import warnings
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Union
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, reset_opa
 
-from mvgs_plugin.camera import Camera
+from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
+from mvgs_plugin.data.images import downsample_batch
+from mvgs_plugin.data.scene import camera_normalization
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.schedule import StepPlan, ViewSchedule
 
-__all__ = ["MVGSStrategy", "MVGSBatches", "adopt_strategy_clock", "gsplat_batch"]
+__all__ = ["MVGSStrategy", "MVGSBatches", "MVGSBatchSampler", "MVGSLoader", "CameraViews", "views_of",
+           "adopt_strategy_clock", "gsplat_batch", "IMBALANCE_MIN_STEPS", "IMBALANCE_Z"]
+
+# The one-position imbalance warning: after this many multi-view steps of one size, a batch
+# position whose mean share of the step's screen-space gradient is at least twice the fair 1/M
+# and exceeds it by IMBALANCE_Z standard errors (positions are exchangeable: the sampler
+# shuffles) is reported once. Measured (tests/test_gsplat_loop.py's loops, multiview, 80 steps):
+# an SSIM term on colors[0] gives position 0 a 60-80 % share (z 27-177 within 6 steps); honest
+# losses stay within 1.4x the fair share (|z| <= 5.5).
+IMBALANCE_MIN_STEPS = 6
+IMBALANCE_Z = 6.0
 
 
 def gsplat_batch(cameras: Sequence[Camera], images: Tensor, image_ids: Sequence[int], backgrounds: Tensor
@@ -101,6 +129,68 @@ def gsplat_batch(cameras: Sequence[Camera], images: Tensor, image_ids: Sequence[
         "image_id": torch.tensor(list(image_ids), dtype=torch.long),
         "background": backgrounds.float(),
     }
+
+
+class CameraViews:
+    """The cameras of a training set that loads its own images: what a ViewSchedule needs of a
+    scene (train_cameras, center, extent, points for the model-size estimate, background),
+    without images. Build it with :func:`views_of`."""
+
+    def __init__(self, cameras: Sequence[Camera], points: Optional[Tensor] = None,
+                 background: Optional[Sequence[float]] = None):
+        self.train_cameras = list(cameras)
+        if not self.train_cameras:
+            raise ValueError("the training set has no views")
+        self.test_cameras: List[Camera] = []
+        self.points = None if points is None or len(points) == 0 else torch.as_tensor(points)
+        self.background = None if background is None else tuple(float(c) for c in background)
+        self.center, self.extent = camera_normalization(self.train_cameras)
+
+    def image(self, cam, factor=1):
+        raise RuntimeError("this training set loads its own images: draw them through your DataLoader "
+                           "(MVGSStrategy.batch_sampler / loader) and bring them to the level with at_level")
+
+
+def _camera(uid: int, name: str, camtoworld, K, width: int, height: int) -> Camera:
+    c2w = torch.as_tensor(np.asarray(camtoworld), dtype=torch.float64)
+    return Camera(uid=uid, name=name, K=torch.as_tensor(np.asarray(K), dtype=torch.float64),
+                  world_to_camera=torch.linalg.inv(c2w), width=int(width), height=int(height))
+
+
+def views_of(data) -> Any:
+    """What MVGSStrategy schedules: a package :class:`~mvgs_plugin.data.Scene` as it is; a
+    gsplat-style Dataset (``.parser`` with ``camtoworlds``, ``camera_ids``, ``Ks_dict``,
+    ``imsize_dict``, optional ``points``; ``.indices`` its split) read from its parser without
+    loading an image; a sequence of :class:`~mvgs_plugin.camera.Camera`; or any map-style
+    Dataset whose items are dicts with ``camtoworld`` [4, 4], ``K`` [3, 3] and ``image``
+    [H, W, 3] (each item is read once). Dataset item i is view i."""
+    if hasattr(data, "train_cameras") and hasattr(data, "image"):
+        return data
+    parser, indices = getattr(data, "parser", None), getattr(data, "indices", None)
+    if parser is not None and indices is not None:
+        names = getattr(parser, "image_names", None)
+        cams = []
+        for i, idx in enumerate(np.asarray(indices).tolist()):
+            cid = parser.camera_ids[idx]
+            w, h = parser.imsize_dict[cid]
+            cams.append(_camera(i, names[idx] if names is not None else str(i), parser.camtoworlds[idx],
+                                parser.Ks_dict[cid], w, h))
+        points = getattr(parser, "points", None)
+        return CameraViews(cams, None if points is None else torch.as_tensor(np.asarray(points)))
+    if isinstance(data, (list, tuple)) and data and all(isinstance(c, Camera) for c in data):
+        return CameraViews(data)
+    if hasattr(data, "__getitem__") and hasattr(data, "__len__"):
+        cams = []
+        for i in range(len(data)):
+            item = data[i]
+            if not (isinstance(item, dict) and {"camtoworld", "K", "image"} <= set(item)):
+                raise TypeError(f"item {i} of {type(data).__name__} is not a dict with camtoworld, K and image "
+                                f"(got {type(item).__name__}{sorted(item) if isinstance(item, dict) else ''})")
+            h, w = item["image"].shape[-3:-1]
+            cams.append(_camera(i, str(i), item["camtoworld"], item["K"], w, h))
+        return CameraViews(cams)
+    raise TypeError(f"MVGSStrategy needs a Scene, a gsplat-style Dataset, a list of Cameras or a Dataset of "
+                    f"camera dicts, got {type(data).__name__}")
 
 
 def _clock_per_step(config: MVGSConfig, steps: int) -> float:
@@ -125,13 +215,16 @@ def adopt_strategy_clock(config: MVGSConfig, strategy: DefaultStrategy, steps: i
         grad_threshold=float(strategy.grow_grad2d))
 
 
-class MVGSStrategy:
+class MVGSStrategy(DefaultStrategy):
     """A gsplat DefaultStrategy driven by an MVGS ViewSchedule (see the module docstring).
 
     Args:
         strategy: a ``gsplat.strategy.DefaultStrategy`` (or subclass), configured as for the
-            single-view run; it is not modified.
-        scene: a :class:`mvgs_plugin.data.Scene` (cameras and images).
+            single-view run; it is not modified. Its fields are copied onto this object (read
+            them here; setting them here changes nothing).
+        scene: the training views: a package Scene, the trainer's own training Dataset (gsplat's
+            or any whose items are camera dicts) or a list of Cameras (see :func:`views_of`).
+            Dataset item i is view i: the sampler yields those indices.
         config: an MVGSConfig or a preset name ("default", "multiview", "paper", "baseline").
         steps: the run's length in steps (the loop's max_steps): the config is compressed to it
             with ``with_total_steps`` and the strategy's clock read as set for that many steps.
@@ -139,12 +232,15 @@ class MVGSStrategy:
         clock: "strategy" (adopt the strategy's clock and threshold, see adopt_strategy_clock)
             or "config" (keep the config's own).
 
-    Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, and after each
-    refine ``last_refine`` (dict: step, threshold, boxes, from_boxes, before, after).
+    Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, ``plan`` (the
+    current step's StepPlan), and after each refine ``last_refine`` (dict: step, threshold,
+    boxes, from_boxes, before, after).
     """
 
     def __init__(self, strategy: DefaultStrategy, scene, config: Union[MVGSConfig, str] = "default",
                  steps: Optional[int] = None, clock: str = "strategy"):
+        if isinstance(strategy, MVGSStrategy):
+            raise TypeError("strategy is already an MVGSStrategy: wrap the DefaultStrategy itself, once")
         if not isinstance(strategy, DefaultStrategy):
             raise TypeError(f"MVGSStrategy wraps gsplat's DefaultStrategy (gradient-threshold densification), got "
                             f"{type(strategy).__name__}: MVAD and cross-ray densification act on that threshold and "
@@ -154,6 +250,8 @@ class MVGSStrategy:
                              f"{strategy.key_for_gradient!r}")
         if clock not in ("strategy", "config"):
             raise ValueError(f"clock must be 'strategy' or 'config', got {clock!r}")
+        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+            raise ValueError(f"steps must be a positive int (the loop's max_steps), got {steps!r}")
         if isinstance(config, str):
             config = MVGSConfig.from_preset(config)
         if not isinstance(config, MVGSConfig):
@@ -164,7 +262,10 @@ class MVGSStrategy:
         if config.views_scaling != "none":
             raise ValueError(f"config.views_scaling={config.views_scaling!r}: your loop owns the optimizers, so scale "
                              "them yourself (learning rates x sqrt(M), betas ** M, eps / sqrt(M)); use views_scaling='none'")
-        config = config.for_scene(scene)  # before the rescaling: a forward-facing rig keeps the step count
+        for f in dataclasses.fields(DefaultStrategy):  # isinstance checks and field reads (absgrad) keep working
+            setattr(self, f.name, getattr(strategy, f.name))
+        views = views_of(scene)
+        config = config.for_scene(views)  # before the rescaling: a forward-facing rig keeps the step count
         if steps is not None:
             config = config.with_total_steps(steps)
         run_steps = config.total_steps
@@ -175,13 +276,19 @@ class MVGSStrategy:
         self._pause = strategy.pause_refine_after_reset * r
         self.strategy = strategy
         self.config = config
-        self.schedule = ViewSchedule(scene, config)
+        self.views = views
+        self.schedule = ViewSchedule(views, config, load_images=hasattr(views, "image") and
+                                     not isinstance(views, CameraViews))
         self.last_refine: Optional[Dict[str, Any]] = None
-        self._plan: Optional[StepPlan] = None
-        self._targets: List[Tensor] = []
-        self._calls_expected = 0
-        self._calls = 0
-        self._warned_last = False
+        self.plan: Optional[StepPlan] = None
+        self._before: Optional[Dict[str, Any]] = None  # the schedule's state before the current plan
+        self._queue: collections.deque = collections.deque()  # (plan, schedule state before it) drawn ahead
+        self._targets: Optional[Tensor] = None  # the step's targets [M, H, W, 3] in [0, 1], for CRD
+        self._reported = 0  # views of the current step reported to step_post_backward
+        self._loop_step: Optional[int] = None
+        self._pending: Optional[Dict[str, Any]] = None  # end-of-step work deferred to the next batch
+        self._warned: set = set()
+        self._shares: Dict[int, List[Tensor]] = {}
 
     @property
     def total_steps(self) -> int:
@@ -200,76 +307,200 @@ class MVGSStrategy:
 
     def step_post_backward(self, params, optimizers, state: Dict[str, Any], step: int, info: Dict[str, Any],
                            packed: bool = False, renders: Optional[Tensor] = None) -> None:
-        """Fold one batch's statistics into `state`; at the step's last batch, refine and reset
-        opacities when the schedule says so.
+        """Fold one render call's statistics into `state`; once the step's M views are reported,
+        refine and reset opacities when the schedule says so (now, or at the next step's batch
+        when gradients are still unused: call it before or after the optimizer step).
 
-        renders: the batch's rendered colours [C, H, W, 3] (optional; cross-ray densification
-        needs them for its loss maps). `step` is not used: the schedule's clock decides.
-        Call once per batch the step's batches() draw yielded, after the optimizer step.
+        info: the render call's info; its ``n_cameras`` views are the next of the step's views
+        (the whole step, or one chunk). renders: the call's rendered colours [C, H, W, 3]
+        (optional; cross-ray densification needs them). step: the loop's step, for log lines.
         """
-        plan = self._plan
+        plan = self.plan
         if plan is None:
-            raise RuntimeError("step_post_backward before any batch: draw the step's batch from batches() first")
-        if self._calls >= self._calls_expected:
-            raise RuntimeError(f"step {plan.step}: step_post_backward called {self._calls + 1} times for "
-                               f"{self._calls_expected} batch(es) drawn")
-        if self._collect[self._calls]:
-            self._call_strategy(params, optimizers, state, info, packed, refine=None)
-        if renders is not None and plan.wants_maps:
-            targets = self._targets[self._calls]
+            raise RuntimeError("step_post_backward before the step's batch was brought to its level: draw batches "
+                               "from strategy.loader(...) or strategy.batches(), or call strategy.at_level(pixels, Ks) "
+                               "on each batch of strategy.batch_sampler()")
+        m = len(plan.views)
+        c = int(info.get("n_cameras", 1))
+        if self._reported + c > m:
+            raise RuntimeError(f"step {step}: step_post_backward reported {self._reported + c} views for a step of "
+                               f"{m}; call it once per render call of the step's views")
+        self._loop_step = step
+        last_call = self._reported + c == m
+        collect = any(plan.stats) and (self.config.stats_from == "all" or last_call)
+        if collect and self.config.stats_from == "last" and c > 1 and "last" not in self._warned:
+            self._warned.add("last")
+            warnings.warn(f"stats_from='last' takes the statistics of the step's last render call, here {c} views: "
+                          "render the last view alone (chunks() or batches(chunked=True)) for the paper's rule",
+                          stacklevel=2)
+        if collect:
+            self._check_views(info, packed, c, m, step)
+            self._call_strategy(params, optimizers, state, info if c == m else {**info, "n_cameras": m},
+                                packed, refine=None)
+        if renders is not None and plan.wants_maps and self._targets is not None:
+            targets = self._targets[self._reported:self._reported + c]
             if tuple(renders.shape[:3]) != tuple(targets.shape[:3]):
-                raise ValueError(f"renders must be the batch's colours [{', '.join(map(str, targets.shape))}], got "
+                raise ValueError(f"renders must be the call's colours [{', '.join(map(str, targets.shape))}], got "
                                  f"{list(renders.shape)}")
             plan.record(list(renders[..., :3].detach()), list(targets.to(renders.device)))
-        self._calls += 1
-        if self._calls == self._calls_expected:
-            self._end_of_step(params, optimizers, state)
+        self._reported += c
+        if last_call:
+            self._end_of_step(params, optimizers, state, step)
             self.schedule.primitive_count = len(params["means"])  # the next step's chunk size
 
-    # ---- batches ----------------------------------------------------------------------------
+    # ---- the data: the user's Dataset, or the package's Scene -----------------------------------
+    def batch_sampler(self) -> "MVGSBatchSampler":
+        """Indices into the training Dataset, one list per step (the step's M views), for
+        ``DataLoader(trainset, batch_sampler=strategy.batch_sampler(), ...)``. Each batch it
+        yields must go through :meth:`at_level` before rendering (in order: workers may load
+        ahead, the plans wait in a queue)."""
+        return MVGSBatchSampler(self)
+
+    def loader(self, data, **dataloader_kwargs) -> "MVGSLoader":
+        """The user's DataLoader (or Dataset) drawing the schedule's views at the step's level:
+        a DataLoader is rebuilt on its dataset with the same workers, collate_fn, pinning and
+        prefetching and ``batch_sampler=self.batch_sampler()``; each batch dict then goes through
+        :meth:`at_level_dict`. Iterating it is the loop's ``next(trainloader_iter)``."""
+        return MVGSLoader(self, data, **dataloader_kwargs)
+
     def batches(self, chunked: bool = False) -> "MVGSBatches":
-        """The training data, one step at a time, from the schedule (see MVGSBatches)."""
+        """The training data from a package Scene, one step at a time (see MVGSBatches)."""
+        if isinstance(self.views, CameraViews):
+            raise RuntimeError("batches() reads the package's Scene; this strategy was given a Dataset that loads its "
+                               "own images: use loader(trainloader) or batch_sampler() with at_level()")
         return MVGSBatches(self, chunked)
 
-    def _begin(self, plan: StepPlan, chunked: bool) -> List[Dict[str, Tensor]]:
-        if self._plan is not None and self._calls < self._calls_expected:
-            raise RuntimeError(f"step {self._plan.step}: step_post_backward was called {self._calls} times for "
-                               f"{self._calls_expected} batch(es); call it once per batch before drawing the next "
-                               "step")
-        if chunked:
-            chunks, collect = plan.chunks, plan.stats
-        else:
-            chunks, collect = [list(range(len(plan.views)))], [any(plan.stats)]
-            if self.config.stats_from == "last" and not self._warned_last:
-                self._warned_last = True
-                warnings.warn("stats_from='last' needs batches(chunked=True): an unchunked batch renders all "
-                              "views in one call, so its statistics come from all of them", stacklevel=3)
-        self._plan, self._collect, self._calls, self._calls_expected = plan, collect, 0, len(chunks)
-        self._targets = [torch.stack([plan.images[i] for i in c]) for c in chunks]  # [C, H, W, 3] in [0, 1]
-        return [gsplat_batch([plan.cameras[i] for i in c], t, [plan.views[i] for i in c], plan.backgrounds[c])
-                for c, t in zip(chunks, self._targets)]
+    def at_level(self, pixels: Tensor, Ks: Tensor, image_ids: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+        """The batch the batch sampler's next list loaded, at the step's pyramid level: pixels
+        [C, H, W, ch] resampled as the package's pyramid (any value range; pass them as the loss
+        sees them, in [0, 1], for cross-ray densification) and Ks [C, 3, 3] with the x row times
+        W'/W and the y row times H'/H. image_ids (optional, [C]) are checked against the views
+        the schedule drew. Starts the step: call it once per step, before rendering."""
+        plan, before = self._next_queued(len(pixels), image_ids)
+        out_pixels, out_Ks = self._scale(plan, pixels, Ks)
+        self._start(plan, out_pixels, before)
+        return out_pixels, out_Ks
+
+    def at_level_dict(self, data: Dict[str, Any]) -> Dict[str, Any]:
+        """:meth:`at_level` for a gsplat Dataset batch dict: ``image`` (0..255) and ``K`` at the
+        step's level, plus ``mask`` [C, H, W] (resampled, then > 0.5) and depth-loss ``points``
+        [C, P, 2] (pixel coordinates scaled) when present; other keys as they are."""
+        pixels = data["image"]
+        plan, before = self._next_queued(len(pixels), data.get("image_id"))
+        out = dict(data)
+        out["image"], out["K"] = self._scale(plan, pixels, data["K"])
+        h, w = pixels.shape[1:3]
+        h2, w2 = out["image"].shape[1:3]
+        if isinstance(data.get("mask"), Tensor):
+            out["mask"] = downsample_batch(data["mask"].float()[..., None], w2, h2)[..., 0] > 0.5
+        if isinstance(data.get("points"), Tensor):
+            out["points"] = data["points"] * torch.tensor([w2 / w, h2 / h], dtype=data["points"].dtype,
+                                                           device=data["points"].device)
+        self._start(plan, out["image"] / 255.0, before)
+        return out
+
+    def chunks(self) -> List[Tuple[slice, float]]:
+        """The current step's render calls: (slice of the batch's views, weight of that chunk's
+        mean loss = len / M). The schedule's chunk size (config.chunk_size, or what
+        config.chunk_memory_mb allows for the model's size); the last view alone with
+        stats_from="last". Weighting each chunk's mean loss so gives the unchunked step's
+        parameter gradients, and the wrapper gives the strategy the unchunked statistics."""
+        if self.plan is None:
+            raise RuntimeError("chunks() describes the current step: bring its batch to its level first")
+        m = len(self.plan.views)
+        return [(slice(c[0], c[-1] + 1), len(c) / m) for c in self.plan.chunks]
+
+    def _next_queued(self, n: int, image_ids) -> Tuple[StepPlan, Dict[str, Any]]:
+        if not self._queue:
+            raise RuntimeError("at_level with no batch drawn: build the DataLoader with "
+                               "batch_sampler=strategy.batch_sampler() (or use strategy.loader(trainloader))")
+        plan, before = self._queue.popleft()
+        if n != len(plan.views):
+            raise ValueError(f"the batch has {n} views but the step drew {len(plan.views)} ({plan.views}): load it "
+                             "with the DataLoader built on strategy.batch_sampler()")
+        if image_ids is not None and [int(i) for i in torch.as_tensor(image_ids).reshape(-1).tolist()] != plan.views:
+            raise ValueError(f"the batch holds views {torch.as_tensor(image_ids).tolist()} but the step drew "
+                             f"{plan.views}: batches must arrive in the order the batch sampler gave them")
+        return plan, before
+
+    def _scale(self, plan: StepPlan, pixels: Tensor, Ks: Tensor) -> Tuple[Tensor, Tensor]:
+        if pixels.ndim != 4:
+            raise ValueError(f"pixels must be [C, H, W, channels], got {list(pixels.shape)}")
+        if tuple(Ks.shape) != (len(pixels), 3, 3):
+            raise ValueError(f"Ks must be [{len(pixels)}, 3, 3], got {list(Ks.shape)}")
+        h, w = pixels.shape[1:3]
+        w2, h2 = scaled_size(w, h, plan.factor)
+        if (w2, h2) == (w, h):
+            return pixels, Ks
+        Ks = Ks.clone()
+        Ks[:, 0, :] *= w2 / w
+        Ks[:, 1, :] *= h2 / h
+        return downsample_batch(pixels, w2, h2), Ks
+
+    def _start(self, plan: StepPlan, targets: Optional[Tensor], before: Dict[str, Any]) -> None:
+        """Begin `plan`: the previous step must be complete; deferred end-of-step work runs now."""
+        if self.plan is not None and self._reported < len(self.plan.views):
+            raise RuntimeError(f"step {self.plan.step} of the schedule: step_post_backward reported {self._reported} of "
+                               f"its {len(self.plan.views)} views before the next batch was drawn; call it after each "
+                               "render call's backward")
+        if self._pending is not None:
+            self._run_pending()
+        self.plan, self._targets, self._reported, self._before = plan, targets, 0, before
+
+    def _draw(self) -> StepPlan:
+        """The schedule's next plan, queued with the schedule's state before it."""
+        sched = self.schedule
+        if sched.step_count >= sched.total_steps:
+            raise RuntimeError(f"the schedule's {sched.total_steps} steps are all drawn: the loop runs longer than the "
+                               "steps MVGSStrategy was built with (pass steps=max_steps)")
+        before = sched.state_dict()
+        plan = sched.next()
+        self._queue.append((plan, before))
+        return plan
+
+    def _rewind(self) -> None:
+        """Forget plans drawn ahead but never brought to a level (an abandoned DataLoader
+        iterator): the schedule goes back to where the first of them started."""
+        if self._queue:
+            self.schedule.load_state_dict(self._queue[0][1])
+            self._queue.clear()
 
     # ---- what runs between steps -------------------------------------------------------------
-    def _end_of_step(self, params, optimizers, state) -> None:
-        plan, cfg = self._plan, self.config
+    def _end_of_step(self, params, optimizers, state, step) -> None:
+        plan, cfg = self.plan, self.config
         densify = plan.densify and not (self._pause > 0 and plan.clock % cfg.opacity_reset_every < self._pause)
         nxt = plan.step + 1
         handoff = (cfg.opacity_reset_at_handoff and nxt <= self.total_steps
                    and self.schedule.plan.locate(nxt).first_in_stage)
-        if not (densify or plan.reset_opacity or handoff):
-            return
-        live = [name for name, p in params.items() if p.grad is not None and bool(p.grad.any())]
-        if live:
-            raise RuntimeError(f"step {plan.step}: refining or resetting opacities now would drop the gradients of "
-                               f"{live} the optimizer has not used; call step_post_backward after the optimizer step "
-                               "(as gsplat's simple_trainer does), keeping each batch's info until then")
-        with torch.no_grad():
-            if densify:
-                self._refine(params, optimizers, state, plan)
-            if plan.reset_opacity or handoff:
-                reset_opa(params=params, optimizers=optimizers, state=state, value=self.strategy.prune_opa * 2.0)
+        if not (densify or plan.reset_opacity or handoff) or plan.step >= self.total_steps:
+            return  # (after the run's last step nothing trains what a refine or reset would change)
+        work = {"plan": plan, "before": self._before, "densify": densify, "reset": plan.reset_opacity or handoff, "step": step,
+                "params": params, "optimizers": optimizers, "state": state}
+        if _live_gradients(params):  # before the optimizer step: after it, at the next batch
+            self._pending = work
+        else:
+            self._apply(work)
 
-    def _refine(self, params, optimizers, state, plan: StepPlan) -> None:
+    def _run_pending(self) -> None:
+        work, self._pending = self._pending, None
+        live = _live_gradients(work["params"])
+        if live:
+            raise RuntimeError(f"step {work['step']}: a refine waits for the gradients of {live} to be used, but the "
+                               "next batch was drawn first; step the optimizers (and zero their gradients) every step")
+        self._apply(work)
+        self.schedule.primitive_count = len(work["params"]["means"])
+
+    def _apply(self, work: Dict[str, Any]) -> None:
+        params, optimizers, state = work["params"], work["optimizers"], work["state"]
+        with torch.no_grad():
+            if work["densify"]:
+                self._refine(params, optimizers, state, work["plan"], work["step"])
+            if work["reset"]:
+                reset_opa(params=params, optimizers=optimizers, state=state, value=self.strategy.prune_opa * 2.0)
+                if self.verbose:
+                    print(f"Step {work['step']}: opacities reset to {self.strategy.prune_opa * 2.0:g}.")
+
+    def _refine(self, params, optimizers, state, plan: StepPlan, step) -> None:
         means = params["means"].detach()
         bounds = torch.stack([means.amin(0), means.amax(0)]).double().cpu() if len(means) else None
         ctx = self.schedule.densify_context(plan, None, len(means), bounds)
@@ -277,8 +508,12 @@ class MVGSStrategy:
         from_boxes = 0
         if ctx.boxes is not None and len(ctx.boxes):
             from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes)
-        self._call_strategy(params, optimizers, state, None, False, refine=ctx)
-        self.last_refine = {"step": plan.step, "clock": plan.clock, "threshold": float(ctx.grad_threshold),
+            if self.verbose:
+                print(f"Step {step}: {from_boxes} GSs copied in {len(ctx.boxes)} cross-ray boxes. "
+                      f"Now having {len(params['means'])} GSs.")
+        self._call_strategy(params, optimizers, state, None, False, refine=ctx, step=step)
+        self.last_refine = {"step": plan.step, "loop_step": step, "clock": plan.clock,
+                            "threshold": float(ctx.grad_threshold),
                             "boxes": 0 if ctx.boxes is None else len(ctx.boxes), "from_boxes": from_boxes,
                             "before": before, "after": len(params["means"])}
 
@@ -299,14 +534,15 @@ class MVGSStrategy:
                     state[key][-n:] = 0
         return n
 
-    def _call_strategy(self, params, optimizers, state, info, packed: bool, refine) -> None:
+    def _call_strategy(self, params, optimizers, state, info, packed: bool, refine, step=None) -> None:
         """The wrapped strategy's own step_post_backward on a copy whose clock fields make its
         conditions give the schedule's decision. Statistics only (refine None): at step 1 with
         refine_start_iter 1 (no refine: needs step > start) and refine_stop_iter 2 (statistics:
         step < stop). Refine (a DensifyContext): at step 3 with refine_start_iter 0, refine_every
         1, grow_grad2d = the step's threshold, reset_every 2 when size pruning is on (it needs
         step > reset_every) else 4, with an info that adds no statistics. Neither step is a
-        multiple of its reset_every, so the strategy never resets opacities itself."""
+        multiple of its reset_every, so the strategy never resets opacities itself. Its verbose
+        lines are printed with the loop's step."""
         s = self.strategy
         view = copy.copy(s)
         scale2d = s.refine_scale2d_stop_iter > 0
@@ -319,8 +555,12 @@ class MVGSStrategy:
         view.refine_start_iter, view.refine_stop_iter, view.refine_every = 0, 4, 1
         view.reset_every = 2 if refine.prune_large else 4
         view.grow_grad2d = float(refine.grad_threshold)
-        view.refine_scale2d_stop_iter = (4 if self._plan.clock < self._scale2d_until else 1) if scale2d else 0
-        view.step_post_backward(params, optimizers, state, 3, self._empty_info(params, scale2d), packed=False)
+        view.refine_scale2d_stop_iter = (4 if refine.step < self._scale2d_until else 1) if scale2d else 0
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out) if view.verbose else contextlib.nullcontext():
+            view.step_post_backward(params, optimizers, state, 3, self._empty_info(params, scale2d), packed=False)
+        for line in out.getvalue().splitlines():
+            print(re.sub(r"^Step 3:", f"Step {step}:", line))
 
     def _empty_info(self, params, scale2d: bool) -> Dict[str, Any]:
         """An info of one camera in which no Gaussian is visible: the strategy's statistics
@@ -332,29 +572,162 @@ class MVGSStrategy:
         return {"width": 1, "height": 1, "n_cameras": 1, "radii": torch.zeros(1, n, 2, dtype=torch.int32, device=dev),
                 "gaussian_ids": None, "means2d": means2d}
 
+    # ---- the loop's mistakes -------------------------------------------------------------------
+    def _check_views(self, info, packed: bool, c: int, m: int, step) -> None:
+        """Warn once when the gradient of a multi-view call reaches only some of its views, and
+        once when one batch position carries far more than 1/C of it over many steps."""
+        means2d = info.get("means2d")
+        grad = getattr(means2d, "grad", None)
+        if c < 2 or grad is None or ("partial" in self._warned and "imbalance" in self._warned):
+            return
+        with torch.no_grad():
+            norms = grad.norm(dim=-1)
+            radii = info["radii"]
+            if packed:
+                cams = info["camera_ids"]
+                per_view = torch.zeros(c, device=norms.device, dtype=norms.dtype).index_add_(0, cams, norms)
+                seen = torch.zeros(c, device=norms.device).index_add_(
+                    0, cams, (radii > 0).reshape(len(cams), -1).all(-1).float())
+            else:
+                per_view = norms.sum(-1)
+                seen = (radii > 0).reshape(c, radii.shape[1], -1).all(-1).sum(-1).float()
+            per_view, seen = per_view.double().cpu(), seen.cpu()
+        missing = [i for i in range(c) if seen[i] > 0 and per_view[i] == 0]
+        if missing and len(missing) < c and "partial" not in self._warned:
+            self._warned.update(("partial", "imbalance"))  # one cause, said once
+            warnings.warn(f"step {step}: the loss's gradient reaches {c - len(missing)} of the {c} views rendered "
+                          f"together (none at batch positions {missing}): a term on colors[0] trains one view; "
+                          "average every term over the batch (said once)", stacklevel=3)
+        if (c != m or self.config.time_spread == "stratified" or "imbalance" in self._warned
+                or bool((seen == 0).any()) or not float(per_view.sum()) > 0):
+            return
+        shares = self._shares.setdefault(c, [])
+        shares.append(per_view / per_view.sum())
+        if len(shares) < IMBALANCE_MIN_STEPS:
+            return
+        s = torch.stack(shares)  # [steps, c]
+        z = (s.mean(0) - 1.0 / c) / (s.std(0).clamp_min(1e-6) / math.sqrt(len(s)))
+        worst = int(z.argmax())
+        if float(z[worst]) > IMBALANCE_Z and float(s[:, worst].mean()) >= 2.0 / c:
+            self._warned.add("imbalance")
+            warnings.warn(f"step {step}: over {len(s)} steps of {c} views, batch position {worst} carried "
+                          f"{100 * float(s[:, worst].mean()):.0f} % of the screen-space gradient where the sampler's "
+                          f"shuffling gives {100 / c:.0f} %: does a loss term use colors[{worst}] only? "
+                          "Average every term over the batch (said once)", stacklevel=3)
+
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> Dict[str, Any]:
-        """The schedule's position (sampler, background RNG); taken between steps."""
-        if self._plan is not None and self._calls < self._calls_expected:
-            raise RuntimeError(f"step {self._plan.step} is not finished ({self._calls} of {self._calls_expected} "
-                               "batches reported): checkpoint between steps")
-        return {"schedule": self.schedule.state_dict(), "config": self.config.to_dict()}
+        """The schedule's position after the last step begun (plans a DataLoader drew ahead are
+        drawn again after a resume) and any end-of-step work deferred to the next batch; taken
+        between steps."""
+        if self.plan is not None and self._reported < len(self.plan.views):
+            raise RuntimeError(f"step {self.plan.step} is not finished ({self._reported} of {len(self.plan.views)} "
+                               "views reported): checkpoint between steps")
+        sched = self._queue[0][1] if self._queue else self.schedule.state_dict()
+        pending = None
+        if self._pending is not None:
+            w = self._pending
+            pending = {"plan_step": w["plan"].step, "densify": w["densify"], "reset": w["reset"], "step": w["step"],
+                       "maps": [t.cpu() for t in w["plan"].recorded], "before": w["before"]}
+        return {"schedule": sched, "config": self.config.to_dict(), "pending": pending}
 
-    def load_state_dict(self, state: Dict[str, Any]) -> None:
+    def load_state_dict(self, state: Dict[str, Any], params=None, optimizers=None, strategy_state=None) -> None:
+        """Restore a state_dict(). When it holds deferred end-of-step work, pass the run's
+        params, optimizers and strategy state too: the work runs at the next batch."""
         diff = config_differences(MVGSConfig.from_dict(state["config"]), self.config)
         if diff:
             raise ValueError("the checkpoint's MVGS config differs from this run's: "
                              + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diff))
         self.schedule.load_state_dict(state["schedule"])
-        self._plan, self._calls, self._calls_expected = None, 0, 0
+        self._queue.clear()
+        self.plan, self._reported, self._pending, self._targets = None, 0, None, None
+        pending = state.get("pending")
+        if pending is not None:
+            if params is None or optimizers is None or strategy_state is None:
+                raise ValueError("this checkpoint holds a refine deferred to the next batch: call "
+                                 "load_state_dict(state, params, optimizers, strategy_state)")
+            replay = ViewSchedule(self.views, self.config, load_images=False)
+            replay.load_state_dict(pending["before"])
+            plan = replay.next()
+            if plan.step != pending["plan_step"]:
+                raise ValueError(f"the deferred refine is of step {pending['plan_step']}, its saved schedule state "
+                                 f"gives step {plan.step}")
+            plan.recorded = [t for t in pending["maps"]]
+            self._pending = {"plan": plan, "before": pending["before"], "densify": pending["densify"], "reset": pending["reset"],
+                             "step": pending["step"], "params": params, "optimizers": optimizers,
+                             "state": strategy_state}
+
+
+def _live_gradients(params) -> List[str]:
+    """Parameters holding a gradient the optimizer has not used (non-zero)."""
+    return [name for name, p in params.items() if p.grad is not None and bool(p.grad.any())]
+
+
+class MVGSBatchSampler(torch.utils.data.Sampler):
+    """The schedule's views as DataLoader indices: one list per step, until the run's last step.
+    A new iterator (a DataLoader re-iterated) continues the schedule from the last step begun."""
+
+    def __init__(self, strategy: MVGSStrategy):
+        self.strategy = strategy
+
+    def __iter__(self) -> Iterator[List[int]]:
+        st = self.strategy
+        st._rewind()
+        sched = st.schedule
+        if sched.step_count >= sched.total_steps:
+            raise RuntimeError(f"the schedule's {sched.total_steps} steps are all drawn: the loop runs longer than the "
+                               "steps MVGSStrategy was built with (pass steps=max_steps)")
+        while sched.step_count < sched.total_steps:
+            yield list(st._draw().views)
+
+    def __len__(self) -> int:
+        sched = self.strategy.schedule
+        return sched.total_steps - sched.step_count + len(self.strategy._queue)
+
+
+class MVGSLoader:
+    """The user's DataLoader on the schedule's batch sampler, each batch at its step's level (from
+    MVGSStrategy.loader). Iterate it as the DataLoader it replaces."""
+
+    def __init__(self, strategy: MVGSStrategy, data, **kwargs):
+        self.strategy = strategy
+        DataLoader = torch.utils.data.DataLoader
+        if isinstance(data, DataLoader):
+            if kwargs:
+                raise TypeError(f"loader(DataLoader) takes its settings from the DataLoader; got {sorted(kwargs)}")
+            kwargs = dict(num_workers=data.num_workers, collate_fn=data.collate_fn, pin_memory=data.pin_memory,
+                          timeout=data.timeout, worker_init_fn=data.worker_init_fn,
+                          multiprocessing_context=data.multiprocessing_context, generator=data.generator,
+                          prefetch_factor=data.prefetch_factor, persistent_workers=data.persistent_workers,
+                          pin_memory_device=data.pin_memory_device)
+            data = data.dataset
+        for key in ("batch_size", "shuffle", "sampler", "batch_sampler", "drop_last"):
+            if key in kwargs:
+                raise TypeError(f"loader(..., {key}=...): the schedule picks each step's views")
+        if len(data) != len(strategy.views.train_cameras):
+            raise ValueError(f"the Dataset has {len(data)} items but MVGSStrategy was built on "
+                             f"{len(strategy.views.train_cameras)} views: build both on the same training set")
+        self.dataloader = DataLoader(data, batch_sampler=strategy.batch_sampler(), **kwargs)
+
+    def __iter__(self) -> Iterator[Dict[str, Any]]:
+        for data in self.dataloader:
+            yield self.strategy.at_level_dict(data)
+
+    def __len__(self) -> int:
+        return len(self.dataloader)
+
+    def state_dict(self) -> Dict[str, Any]:
+        return self.strategy.state_dict()
 
 
 class MVGSBatches:
-    """Iterator over a run's steps (from MVGSStrategy.batches): each item is one batch dict
-    (chunked=False) or a list of them (chunked=True), with gsplat's Dataset keys: camtoworld
-    [C, 4, 4], K [C, 3, 3], image [C, H, W, 3] float in 0..255, image_id [C], and background
-    [C, 3] (the colour the scene's images were composited on; black when none). Ends after the
-    schedule's last step; state_dict() / load_state_dict() save and restore the position."""
+    """Iterator over a run's steps from a package Scene (MVGSStrategy.batches): each item is one
+    batch dict (chunked=False) or a list of them, one per render call (chunked=True: weight each
+    one's mean loss by its share of the step's views, see MVGSStrategy.chunks), with gsplat's
+    Dataset keys: camtoworld [C, 4, 4], K [C, 3, 3], image [C, H, W, 3] float in 0..255,
+    image_id [C], and background [C, 3] (the colour the scene's images were composited on; black
+    when none). Ends after the schedule's last step; state_dict() / load_state_dict() save and
+    restore the position."""
 
     def __init__(self, strategy: MVGSStrategy, chunked: bool):
         self.strategy = strategy
@@ -364,10 +737,21 @@ class MVGSBatches:
         return self
 
     def __next__(self):
-        sched = self.strategy.schedule
-        if sched.step_count >= sched.total_steps:
+        st = self.strategy
+        st._rewind()
+        if st.schedule.step_count >= st.schedule.total_steps:
             raise StopIteration
-        out = self.strategy._begin(sched.next(), self.chunked)
+        st._draw()
+        plan, before = st._queue.popleft()
+        targets = torch.stack(plan.images)  # [M, H, W, 3] in [0, 1]
+        st._start(plan, targets, before)
+        chunks = plan.chunks if self.chunked else [list(range(len(plan.views)))]
+        if not self.chunked and self.strategy.config.stats_from == "last" and "last" not in st._warned:
+            st._warned.add("last")
+            warnings.warn("stats_from='last' needs batches(chunked=True): an unchunked batch renders all "
+                          "views in one call, so its statistics come from all of them", stacklevel=2)
+        out = [gsplat_batch([plan.cameras[i] for i in c], targets[c], [plan.views[i] for i in c], plan.backgrounds[c])
+               for c in chunks]
         return out if self.chunked else out[0]
 
     def __len__(self) -> int:
@@ -376,5 +760,5 @@ class MVGSBatches:
     def state_dict(self) -> Dict[str, Any]:
         return self.strategy.state_dict()
 
-    def load_state_dict(self, state: Dict[str, Any]) -> None:
-        self.strategy.load_state_dict(state)
+    def load_state_dict(self, state: Dict[str, Any], *args) -> None:
+        self.strategy.load_state_dict(state, *args)

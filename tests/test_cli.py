@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = [
     "examples/train_3dgs.py", "examples/train_4dgs.py", "examples/train_scaffold.py", "examples/ablation.py",
     "examples/graphdeco_loop/train_mvgs.py", "examples/gsplat_loop/simple_trainer.py",
-    "examples/gsplat_loop/simple_trainer_mvgs.py", "examples/three_line_wrap/mvgs.py",
+    "examples/gsplat_loop/simple_trainer_mvgs.py", "examples/gsplat_loop/simple_trainer_chunked.py",
+    "examples/three_line_wrap/mvgs.py",
     "examples/three_line_wrap/single_view.py", "tools/make_scene.py",
 ]
 

@@ -1,20 +1,20 @@
-"""MVGS inside gsplat's own trainer shape: examples/gsplat_loop and adapters.gsplat_strategy.
+"""MVGSStrategy in gsplat's own loop shape (examples/gsplat_loop/).
 
-What is checked, each against a computation of its own:
-- the MVGS loop is the single-view loop with at most five changed lines (a diff);
-- a batch of M views gives the strategy each view's single-view statistic (one render and one
-  loss per view, by hand), and chunks of a step give the same statistics as one call;
-- a step refines once however many chunks it has, never while gradients are unused, with the
-  schedule's threshold (MVAD by hand) as grow_grad2d, and resets opacities on the schedule's
-  clock (gsplat 1.5.3's DefaultStrategy alone never does);
-- cross-ray boxes clone exactly the Gaussians a brute-force test finds inside them;
-- both example loops train through densification, opacity resets and (MVGS) stage hand-offs,
-  and a run resumed from a checkpoint ends where the uninterrupted one does.
+Checked against independent computations: each view's statistic against one render and one
+loss per view; chunked steps against one render call of all views (gradients and statistics);
+the pyramid batch against the package's own pyramid images and scaled cameras; the threshold
+against β · 800 / W halved by hand for spread cameras; the loop with step_post_backward before
+the optimizer step against the loop with it after (the same model, bit for bit); every example
+trained through densification, opacity resets and stage hand-offs and resumed from a checkpoint
+to the same tensors. gsplat 1.5.3's DefaultStrategy is installed by the [dev] extra.
 """
 
+import copy
 import difflib
 import math
+import re
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -22,18 +22,22 @@ import torch
 import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
-from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
 from mvgs_plugin import CRDConfig, MVGSConfig
+from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy, views_of
 from mvgs_plugin.data import load_scene
+from mvgs_plugin.io import load_checked
 from mvgs_plugin.losses import ssim
+from mvgs_plugin.schedule import ViewSchedule
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP = ROOT / "examples" / "gsplat_loop"
 FORWARD = ROOT / "tests" / "data" / "forward64"
 TABLETOP = ROOT / "examples" / "scenes" / "tabletop"
 sys.path.insert(0, str(LOOP))
+
 import common  # noqa: E402
 import simple_trainer  # noqa: E402
+import simple_trainer_chunked  # noqa: E402
 import simple_trainer_mvgs  # noqa: E402
 
 
@@ -63,16 +67,25 @@ class Spy(DefaultStrategy):
         return super()._grow_gs(params, optimizers, state, step)
 
 
+class SceneParser:
+    """common.Parser's fields for an already loaded scene (no second read)."""
+
+    def __init__(self, scene):
+        self.points = scene.points.xyz.numpy()
+        self.points_rgb = (scene.points.rgb.numpy() * 255).round().astype("uint8")
+
+
 def fresh_model(scene, sh_degree=1):
     torch.manual_seed(0)
     cfg = common.Config(sh_degree=sh_degree)
-    splats, optimizers = common.create_splats_with_optimizers(scene, cfg, scene.extent)
+    cfg.make_strategy()
+    splats, optimizers = common.create_splats_with_optimizers(SceneParser(scene), cfg, scene.extent)
     return cfg, splats, optimizers
 
 
 def render(splats, cfg, data, sh_degree=0):
     pixels = data["image"] / 255.0
-    renders, _, info = common.rasterize_splats(splats, cfg, data["camtoworld"], data["K"], pixels.shape[2],
+    renders, _, info = common.rasterize_splats(splats, cfg, None, data["camtoworld"], data["K"], pixels.shape[2],
                                                pixels.shape[1], sh_degree=sh_degree, backgrounds=data["background"])
     return renders, pixels, info
 
@@ -81,24 +94,37 @@ def gsplat_loss(colors, pixels):
     return 0.8 * F.l1_loss(colors, pixels) + 0.2 * (1.0 - ssim(colors, pixels, padding="valid"))
 
 
-def step_once(strategy, splats, optimizers, state, data_list, order="after"):
-    """One step of the gsplat loop over a list of batches: render, pre-hook, loss, backward per
-    batch; then optimizer step and one post-hook per batch ("after", simple_trainer's order),
-    or a post-hook right after each backward ("before")."""
+def step_once(strategy, splats, optimizers, state, data_list, order="after", step=0):
+    """One step of the gsplat loop over a list of batches (the step's chunks): render,
+    pre-hook, the chunk's mean loss times its share of the step's views, backward per batch;
+    then optimizer step and one post-hook per batch ("after", simple_trainer's order), or a
+    post-hook right after each backward ("before")."""
+    m = sum(d["image"].shape[0] for d in data_list)
     infos = []
     for data in data_list:
         colors, pixels, info = render(splats, common.Config(), data)
-        strategy.step_pre_backward(splats, optimizers, state, 0, info)
-        gsplat_loss(colors, pixels).backward()
+        strategy.step_pre_backward(splats, optimizers, state, step, info)
+        (gsplat_loss(colors, pixels) * (len(pixels) / m)).backward()
         if order == "before":
-            strategy.step_post_backward(splats, optimizers, state, 0, info, renders=colors)
+            strategy.step_post_backward(splats, optimizers, state, step, info, renders=colors)
         infos.append((info, colors))
     for opt in optimizers.values():
         opt.step()
         opt.zero_grad(set_to_none=True)
     if order == "after":
         for info, colors in infos:
-            strategy.step_post_backward(splats, optimizers, state, 0, info, renders=colors)
+            strategy.step_post_backward(splats, optimizers, state, step, info, renders=colors)
+
+
+def plain_step(strategy, splats, optimizers, state, cfg, batch, loss_fn, with_renders=True):
+    """One unchunked step in gsplat's order with the loss `loss_fn(colors, pixels)`."""
+    colors, pixels, info = render(splats, cfg, batch)
+    strategy.step_pre_backward(splats, optimizers, state, 0, info)
+    loss_fn(colors, pixels).backward()
+    for opt in optimizers.values():
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    strategy.step_post_backward(splats, optimizers, state, 0, info, renders=colors if with_renders else None)
 
 
 # ---- the diff ------------------------------------------------------------------------------------
@@ -107,19 +133,43 @@ def changed_lines(a, b):
     return sum(max(i2 - i1, j2 - j1) for tag, i1, i2, j1, j2 in ops if tag != "equal")
 
 
-def test_mvgs_loop_changes_at_most_five_lines_of_the_single_view_loop():
+def test_mvgs_loop_adds_four_lines_to_the_single_view_loop_and_to_gsplats_own():
     single = (LOOP / "simple_trainer.py").read_text().splitlines()
     mvgs = (LOOP / "simple_trainer_mvgs.py").read_text().splitlines()
     assert changed_lines(["a", "b", "c"], ["a", "x", "c", "d"]) == 2  # the counter itself
     n = changed_lines(single, mvgs)
     assert 1 <= n <= 5, n
-    added = [line.strip() for line in difflib.ndiff(single, mvgs) if line.startswith("+ ")]
-    assert any("MVGSStrategy(DefaultStrategy(" in line for line in added)
-    assert any("strategy.batches()" in line for line in added)
-    # docs/gsplat_loop.md (linked from the README) shows the same diff
+    diff = [line for line in difflib.ndiff(single, mvgs) if line[:2] in ("+ ", "- ")]
+    added = [line[2:].strip() for line in diff if line.startswith("+ ")]
+    assert len(added) == len(diff) == 4  # added only: the loop's own lines are all kept
+    assert any("MVGSStrategy(self.cfg.strategy, self.trainset" in line for line in added)
+    assert any("self.cfg.strategy.loader(trainloader)" in line for line in added)
+    # the patch of gsplat 1.5.3's examples/simple_trainer.py: zero-context hunks that only add,
+    # at most five lines, and the same statements as in our port
+    patch = (LOOP / "gsplat_1.5.3.patch").read_text().splitlines()
+    hunks = [line for line in patch if line.startswith("@@")]
+    plus = [line[1:].strip() for line in patch if line.startswith("+") and not line.startswith("+++")]
+    minus = [line for line in patch if line.startswith("-") and not line.startswith("---")]
+    assert hunks and all(re.fullmatch(r"@@ -\d+,0 \+\d+(,\d+)? @@.*", h) for h in hunks)
+    assert not minus and len(plus) <= 5
+    assert [p.replace("cfg.mvgs_preset", '"default"') for p in added] == plus
+    # docs/gsplat_loop.md (linked from the README) shows the added lines
     page = (ROOT / "docs" / "gsplat_loop.md").read_text()
-    for line in added:
-        assert line.strip("+ ") in page, line
+    for line in added + plus:
+        assert line in page, line
+
+
+def test_the_wrapper_is_a_default_strategy_to_the_trainer(forward):
+    s = DefaultStrategy(absgrad=True, verbose=True, grow_grad2d=3e-4)
+    w = MVGSStrategy(s, forward, "multiview", steps=100)
+    assert isinstance(w, DefaultStrategy)  # simple_trainer's isinstance dispatch takes it
+    assert (w.absgrad, w.verbose, w.grow_grad2d) == (True, True, 3e-4)  # its field reads too
+    with pytest.raises(TypeError, match="DefaultStrategy"):
+        MVGSStrategy(MCMCStrategy(), forward)
+    with pytest.raises(TypeError, match="already an MVGSStrategy"):
+        MVGSStrategy(w, forward)
+    with pytest.raises(ValueError, match="steps must be a positive int"):
+        MVGSStrategy(s, forward, steps=0)
 
 
 # ---- statistics ------------------------------------------------------------------------------------
@@ -157,15 +207,32 @@ def test_a_batch_of_views_gives_each_view_its_single_view_statistic(forward, chu
     expected_grad, expected_count = per_view_statistics(splats, cfg, whole)
     assert expected_count.sum() > 0
     step_once(strategy, splats, optimizers, state, batches)
-    assert strategy.strategy.log["n_cameras"] == [b["image"].shape[0] for b in batches]
+    assert strategy.strategy.log["n_cameras"] == [m] * len(batches)  # each chunk normalised as the step
     assert torch.equal(state["count"], expected_count)
     torch.testing.assert_close(state["grad2d"], expected_grad, rtol=1e-4, atol=1e-9)
 
 
-# ---- refinement ------------------------------------------------------------------------------------
-def small_clock(**kw):
-    """A strategy that refines every 2 steps from step 2 and resets opacities every 4."""
-    return Spy(refine_start_iter=1, refine_every=2, reset_every=4, refine_stop_iter=100, **kw)
+def test_chunks_weighted_by_their_share_give_the_one_call_gradients(forward):
+    """Each chunk's mean loss times len(chunk) / M: the parameter gradients of one render call
+    over all M views (and, by the test above, its statistics)."""
+    cfg, splats, optimizers = fresh_model(forward)
+    strategy = MVGSStrategy(DefaultStrategy(), forward, MVGSConfig.multiview(chunk_size=3), steps=300)
+    whole = next(strategy.batches())
+    m = whole["image"].shape[0]
+    colors, pixels, _ = render(splats, cfg, whole)
+    gsplat_loss(colors, pixels).backward()
+    expected = {k: p.grad.clone() for k, p in splats.items()}
+    for p in splats.values():
+        p.grad = None
+    parts = [(slice(s, min(s + 3, m)), (min(s + 3, m) - s) / m) for s in range(0, m, 3)]
+    for part, weight in parts:
+        one = {k: t[part] for k, t in whole.items()}
+        colors, pixels, _ = render(splats, cfg, one)
+        (gsplat_loss(colors, pixels) * weight).backward()
+    for k, p in splats.items():
+        torch.testing.assert_close(p.grad, expected[k], rtol=1e-4, atol=1e-9)
+    # chunks() gives these slices and weights for the current step
+    assert [(p.start, p.stop, w) for p, w in strategy.chunks()] == [(p.start, p.stop, w) for p, w in parts]
 
 
 def test_the_strategy_clock_becomes_the_schedule_clock(forward):
@@ -195,13 +262,18 @@ def mvad_expected(scene, data, base, width):
     return base * 800.0 / width * (0.5 if far else 1.0), bool(far)
 
 
+def small_clock(**kw):
+    """A strategy that refines every 2 steps from step 2 and resets opacities every 4."""
+    return Spy(refine_start_iter=1, refine_every=2, reset_every=4, refine_stop_iter=100, **kw)
+
+
 def test_each_step_refines_once_with_the_schedules_threshold(tabletop):
     cfg, splats, optimizers = fresh_model(tabletop)
     strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(chunk_size=5, crd=CRDConfig()), steps=12)
     state = strategy.initialize_state(scene_scale=tabletop.extent)
     expected, halved, counts = [], [], []
     for step, batches in zip(range(6), strategy.batches(chunked=True)):
-        plan = strategy._plan
+        plan = strategy.plan
         assert len(batches) > 1  # several chunks per step
         n0 = len(splats["means"])
         step_once(strategy, splats, optimizers, state, batches)
@@ -218,37 +290,85 @@ def test_each_step_refines_once_with_the_schedules_threshold(tabletop):
     assert any(halved)  # the tabletop's orbit spreads a step's cameras: MVAD halves β
 
 
-def test_a_refine_never_drops_unused_gradients(forward):
+# ---- hook order --------------------------------------------------------------------------------------
+def train_small(scene, order, steps=24, save_at=None, resume=None):
+    """A gsplat-shaped loop on the package's batches, chunks of 3, refines every 2 steps and
+    opacity resets every 4, through the multiview preset's pyramid hand-offs."""
+    cfg, splats, optimizers = fresh_model(scene)
+    strategy = MVGSStrategy(small_clock(), scene, MVGSConfig.multiview(chunk_size=3), steps=steps)
+    state = strategy.initialize_state(scene_scale=scene.extent)
+    it = strategy.batches(chunked=True)
+    saved, refines, resets = None, 0, 0
+    if resume is not None:
+        for k, v in resume["splats"].items():
+            splats[k] = torch.nn.Parameter(v.clone())
+            optimizers[k].param_groups[0]["params"] = [splats[k]]
+            optimizers[k].load_state_dict(resume["optimizers"][k])
+        state.update({k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in resume["state"].items()})
+        strategy.load_state_dict(resume["mvgs"], splats, optimizers, state)
+        torch.set_rng_state(resume["rng"])  # gsplat's split samples from it
+    for batches in it:
+        plan = strategy.plan
+        refines += plan.densify
+        resets += plan.reset_opacity or plan.handoff_reset
+        step_once(strategy, splats, optimizers, state, batches, order=order, step=plan.step - 1)
+        if plan.step == save_at:
+            saved = {"splats": {k: v.detach().clone() for k, v in splats.items()},
+                     "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in optimizers.items()},
+                     "state": {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()},
+                     "mvgs": strategy.state_dict(), "rng": torch.get_rng_state()}
+    return splats, strategy, saved, refines, resets
+
+
+def test_post_backward_before_the_optimizer_step_trains_the_same_model(forward):
+    after, s_after, _, refines, resets = train_small(forward, "after")
+    before, s_before, saved, _, _ = train_small(forward, "before", save_at=12)
+    assert refines >= 5 and resets >= 3 and len(s_after.config.stages) > 1  # refines, resets, hand-offs
+    assert s_after.last_refine["after"] != s_after.last_refine["before"]
+    assert len(after["means"]) != len(forward.points)
+    for k in after.keys():
+        assert torch.equal(after[k], before[k]), k
+    # a checkpoint taken with a refine deferred to the next batch resumes to the same model
+    assert saved["mvgs"]["pending"] is not None
+    resumed, _, _, _, _ = train_small(forward, "before", resume=saved)
+    for k in after.keys():
+        assert torch.equal(resumed[k], before[k]), k
+
+
+def test_a_deferred_refine_needs_the_optimizer_step_first(forward):
     cfg, splats, optimizers = fresh_model(forward)
-    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=4, crd=CRDConfig()), steps=12)
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=4), steps=12)
     state = strategy.initialize_state(scene_scale=forward.extent)
     it = strategy.batches(chunked=True)
-    step_once(strategy, splats, optimizers, state, next(it), order="before")  # step 1: no refine: fine
+    step_once(strategy, splats, optimizers, state, next(it), order="before")  # step 1: no refine
+    for data in next(it):  # step 2 refines: post-hooks before any optimizer step, then no step at all
+        colors, pixels, info = render(splats, cfg, data)
+        strategy.step_pre_backward(splats, optimizers, state, 1, info)
+        gsplat_loss(colors, pixels).backward()
+        strategy.step_post_backward(splats, optimizers, state, 1, info)
     before = {k: v.detach().clone() for k, v in splats.items()}
-    with pytest.raises(RuntimeError, match="would drop the gradients"):
-        step_once(strategy, splats, optimizers, state, next(it), order="before")  # step 2 refines
+    with pytest.raises(RuntimeError, match="waits for the gradients"):
+        next(it)
     for k in before:  # nothing replaced, every gradient still there for the optimizer
         assert torch.equal(splats[k].detach(), before[k]) and splats[k].grad is not None, k
 
 
-def test_call_counts_are_checked(forward):
+def test_call_counts_are_checked_at_the_first_step(forward):
     cfg, splats, optimizers = fresh_model(forward)
     strategy = MVGSStrategy(DefaultStrategy(), forward, "multiview", steps=50)
     state = strategy.initialize_state()
-    with pytest.raises(RuntimeError, match="draw the step's batch"):
+    with pytest.raises(RuntimeError, match="before the step's batch was brought to its level"):
         strategy.step_post_backward(splats, optimizers, state, 0, {})
     it = strategy.batches()
     data = next(it)
     colors, pixels, info = render(splats, cfg, data)
     strategy.step_pre_backward(splats, optimizers, state, 0, info)
     gsplat_loss(colors, pixels).backward()
-    with pytest.raises(RuntimeError, match="called 0 times for 1 batch"):
+    with pytest.raises(RuntimeError, match="reported 0 of its"):
         next(it)
     strategy.step_post_backward(splats, optimizers, state, 0, info)
-    with pytest.raises(RuntimeError, match="called 2 times for 1 batch"):
+    with pytest.raises(RuntimeError, match="reported .* views for a step of"):
         strategy.step_post_backward(splats, optimizers, state, 0, info)
-    with pytest.raises(TypeError, match="DefaultStrategy"):
-        MVGSStrategy(MCMCStrategy(), forward)
 
 
 def test_opacity_resets_follow_the_schedule(forward):
@@ -258,9 +378,9 @@ def test_opacity_resets_follow_the_schedule(forward):
     ceiling = 2 * strategy.strategy.prune_opa
     reset_steps = []
     for batch in strategy.batches():
-        plan = strategy._plan
+        plan = strategy.plan
         step_once(strategy, splats, optimizers, state, [batch])
-        top = float(torch.sigmoid(splats["opacities"]).max())
+        top = float(torch.sigmoid(splats["opacities"].detach()).max())
         if plan.reset_opacity:
             reset_steps.append(plan.step)
             assert top <= ceiling + 1e-7
@@ -276,7 +396,125 @@ def test_opacity_resets_follow_the_schedule(forward):
     with torch.no_grad():
         splats["opacities"].fill_(3.0)
     s.step_post_backward(splats, optimizers, state, 4, info)
-    assert float(torch.sigmoid(splats["opacities"]).min()) > 0.9
+    assert float(torch.sigmoid(splats["opacities"].detach()).min()) > 0.9
+
+
+def test_verbose_lines_carry_the_loops_step(forward, capsys):
+    cfg, splats, optimizers = fresh_model(forward)
+    strategy = MVGSStrategy(small_clock(verbose=True), forward, MVGSConfig.multiview(), steps=10)
+    state = strategy.initialize_state(scene_scale=forward.extent)
+    for batch in strategy.batches():
+        step_once(strategy, splats, optimizers, state, [batch], step=1000 + strategy.plan.step)
+    lines = capsys.readouterr().out.splitlines()
+    steps = {int(m.group(1)) for m in (re.match(r"Step (\d+):", line) for line in lines) if m}
+    assert any("duplicated" in line for line in lines) and any("opacities reset" in line for line in lines)
+    assert steps and all(s > 1000 for s in steps)  # never the wrapper's internal 1 or 3
+
+
+# ---- their data: a DataLoader on the user's Dataset ----------------------------------------------------
+def test_at_level_matches_the_packages_pyramid(forward):
+    parser = common.Parser(FORWARD)
+    trainset = common.Dataset(parser, "train")
+    config = MVGSConfig.multiview(chunk_size=3)
+    strategy = MVGSStrategy(DefaultStrategy(), trainset, config, steps=40)
+    reference = ViewSchedule(forward, config.for_scene(forward).with_total_steps(40))  # the package's own
+    loader = torch.utils.data.DataLoader(trainset, batch_sampler=strategy.batch_sampler())
+    factors = set()
+    for step, data in zip(range(12), loader):
+        pixels, Ks = strategy.at_level(data["image"] / 255.0, data["K"], data["image_id"])
+        plan = reference.next()
+        assert data["image_id"].tolist() == plan.views
+        factors.add(plan.factor)
+        torch.testing.assert_close(pixels, torch.stack(plan.images), atol=2e-6, rtol=0)
+        torch.testing.assert_close(Ks.double(), torch.stack([c.K for c in plan.cameras]), atol=1e-4, rtol=1e-6)
+        strategy.plan, strategy._reported = None, 0  # (no training here)
+    assert len(factors) >= 3  # several pyramid levels crossed
+    # a batch out of the sampler's order is refused, naming both
+    it = iter(loader)
+    data = next(it)
+    with pytest.raises(ValueError, match="batches must arrive in the order"):
+        strategy.at_level(data["image"], data["K"], data["image_id"].flip(0))
+
+
+def loader_run(parser, workers, steps=30, stop_at=None, state=None):
+    """The views, sizes and K of every step the MVGS loader gives (no training)."""
+    trainset = common.Dataset(parser, "train")
+    strategy = MVGSStrategy(DefaultStrategy(), trainset, MVGSConfig.multiview(chunk_size=3), steps=steps)
+    if state is not None:
+        strategy.load_state_dict(state)
+    dl = torch.utils.data.DataLoader(trainset, batch_size=1, shuffle=True, num_workers=workers,
+                                     persistent_workers=workers > 0)
+    seen = []
+    for data in strategy.loader(dl):
+        seen.append((data["image_id"].tolist(), tuple(data["image"].shape), data["K"].clone()))
+        strategy._reported = len(strategy.plan.views)  # (no training here)
+        if stop_at is not None and len(seen) == stop_at:
+            return seen, strategy.state_dict()
+    return seen, None
+
+
+def test_the_loader_keeps_its_workers_and_draws_the_schedule_in_order():
+    parser = common.Parser(FORWARD)
+    plain, _ = loader_run(parser, 0)
+    assert len(plain) == 30
+    workers, _ = loader_run(parser, 2)  # two worker processes loading ahead of the loop
+    assert [(v, s) for v, s, _ in workers] == [(v, s) for v, s, _ in plain]
+    assert all(torch.equal(a, b) for (_, _, a), (_, _, b) in zip(workers, plain))
+    # a checkpoint taken while the workers have drawn ahead resumes at the next step
+    head, state = loader_run(parser, 2, stop_at=11)
+    tail, _ = loader_run(parser, 2, state=state)
+    assert [(v, s) for v, s, _ in head + tail] == [(v, s) for v, s, _ in plain]
+
+
+def test_views_of_reads_datasets_without_their_images(forward):
+    parser = common.Parser(FORWARD)
+    views = views_of(common.Dataset(parser, "train"))
+    assert len(views.train_cameras) == len(forward.train_cameras)
+    for a, b in zip(views.train_cameras, forward.train_cameras):
+        assert torch.allclose(a.K, b.K, atol=1e-5) and torch.allclose(a.world_to_camera, b.world_to_camera, atol=1e-6)
+    assert abs(views.extent - forward.extent) < 1e-9
+
+    class Items(torch.utils.data.Dataset):  # any Dataset of camera dicts
+        def __len__(self):
+            return 3
+
+        def __getitem__(self, i):
+            c = forward.train_cameras[i]
+            return {"camtoworld": c.camera_to_world, "K": c.K, "image": torch.zeros(c.height, c.width, 3)}
+
+    assert [c.width for c in views_of(Items()).train_cameras] == [64] * 3
+    with pytest.raises(TypeError, match="not a dict with camtoworld"):
+        views_of([1, 2])
+    with pytest.raises(RuntimeError, match="loads its own images"):
+        MVGSStrategy(DefaultStrategy(), Items(), steps=10).batches()
+
+
+# ---- their mistakes -------------------------------------------------------------------------------------
+def run_loss(scene, loss_fn, steps):
+    """The mistake warnings a multiview loop with `loss_fn` gets over `steps` steps."""
+    cfg, splats, optimizers = fresh_model(scene)
+    strategy = MVGSStrategy(DefaultStrategy(refine_start_iter=10**6), scene, MVGSConfig.multiview(), steps=steps)
+    state = strategy.initialize_state(scene_scale=scene.extent)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        for batch in strategy.batches():
+            plain_step(strategy, splats, optimizers, state, cfg, batch, loss_fn)
+    return [str(w.message) for w in record if "average every term over the batch" in str(w.message).lower()]
+
+
+def test_a_loss_on_one_view_is_said_once(forward):
+    said = run_loss(forward, lambda c, p: F.l1_loss(c[0], p[0]), steps=12)
+    assert len(said) == 1 and "reaches 1 of the" in said[0]
+
+
+def test_an_ssim_term_on_colors_0_is_said_once(forward, tabletop):
+    def habit(c, p):
+        return 0.8 * F.l1_loss(c, p) + 0.2 * (1.0 - ssim(c[:1], p[:1], padding="valid"))
+
+    said = run_loss(forward, habit, steps=80)
+    assert len(said) == 1 and "position 0" in said[0]
+    for scene in (forward, tabletop):  # an honest loss over the batch: nothing said
+        assert run_loss(scene, gsplat_loss, steps=80) == []
 
 
 # ---- cross-ray densification ------------------------------------------------------------------------
@@ -318,7 +556,7 @@ def test_cross_ray_boxes_reach_the_strategy_through_renders(tabletop):
     found = []
     for _, batch in zip(range(6), strategy.batches()):
         step_once(strategy, splats, optimizers, state, [batch])
-        if strategy._plan.densify:
+        if strategy.plan.densify:
             found.append((strategy.last_refine["boxes"], strategy.last_refine["from_boxes"]))
     assert found and any(b > 0 for b, _ in found) and sum(c for _, c in found) > 0
     # without renders= the rule is skipped, once, with a warning
@@ -327,33 +565,33 @@ def test_cross_ray_boxes_reach_the_strategy_through_renders(tabletop):
     state = strategy.initialize_state(scene_scale=tabletop.extent)
     with pytest.warns(UserWarning, match="cross-ray densification .* is skipped"):
         for _, batch in zip(range(4), strategy.batches()):
-            colors, pixels, info = render(splats, cfg, batch)
-            strategy.step_pre_backward(splats, optimizers, state, 0, info)
-            gsplat_loss(colors, pixels).backward()
-            for opt in optimizers.values():
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-            strategy.step_post_backward(splats, optimizers, state, 0, info)
+            plain_step(strategy, splats, optimizers, state, cfg, batch, gsplat_loss, with_renders=False)
     assert strategy.last_refine["boxes"] == 0
 
 
 # ---- the example loops end to end ---------------------------------------------------------------
 def example_config(tmp_path, steps, preset, **kw):
-    cfg = common.Config(data_dir=FORWARD, result_dir=tmp_path, preset=preset, sh_degree=1, **kw)
+    cfg = common.Config(data_dir=FORWARD, result_dir=tmp_path, mvgs_preset=preset, sh_degree=1, **kw)
     cfg.adjust_steps(steps)
+    cfg.make_strategy(Spy)
     return cfg
 
 
-@pytest.mark.parametrize("module,preset", [pytest.param(simple_trainer, "single", marks=pytest.mark.slow),
-                                           (simple_trainer_mvgs, "default"),
-                                           pytest.param(simple_trainer_mvgs, "multiview", marks=pytest.mark.slow)])
-def test_example_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, monkeypatch, forward, module, preset):
-    monkeypatch.setattr(module, "DefaultStrategy", Spy)
+@pytest.mark.parametrize("module,preset,kw", [
+    pytest.param(simple_trainer, "single", {}, marks=pytest.mark.slow),
+    (simple_trainer_mvgs, "default", {}),
+    pytest.param(simple_trainer_mvgs, "multiview", {"num_workers": 2}, marks=pytest.mark.slow),
+    (simple_trainer_chunked, "multiview", {"chunk_size": 3}),
+])
+def test_example_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, forward, module, preset, kw):
     steps = 300  # densification every 10 steps from 50 to 150, an opacity reset at 100
-    cfg = example_config(tmp_path / "a", steps, preset, save_steps=[120])
+    saves = [100, 120] if module is simple_trainer_chunked else [120]
+    cfg = example_config(tmp_path / "a", steps, preset, save_steps=saves, **kw)
     assert (cfg.refine_start_iter, cfg.refine_stop_iter, cfg.refine_every, cfg.reset_every) == (50, 150, 10, 100)
     torch.manual_seed(0)
-    splats, strategy = module.train(cfg, forward)
+    runner = module.Runner(cfg)
+    runner.train()
+    splats, strategy = runner.splats, runner.cfg.strategy
     spy = strategy.strategy if isinstance(strategy, MVGSStrategy) else strategy
     assert len(spy.log["grow"]) >= 5  # densified
     assert len(splats["means"]) != len(forward.points)
@@ -365,17 +603,22 @@ def test_example_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, m
         assert (len(strategy.config.stages) > 1) == (preset == "multiview")
         assert strategy.schedule.step_count == steps
         assert strategy.last_refine is not None
-    resumed_cfg = example_config(tmp_path / "b", steps, preset, resume=tmp_path / "a" / "ckpt_120.pt")
+    start = saves[0]
+    if module is simple_trainer_chunked:  # the refine of step 100 waits in the checkpoint for the next batch
+        data = load_checked(str(tmp_path / "a" / "ckpt_100.pt"))["data"]
+        assert data["mvgs"]["pending"] is not None and data["mvgs"]["pending"]["densify"]
+    resumed_cfg = example_config(tmp_path / "b", steps, preset, resume=tmp_path / "a" / f"ckpt_{start}.pt", **kw)
     torch.manual_seed(123)  # the checkpoint restores the RNG
-    resumed, _ = module.train(resumed_cfg, forward)
+    resumed = module.Runner(resumed_cfg)
+    resumed.train()
     for k in splats.keys():
-        assert torch.equal(resumed[k], splats[k]), k
+        assert torch.equal(resumed.splats[k], splats[k]), k
 
 
 def test_example_cli_writes_metrics(tmp_path):
     out = tmp_path / "o"
     cfg = common.parse_config(["--data", str(FORWARD), "--steps", "60", "--out", str(out), "--threads", "1"])
-    metrics = common.run(simple_trainer_mvgs.train, cfg)
+    metrics = common.run(simple_trainer_mvgs.Runner, cfg)
     assert metrics["strategy"] == "MVGSStrategy" and metrics["preset"] == "default"
     # a forward-facing rig: the default trains at full resolution only, one unit of work per step
     assert metrics["work"] == 60 and metrics["steps"] == 60 and metrics["psnr"] > 10

@@ -1,23 +1,25 @@
 """What surrounds the training loop of gsplat's examples/simple_trainer.py, ported to the CPU.
 
-The loop itself is in simple_trainer.py (single view, gsplat's DefaultStrategy as installed)
-and simple_trainer_mvgs.py (the same loop trained with MVGS). This module holds what both share,
-shaped as simple_trainer has it: the Config fields the loop reads, `create_splats_with_optimizers`
-(a ParameterDict `splats`, one Adam per parameter, eps 1e-15, means' learning rate times the
-scene scale), `rasterize_splats` (our reference_renderer.rasterization, same call shape as
-gsplat's; gsplat's own on --device cuda --rasterizer gsplat), a data iterator yielding
-gsplat Dataset's dicts, evaluation, and checkpoints that resume exactly.
+The loop itself (the Runner's __init__ and train) is in simple_trainer.py, shaped as gsplat
+1.5.3's: a Parser and a Dataset, a DataLoader (shuffle, workers), `splats` as a ParameterDict
+with one Adam per parameter, `cfg.strategy` a DefaultStrategy checked with isinstance, the
+order backward -> optimizer step -> scheduler -> strategy.step_post_backward.
+simple_trainer_mvgs.py is that file with four lines added (MVGS); simple_trainer_chunked.py
+renders each step's views in chunks. This module holds what they share: the Config fields the
+loop reads, a Parser / Dataset with gsplat's attributes and item dicts on the package's scene
+reader, `create_splats_with_optimizers`, `rasterize_splats`, evaluation, and checkpoints that
+resume exactly (gsplat's own trainer has none: ours save the data position too).
 
 Kept from simple_trainer: initialisation (SfM points, or a random cube of 3 x scene scale; scales
 from the mean distance to the 3 nearest points; quats uniform in [0, 1)^4; opacity 0.1), the
 learning rates, the means' exponential decay to 0.01, the SH degree schedule, the loss
-(1 - 0.2) L1 + 0.2 (1 - SSIM) with "valid" SSIM (our ssim: fused_ssim is CUDA only), and the
-order optimizer step -> scheduler -> strategy.step_post_backward. Left out: pose and appearance
-optimisation, bilateral grids, depth loss, the viewer, compression, tensorboard, packed mode.
-Changed: backgrounds (the colour a scene's RGBA images were composited on) are passed to the
-rasterizer, and the strategy's step-valued fields scale with the run's length with the floors of
-MVGSConfig.with_total_steps (densify every >= 10 steps, from >= 50, resets >= 10 intervals
-apart), where simple_trainer's --steps_scaler would densify every 3 steps of a 1000-step run.
+(1 - 0.2) L1 + 0.2 (1 - SSIM) with "valid" SSIM (our ssim: fused_ssim is CUDA only). Left out:
+pose and appearance optimisation, bilateral grids, depth loss, the viewer, compression,
+tensorboard, packed mode. Changed: the rasterizer is given the colour a scene's RGBA images were
+composited on (Parser.background), and the strategy's step-valued fields scale with the run's
+length with the floors of MVGSConfig.with_total_steps (densify every >= 10 steps, from >= 50,
+resets >= 10 intervals apart), where simple_trainer's --steps_scaler would densify every 3
+steps of a 1000-step run.
 """
 
 from __future__ import annotations
@@ -28,19 +30,21 @@ import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from gsplat.strategy import DefaultStrategy
+
 from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
-from mvgs_plugin.adapters.gsplat_strategy import gsplat_batch
+from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
+from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
-from mvgs_plugin.sampler import ViewSampler
 
-from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function  # noqa: E402
 
 @dataclass
 class Config:
@@ -49,8 +53,10 @@ class Config:
 
     data_dir: Path = BUNDLED
     result_dir: Path = Path("out/gsplat_loop")
-    preset: str = "default"  # the MVGS loop's recipe (simple_trainer_mvgs.py)
+    mvgs_preset: str = "default"  # the recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py
     batch_size: int = 1
+    num_workers: int = 0  # gsplat's trainer uses 4 (a GPU machine); here the CPU trains
+    chunk_size: Optional[int] = None  # views per render call of simple_trainer_chunked.py (None: the memory bound)
     max_steps: int = 30_000
     save_steps: List[int] = field(default_factory=list)
     resume: Optional[Path] = None
@@ -65,7 +71,6 @@ class Config:
     near_plane: float = 0.01
     far_plane: float = 1e10
     packed: bool = False
-    absgrad: bool = False
     grow_grad2d: float = 2e-4
     refine_start_iter: int = 500
     refine_stop_iter: int = 15_000
@@ -79,10 +84,11 @@ class Config:
     shN_lr: float = 2.5e-3 / 20
     device: str = "cpu"
     rasterizer: str = "reference"
+    strategy: Any = None  # a DefaultStrategy, built by make_strategy() from the fields above
 
     def adjust_steps(self, steps: int) -> None:
         """A run of `steps` steps: every step-valued field scaled by steps / max_steps, with the
-        floors described in the module docstring."""
+        floors described in the module docstring; the strategy is rebuilt from them."""
         f = steps / self.max_steps
         self.max_steps = steps
         self.sh_degree_interval = max(1, int(self.sh_degree_interval * f))
@@ -90,22 +96,82 @@ class Config:
         self.refine_start_iter = max(min(50, self.refine_start_iter), int(self.refine_start_iter * f))
         self.refine_stop_iter = max(1, int(self.refine_stop_iter * f))
         self.reset_every = max(min(10 * self.refine_every, self.reset_every), int(self.reset_every * f))
+        self.make_strategy()
 
-    def strategy_kwargs(self) -> Dict:
-        """The DefaultStrategy fields simple_trainer's Config sets."""
-        return dict(refine_start_iter=self.refine_start_iter, refine_stop_iter=self.refine_stop_iter,
-                    reset_every=self.reset_every, refine_every=self.refine_every, absgrad=self.absgrad,
-                    grow_grad2d=self.grow_grad2d)
+    def make_strategy(self, kind=DefaultStrategy) -> None:
+        self.strategy = kind(refine_start_iter=self.refine_start_iter, refine_stop_iter=self.refine_stop_iter,
+                             reset_every=self.reset_every, refine_every=self.refine_every,
+                             grow_grad2d=self.grow_grad2d)
+
+
+class Parser:
+    """A scene folder read as gsplat's Parser exposes it: camtoworlds [N, 4, 4], camera_ids,
+    Ks_dict / imsize_dict per camera id, image_names, points [P, 3] and points_rgb [P, 3]
+    (uint8), scene_scale (the largest camera distance from their mean), plus background (the
+    colour RGBA images were composited on, or None). Every `test_every`-th image is held out
+    unless the scene names its test views. Built on mvgs_plugin.data.load_scene."""
+
+    def __init__(self, data_dir, factor: int = 1, normalize: bool = False, test_every: int = 8):
+        if factor != 1 or normalize:
+            raise ValueError("this port reads scenes at their own size and coordinates (factor 1, no normalize)")
+        self.scene = scene = load_scene(data_dir)
+        cams = scene.train_cameras + scene.test_cameras
+        self.n_train = len(scene.train_cameras)
+        self.camtoworlds = np.stack([c.camera_to_world.numpy() for c in cams])
+        self.camera_ids = list(range(len(cams)))
+        self.Ks_dict = {i: c.K.numpy().astype(np.float32) for i, c in enumerate(cams)}
+        self.imsize_dict = {i: (c.width, c.height) for i, c in enumerate(cams)}
+        self.image_names = [c.name for c in cams]
+        self.cameras = cams
+        pts = scene.points
+        self.points = None if pts is None else pts.xyz.numpy()
+        self.points_rgb = None if pts is None else (pts.rgb.numpy() * 255).round().astype(np.uint8)
+        centers = self.camtoworlds[:, :3, 3]
+        self.scene_scale = float(np.linalg.norm(centers - centers.mean(0), axis=1).max())
+        self.background = scene.background
+        self.test_every = test_every
+
+    def split(self, split: str) -> np.ndarray:
+        n = len(self.camtoworlds)
+        if self.n_train < n:  # the scene names its test views
+            return np.arange(self.n_train) if split == "train" else np.arange(self.n_train, n)
+        ids = np.arange(n)
+        return ids[ids % self.test_every != 0] if split == "train" else ids[ids % self.test_every == 0]
+
+
+class Dataset(torch.utils.data.Dataset):
+    """gsplat's Dataset: item i of the split is a dict K [3, 3], camtoworld [4, 4], image
+    [H, W, 3] float in 0..255, image_id i (the item's index in this split)."""
+
+    def __init__(self, parser: Parser, split: str = "train"):
+        self.parser = parser
+        self.split = split
+        self.indices = parser.split(split)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, item: int) -> Dict[str, Tensor]:
+        index = int(self.indices[item])
+        cam = self.parser.cameras[index]
+        return {
+            "K": torch.from_numpy(self.parser.Ks_dict[self.parser.camera_ids[index]]).float(),
+            "camtoworld": torch.from_numpy(self.parser.camtoworlds[index]).float(),
+            "image": self.parser.scene.image(cam) * 255.0,
+            "image_id": item,
+        }
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
     return (rgb - 0.5) / SH_C0
 
 
-def create_splats_with_optimizers(scene, cfg: Config, scene_scale: float) -> Tuple[torch.nn.ParameterDict, Dict]:
+def create_splats_with_optimizers(parser: Parser, cfg: Config, scene_scale: float
+                                  ) -> Tuple[torch.nn.ParameterDict, Dict]:
     """simple_trainer's create_splats_with_optimizers for batch size 1 on one process."""
-    if scene.points is not None and len(scene.points):
-        points, rgbs = scene.points.xyz.clone(), scene.points.rgb.clone()
+    if parser.points is not None and len(parser.points):
+        points = torch.tensor(parser.points, dtype=torch.float32)  # a copy: Adam updates it in place
+        rgbs = torch.tensor(parser.points_rgb / 255.0, dtype=torch.float32)
     else:
         points = cfg.init_extent * scene_scale * (torch.rand((cfg.init_num_pts, 3)) * 2 - 1)
         rgbs = torch.rand((cfg.init_num_pts, 3))
@@ -128,61 +194,84 @@ def create_splats_with_optimizers(scene, cfg: Config, scene_scale: float) -> Tup
     return splats, optimizers
 
 
-def rasterize_splats(splats, cfg: Config, camtoworlds: Tensor, Ks: Tensor, width: int, height: int,
+def rasterize_splats(splats, cfg: Config, background, camtoworlds: Tensor, Ks: Tensor, width: int, height: int,
                      **kwargs) -> Tuple[Tensor, Tensor, Dict]:
-    """simple_trainer's Runner.rasterize_splats without appearance modelling."""
+    """simple_trainer's Runner.rasterize_splats without appearance modelling, behind the scene's
+    background colour (None: black, as gsplat)."""
     rasterization = rasterize_function(cfg)
     colors = torch.cat([splats["sh0"], splats["shN"]], 1)
+    if background is not None and "backgrounds" not in kwargs:
+        kwargs["backgrounds"] = torch.tensor(background, dtype=torch.float32,
+                                             device=camtoworlds.device).expand(len(camtoworlds), 3)
+    absgrad = cfg.strategy.absgrad if isinstance(cfg.strategy, DefaultStrategy) else False
     return rasterization(
         means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
         opacities=torch.sigmoid(splats["opacities"]), colors=colors, viewmats=torch.linalg.inv(camtoworlds),
-        Ks=Ks, width=width, height=height, packed=cfg.packed, absgrad=cfg.absgrad, sparse_grad=False,
-        rasterize_mode="classic", distributed=False, camera_model="pinhole", near_plane=cfg.near_plane,
-        far_plane=cfg.far_plane, **kwargs)
+        Ks=Ks, width=width, height=height, packed=cfg.packed, absgrad=absgrad, sparse_grad=False,
+        rasterize_mode="classic", distributed=False, camera_model="pinhole", **kwargs)
 
 
-class TrainBatches:
-    """The single-view loop's data: an endless shuffled pass over the training views (a new
-    permutation per epoch, as a DataLoader with shuffle=True), `batch_size` views per item, as
-    gsplat Dataset dicts (camtoworld, K, image in 0..255, image_id, background). Resumable."""
+class DataPosition:
+    """Where the loop is in its data, so a resumed run draws what the uninterrupted one would:
+    for a shuffled DataLoader, the state of its generator when the current pass began and the
+    batches taken since; for MVGSStrategy's loader, the strategy's state (schedule position and
+    any refine deferred to the next batch)."""
 
-    def __init__(self, scene, batch_size: int = 1, seed: int = 0):
-        self.scene = scene
-        self.batch_size = batch_size
-        self.sampler = ViewSampler(len(scene.train_cameras), seed=seed)
-        bg = scene.background if scene.background is not None else (0.0, 0.0, 0.0)
-        self.background = torch.tensor(bg, dtype=torch.float32)
+    def __init__(self, generator: torch.Generator):
+        self.generator = generator
+        self.pass_start = generator.get_state()
+        self.taken = 0
+
+    def iterate(self, loader):
+        """iter(loader), counted."""
+        self.pass_start, self.taken = self.generator.get_state(), 0
+        return _Counted(iter(loader), self)
+
+    def state_dict(self, loader) -> Dict[str, Any]:
+        if isinstance(loader, MVGSLoader):
+            return {"mvgs": loader.strategy.state_dict()}
+        return {"generator": self.pass_start, "taken": self.taken}
+
+    def resume(self, loader, state: Dict[str, Any], splats, optimizers, strategy_state):
+        """An iterator over `loader` positioned where `state` was taken."""
+        if isinstance(loader, MVGSLoader):
+            loader.strategy.load_state_dict(state["mvgs"], splats, optimizers, strategy_state)
+            return self.iterate(loader)
+        self.generator.set_state(state["generator"])
+        it = self.iterate(loader)
+        for _ in range(state["taken"]):
+            next(it)
+        return it
+
+
+class _Counted:
+    def __init__(self, it, position: DataPosition):
+        self.it, self.position = it, position
 
     def __iter__(self):
         return self
 
-    def __next__(self) -> Dict[str, Tensor]:
-        ids = self.sampler.sample(min(self.batch_size, len(self.scene.train_cameras)))
-        cams = [self.scene.train_cameras[i] for i in ids]
-        return gsplat_batch(cams, torch.stack([self.scene.image(c) for c in cams]), ids,
-                            self.background.expand(len(ids), 3))
-
-    def state_dict(self) -> Dict:
-        return {"sampler": self.sampler.state_dict()}
-
-    def load_state_dict(self, state: Dict) -> None:
-        self.sampler.load_state_dict(state["sampler"])
+    def __next__(self):
+        item = next(self.it)
+        self.position.taken += 1
+        return item
 
 
-def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strategy_state, loader) -> None:
+def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strategy_state, data_state) -> None:
     """Everything a resumed run needs to continue as if never stopped (atomic, checksummed, and
     loadable without running pickled code): the next step, parameters, optimizer and scheduler
-    states, the strategy's running statistics, the data iterator's position, the RNG."""
+    states, the strategy's running statistics, the data position, the RNG."""
     save_checked({
         "step": step + 1, "splats": {k: v.detach().cpu() for k, v in splats.items()},
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "schedulers": [s.state_dict() for s in schedulers], "strategy_state": dict(strategy_state),
-        "loader": loader.state_dict(), "rng": torch.get_rng_state(),
+        "data": data_state, "rng": torch.get_rng_state(),
     }, str(path))
 
 
-def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state, loader) -> int:
-    """Restore a save_checkpoint() file into the run's objects; returns the step to start at."""
+def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) -> Tuple[int, Dict]:
+    """Restore a save_checkpoint() file into the run's objects; returns the step to start at and
+    the data position (for DataPosition.resume)."""
     ckpt = load_checked(str(path))
     if set(ckpt["splats"]) != set(splats.keys()):
         raise ValueError(f"{path}: parameters {sorted(ckpt['splats'])}, this run has {sorted(splats.keys())}")
@@ -194,25 +283,26 @@ def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state, 
         s.load_state_dict(st)
     strategy_state.update({k: v.to(splats["means"].device) if isinstance(v, Tensor) else v
                            for k, v in ckpt["strategy_state"].items()})
-    loader.load_state_dict(ckpt["loader"])
     torch.set_rng_state(ckpt["rng"])
-    return int(ckpt["step"])
+    return int(ckpt["step"]), ckpt["data"]
 
 
 @torch.no_grad()
-def evaluate(splats, cfg: Config, scene) -> Dict:
-    """Mean PSNR and SSIM over the test views at full resolution (train views when the scene
-    has no test split), at the full SH degree."""
-    cams = scene.test_cameras or scene.train_cameras
+def evaluate(splats, cfg: Config, parser: Parser) -> Dict:
+    """Mean PSNR and SSIM over the val split at full resolution, at the full SH degree."""
+    valset = Dataset(parser, split="val")
+    if len(valset) == 0:
+        valset = Dataset(parser, split="train")
     rows = []
-    bg = scene.background if scene.background is not None else (0.0, 0.0, 0.0)
-    for cam in cams:
-        c2w = torch.linalg.inv(cam.world_to_camera).float()[None].to(cfg.device)
-        img, _, _ = rasterize_splats(splats, cfg, c2w, cam.K.float()[None].to(cfg.device), cam.width, cam.height,
-                                     sh_degree=cfg.sh_degree,
-                                     backgrounds=torch.tensor([bg], dtype=torch.float32, device=cfg.device))
-        out, gt = img[0].clamp(0, 1).cpu(), scene.image(cam)
-        rows.append({"name": cam.name, "psnr": psnr(out, gt), "ssim": ssim_metric(out, gt)})
+    for i in range(len(valset)):
+        data = valset[i]
+        pixels = data["image"] / 255.0
+        img, _, _ = rasterize_splats(splats, cfg, parser.background, data["camtoworld"][None].to(cfg.device),
+                                     data["K"][None].to(cfg.device), pixels.shape[1], pixels.shape[0],
+                                     sh_degree=cfg.sh_degree, near_plane=cfg.near_plane, far_plane=cfg.far_plane)
+        out = img[0].clamp(0, 1).cpu()
+        name = parser.image_names[int(valset.indices[i])]
+        rows.append({"name": name, "psnr": psnr(out, pixels), "ssim": ssim_metric(out, pixels)})
     return {"psnr": sum(r["psnr"] for r in rows) / len(rows), "ssim": sum(r["ssim"] for r in rows) / len(rows),
             "per_view": rows}
 
@@ -222,7 +312,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     ap.add_argument("--steps", type=int_at_least(2), default=1000, help="training steps (default: %(default)s)")
     ap.add_argument("--preset", choices=["default", "multiview", "paper", "baseline"], default="default",
-                    help="MVGS recipe of simple_trainer_mvgs.py (default: %(default)s)")
+                    help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
     ap.add_argument("--out", type=Path, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed (default: %(default)s)")
     ap.add_argument("--grow-grad2d", type=float_above(0.0), default=2e-4,
@@ -230,6 +320,10 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--save-steps", type=int_at_least(1), nargs="*", default=[],
                     help="write OUT/ckpt_<step>.pt after these steps (1-based; default: none)")
     ap.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint this script wrote (default: start fresh)")
+    ap.add_argument("--workers", type=int_at_least(0), default=0,
+                    help="DataLoader workers (default: %(default)s; gsplat's trainer uses 4)")
+    ap.add_argument("--chunk-size", type=int_at_least(1), default=None,
+                    help="views per render call in simple_trainer_chunked.py (default: what chunk_memory_mb allows)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
@@ -244,31 +338,40 @@ def parse_config(argv=None, doc: str = "") -> Config:
         ap.error(f"--resume {args.resume}: no such checkpoint file")
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg = Config(data_dir=args.data, result_dir=args.out, preset=args.preset, save_steps=args.save_steps,
+    cfg = Config(data_dir=args.data, result_dir=args.out, mvgs_preset=args.preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
-                 grow_grad2d=args.grow_grad2d)
+                 grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size)
     cfg.adjust_steps(args.steps)
     return cfg
 
 
-def run(train, cfg: Config) -> Dict:
-    """Train with `train(cfg, scene)` (returns the splats and the strategy), evaluate, write
-    OUT/metrics.json: psnr, ssim, num_gaussians, steps, work (full-resolution view renders),
-    cpu_seconds (user + sys), train_seconds (wall), strategy, preset, per view."""
+def run(runner_class, cfg: Config) -> Dict:
+    """Train with `runner_class(cfg).train()`, evaluate, write OUT/metrics.json: psnr, ssim,
+    num_gaussians, steps, work (full-resolution view renders), cpu_seconds (user + sys),
+    train_seconds (wall; on CUDA after a synchronize, the GPU's clock), gpu_peak_memory_mb,
+    strategy, preset, per view."""
     torch.manual_seed(cfg.seed)
-    scene = load_scene(cfg.data_dir)
     cfg.result_dir.mkdir(parents=True, exist_ok=True)
+    runner = runner_class(cfg)
+    cuda = str(cfg.device).startswith("cuda")
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
     t0, c0 = time.perf_counter(), time.process_time()
-    splats, strategy = train(cfg, scene)
+    runner.train()
+    if cuda:
+        torch.cuda.synchronize()  # kernels still queued belong to the training time
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    strategy = runner.cfg.strategy
     mvgs = getattr(strategy, "config", None)
     extra = {"strategy": type(strategy).__name__, "preset": mvgs.preset if mvgs else "single view",
              "work": strategy.schedule.work_done if mvgs else float(cfg.max_steps)}
-    result = evaluate(splats, cfg, scene)
-    metrics = {"psnr": result["psnr"], "ssim": result["ssim"], "num_gaussians": len(splats["means"]),
+    result = evaluate(runner.splats, cfg, runner.parser)
+    metrics = {"psnr": result["psnr"], "ssim": result["ssim"], "num_gaussians": len(runner.splats["means"]),
                "steps": cfg.max_steps, "cpu_seconds": cpu, "train_seconds": wall,
                "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-               "threads": torch.get_num_threads(), "data": str(cfg.data_dir), **extra,
+               "threads": torch.get_num_threads(), "data": str(cfg.data_dir), "device": str(cfg.device),
+               "gpu_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None, **extra,
                "per_view": result["per_view"]}
     atomic_write_text(cfg.result_dir / "metrics.json", json.dumps(metrics, indent=1))
     print(f"PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.3f}  {metrics['num_gaussians']} Gaussians  "
@@ -276,5 +379,5 @@ def run(train, cfg: Config) -> Dict:
     return metrics
 
 
-__all__ = ["Config", "create_splats_with_optimizers", "rasterize_splats", "TrainBatches", "save_checkpoint",
-           "load_checkpoint", "evaluate", "parse_config", "run"]
+__all__ = ["Config", "Parser", "Dataset", "create_splats_with_optimizers", "rasterize_splats", "DataPosition",
+           "save_checkpoint", "load_checkpoint", "evaluate", "parse_config", "run"]
