@@ -1,0 +1,83 @@
+"""Why the compressed 3DGS baseline can fall with more steps (issue 27, part 3): the baseline
+(`--preset baseline --threshold-width 800`) trained at several lengths, with one part of its
+schedule changed at a time. Each run is examples/train_3dgs.py in its own single-threaded
+process (at most --parallel at a time); prints a markdown table per scene: test PSNR / SSIM /
+Gaussians per length, and whether PSNR fell from one length to the next.
+
+Variants (each a change of MVGSConfig.baseline() before it is compressed to the run's length):
+  plain     the baseline as every table uses it
+  noreset   no opacity resets
+  every3x   densification 3x less often (every 30 steps of a 3k run instead of 10)
+  window4   densification ends at 1/4 of the run instead of 1/2 (resets with it)
+
+    python benchmarks/probe_baseline_schedule.py --data scenes/reflective scenes/clutter --steps 1000 2000 3000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIANTS = {"plain": {}, "noreset": {"opacity_reset_every": 10**9}, "every3x": {"densify_every": 300},
+            "window4": {"densify_until": 7_500}}
+
+
+def one(variant: str, argv) -> None:
+    """In this process: train_3dgs.py with the baseline preset changed by `variant`."""
+    import runpy
+
+    from mvgs_plugin.config import MVGSConfig
+
+    made = MVGSConfig.baseline.__func__
+    MVGSConfig.baseline = classmethod(lambda cls, **o: made(cls, **{**VARIANTS[variant], **o}))
+    sys.argv = ["train_3dgs.py", *argv]
+    runpy.run_path(str(ROOT / "examples" / "train_3dgs.py"), run_name="__main__")
+
+
+def run(data: Path, steps: int, variant: str, out: Path) -> dict:
+    folder = out / f"{data.name}-{steps}-{variant}"
+    if not (folder / "metrics.json").exists():
+        cmd = [sys.executable, __file__, "--one", variant, "--", "--data", str(data), "--preset", "baseline",
+               "--threshold-width", "800", "--steps", str(steps), "--threads", "1", "--out", str(folder)]
+        subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads((folder / "metrics.json").read_text())
+
+
+def main(argv=None) -> str:
+    if argv is None and "--one" in sys.argv:
+        i = sys.argv.index("--one")
+        one(sys.argv[i + 1], sys.argv[sys.argv.index("--") + 1:])
+        return ""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, nargs="+", required=True)
+    ap.add_argument("--steps", type=int, nargs="+", default=[1000, 2000, 3000])
+    ap.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=list(VARIANTS))
+    ap.add_argument("--parallel", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("out/probe_baseline_schedule"))
+    args = ap.parse_args(argv)
+    jobs = [(d, s, v) for d in args.data for v in args.variants for s in args.steps]
+    with ThreadPoolExecutor(args.parallel) as pool:
+        results = dict(zip(jobs, pool.map(lambda j: run(*j, args.out), jobs)))
+    lines = []
+    for d in args.data:
+        lines += [f"{d.name}: test PSNR (dB) / SSIM / Gaussians", "",
+                  "| variant | " + " | ".join(f"{s} steps" for s in args.steps) + " | falls |",
+                  "|---|" + "---:|" * (len(args.steps) + 1)]
+        for v in args.variants:
+            ms = [results[(d, s, v)] for s in args.steps]
+            falls = any(b["psnr"] < a["psnr"] for a, b in zip(ms, ms[1:]))
+            cells = [f"{m['psnr']:.2f} / {m['ssim']:.3f} / {m['num_gaussians'] / 1000:.1f}k" for m in ms]
+            lines.append(f"| {v} | " + " | ".join(cells) + f" | {'yes' if falls else 'no'} |")
+        lines.append("")
+    text = "\n".join(lines)
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
