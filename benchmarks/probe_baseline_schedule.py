@@ -1,8 +1,9 @@
 """Why the compressed 3DGS baseline can fall with more steps (issue 27, part 3): the baseline
 (`--preset baseline --threshold-width 800`) trained at several lengths, with one part of its
 schedule changed at a time. Each run is examples/train_3dgs.py in its own single-threaded
-process (at most --parallel at a time); prints a markdown table per scene: test PSNR / SSIM /
-Gaussians per length, and whether PSNR fell from one length to the next.
+process (at most --parallel at a time); prints a markdown table per scene: test PSNR (training
+views' PSNR in brackets, rendered from the run's point_cloud.ply) / test SSIM / Gaussians per
+length, and whether test PSNR fell from one length to the next.
 
 Variants (each a change of MVGSConfig.baseline() before it is compressed to the run's length):
   plain     the baseline as every table uses it
@@ -39,13 +40,39 @@ def one(variant: str, argv) -> None:
     runpy.run_path(str(ROOT / "examples" / "train_3dgs.py"), run_name="__main__")
 
 
+def train_psnr(data: Path, folder: Path) -> float:
+    """Mean PSNR over the training views of the model a run saved (its point_cloud.ply)."""
+    import torch
+
+    from mvgs_plugin.adapters.ply import read_gaussian_ply
+    from mvgs_plugin.data import load_scene
+    from mvgs_plugin.metrics import psnr
+    from mvgs_plugin.reference_renderer import rasterization
+
+    scene = load_scene(data, init=None)
+    g = read_gaussian_ply(folder / "point_cloud.ply")
+    bg = torch.tensor(scene.background or (0.0, 0.0, 0.0), dtype=torch.float32)[None]
+    colors = torch.cat([g.sh0, g.shN], 1)
+    values = []
+    with torch.no_grad():
+        for cam in scene.train_cameras:
+            img, _, _ = rasterization(means=g.means, quats=g.quats, scales=torch.exp(g.scales),
+                                      opacities=torch.sigmoid(g.opacities), colors=colors,
+                                      viewmats=cam.world_to_camera.float()[None], Ks=cam.K.float()[None],
+                                      width=cam.width, height=cam.height, sh_degree=g.sh_degree, backgrounds=bg)
+            values.append(psnr(img[0].clamp(0, 1), scene.image(cam)))
+    return sum(values) / len(values)
+
+
 def run(data: Path, steps: int, variant: str, out: Path) -> dict:
     folder = out / f"{data.name}-{steps}-{variant}"
     if not (folder / "metrics.json").exists():
         cmd = [sys.executable, __file__, "--one", variant, "--", "--data", str(data), "--preset", "baseline",
                "--threshold-width", "800", "--steps", str(steps), "--threads", "1", "--out", str(folder)]
         subprocess.run(cmd, check=True, capture_output=True, text=True)
-    return json.loads((folder / "metrics.json").read_text())
+    metrics = json.loads((folder / "metrics.json").read_text())
+    metrics["train_psnr"] = train_psnr(data, folder)
+    return metrics
 
 
 def main(argv=None) -> str:
@@ -65,13 +92,14 @@ def main(argv=None) -> str:
         results = dict(zip(jobs, pool.map(lambda j: run(*j, args.out), jobs)))
     lines = []
     for d in args.data:
-        lines += [f"{d.name}: test PSNR (dB) / SSIM / Gaussians", "",
+        lines += [f"{d.name}: test PSNR (training views' PSNR) in dB / test SSIM / Gaussians", "",
                   "| variant | " + " | ".join(f"{s} steps" for s in args.steps) + " | falls |",
                   "|---|" + "---:|" * (len(args.steps) + 1)]
         for v in args.variants:
             ms = [results[(d, s, v)] for s in args.steps]
             falls = any(b["psnr"] < a["psnr"] for a, b in zip(ms, ms[1:]))
-            cells = [f"{m['psnr']:.2f} / {m['ssim']:.3f} / {m['num_gaussians'] / 1000:.1f}k" for m in ms]
+            cells = [f"{m['psnr']:.2f} ({m['train_psnr']:.2f}) / {m['ssim']:.3f} / {m['num_gaussians'] / 1000:.1f}k"
+                     for m in ms]
             lines.append(f"| {v} | " + " | ".join(cells) + f" | {'yes' if falls else 'no'} |")
         lines.append("")
     text = "\n".join(lines)
