@@ -277,15 +277,13 @@ class MVGSStrategy(DefaultStrategy):
         self.strategy = strategy
         self.config = config
         self.views = views
-        self.schedule = ViewSchedule(views, config, load_images=hasattr(views, "image") and
-                                     not isinstance(views, CameraViews))
+        self.schedule = ViewSchedule(views, config, load_images=not isinstance(views, CameraViews))
         self.last_refine: Optional[Dict[str, Any]] = None
         self.plan: Optional[StepPlan] = None
         self._before: Optional[Dict[str, Any]] = None  # the schedule's state before the current plan
         self._queue: collections.deque = collections.deque()  # (plan, schedule state before it) drawn ahead
         self._targets: Optional[Tensor] = None  # the step's targets [M, H, W, 3] in [0, 1], for CRD
         self._reported = 0  # views of the current step reported to step_post_backward
-        self._loop_step: Optional[int] = None
         self._pending: Optional[Dict[str, Any]] = None  # end-of-step work deferred to the next batch
         self._warned: set = set()
         self._shares: Dict[int, List[Tensor]] = {}
@@ -325,7 +323,6 @@ class MVGSStrategy(DefaultStrategy):
         if self._reported + c > m:
             raise RuntimeError(f"step {step}: step_post_backward reported {self._reported + c} views for a step of "
                                f"{m}; call it once per render call of the step's views")
-        self._loop_step = step
         last_call = self._reported + c == m
         collect = any(plan.stats) and (self.config.stats_from == "all" or last_call)
         if collect and self.config.stats_from == "last" and c > 1 and "last" not in self._warned:
@@ -376,6 +373,7 @@ class MVGSStrategy(DefaultStrategy):
         sees them, in [0, 1], for cross-ray densification) and Ks [C, 3, 3] with the x row times
         W'/W and the y row times H'/H. image_ids (optional, [C]) are checked against the views
         the schedule drew. Starts the step: call it once per step, before rendering."""
+        self._close_step()
         plan, before = self._next_queued(len(pixels), image_ids)
         out_pixels, out_Ks = self._scale(plan, pixels, Ks)
         self._start(plan, out_pixels, before)
@@ -386,6 +384,7 @@ class MVGSStrategy(DefaultStrategy):
         step's level, plus ``mask`` [C, H, W] (resampled, then > 0.5) and depth-loss ``points``
         [C, P, 2] (pixel coordinates scaled) when present; other keys as they are."""
         pixels = data["image"]
+        self._close_step()
         plan, before = self._next_queued(len(pixels), data.get("image_id"))
         out = dict(data)
         out["image"], out["K"] = self._scale(plan, pixels, data["K"])
@@ -437,14 +436,18 @@ class MVGSStrategy(DefaultStrategy):
         Ks[:, 1, :] *= h2 / h
         return downsample_batch(pixels, w2, h2), Ks
 
-    def _start(self, plan: StepPlan, targets: Optional[Tensor], before: Dict[str, Any]) -> None:
-        """Begin `plan`: the previous step must be complete; deferred end-of-step work runs now."""
+    def _close_step(self) -> None:
+        """Before the next step takes its plan: the current step must be complete (checked first,
+        so a refused call loses no plan), and end-of-step work deferred to this moment runs."""
         if self.plan is not None and self._reported < len(self.plan.views):
             raise RuntimeError(f"step {self.plan.step} of the schedule: step_post_backward reported {self._reported} of "
                                f"its {len(self.plan.views)} views before the next batch was drawn; call it after each "
                                "render call's backward")
         if self._pending is not None:
             self._run_pending()
+
+    def _start(self, plan: StepPlan, targets: Optional[Tensor], before: Dict[str, Any]) -> None:
+        """Begin `plan` (after _close_step)."""
         self.plan, self._targets, self._reported, self._before = plan, targets, 0, before
 
     def _draw(self) -> StepPlan:
@@ -673,12 +676,10 @@ class MVGSBatchSampler(torch.utils.data.Sampler):
     def __iter__(self) -> Iterator[List[int]]:
         st = self.strategy
         st._rewind()
-        sched = st.schedule
-        if sched.step_count >= sched.total_steps:
-            raise RuntimeError(f"the schedule's {sched.total_steps} steps are all drawn: the loop runs longer than the "
-                               "steps MVGSStrategy was built with (pass steps=max_steps)")
-        while sched.step_count < sched.total_steps:
+        while True:  # _draw refuses a schedule already drawn to its end, naming the cause
             yield list(st._draw().views)
+            if st.schedule.step_count >= st.schedule.total_steps:
+                return
 
     def __len__(self) -> int:
         sched = self.strategy.schedule
@@ -741,15 +742,12 @@ class MVGSBatches:
         st._rewind()
         if st.schedule.step_count >= st.schedule.total_steps:
             raise StopIteration
+        st._close_step()
         st._draw()
         plan, before = st._queue.popleft()
         targets = torch.stack(plan.images)  # [M, H, W, 3] in [0, 1]
         st._start(plan, targets, before)
         chunks = plan.chunks if self.chunked else [list(range(len(plan.views)))]
-        if not self.chunked and self.strategy.config.stats_from == "last" and "last" not in st._warned:
-            st._warned.add("last")
-            warnings.warn("stats_from='last' needs batches(chunked=True): an unchunked batch renders all "
-                          "views in one call, so its statistics come from all of them", stacklevel=2)
         out = [gsplat_batch([plan.cameras[i] for i in c], targets[c], [plan.views[i] for i in c], plan.backgrounds[c])
                for c in chunks]
         return out if self.chunked else out[0]

@@ -80,7 +80,7 @@ def without_machine_paths(text: str) -> str:
     checkouts or scene folders)."""
     import re
 
-    roots = "|".join(sorted({re.escape(str(ROOT)), re.escape(ROOT.as_posix())} | {"/(?:work|tmp|home|root)"}))
+    roots = f"{re.escape(ROOT.as_posix())}|/(?:work|tmp|home|root)"
     return re.sub(rf"(?<![\w.])(?:{roots})(?:/[\w./-]*[\w-])?(?![\w/])", lambda m: repo_path(m.group(0)), text)
 
 

@@ -369,6 +369,8 @@ def test_call_counts_are_checked_at_the_first_step(forward):
     strategy.step_post_backward(splats, optimizers, state, 0, info)
     with pytest.raises(RuntimeError, match="reported .* views for a step of"):
         strategy.step_post_backward(splats, optimizers, state, 0, info)
+    next(it)  # the refused draw lost no plan: the schedule's second step comes next
+    assert strategy.plan.step == 2
 
 
 def test_opacity_resets_follow_the_schedule(forward):

@@ -53,7 +53,7 @@ class Config:
 
     data_dir: Path = BUNDLED
     result_dir: Path = Path("out/gsplat_loop")
-    mvgs_preset: str = "default"  # the recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py
+    mvgs_preset: Any = "default"  # the MVGS recipe: a preset name or an MVGSConfig (the chunked loop passes one)
     batch_size: int = 1
     num_workers: int = 0  # gsplat's trainer uses 4 (a GPU machine); here the CPU trains
     chunk_size: Optional[int] = None  # views per render call of simple_trainer_chunked.py (None: the memory bound)

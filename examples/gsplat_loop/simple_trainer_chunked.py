@@ -11,35 +11,24 @@ backward, before the optimizer step: a refine due at the step's end waits for th
     python examples/gsplat_loop/simple_trainer_chunked.py --preset multiview --chunk-size 2 --steps 1000
 """
 
+import dataclasses
+
 import torch
 import torch.nn.functional as F
 
+import simple_trainer_mvgs
+from common import Config, DataPosition, load_checkpoint, parse_config, run, save_checkpoint
 from mvgs_plugin import MVGSConfig
-
-from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy
-from common import (Config, DataPosition, Dataset, Parser, create_splats_with_optimizers, load_checkpoint,
-                    parse_config, rasterize_splats, run, save_checkpoint)
 from mvgs_plugin.losses import ssim
 
 
-class Runner:
+class Runner(simple_trainer_mvgs.Runner):
+    """simple_trainer_mvgs.py's Runner (its MVGSStrategy built on the preset with
+    cfg.chunk_size) with train() rendering each step in chunks."""
+
     def __init__(self, cfg: Config):
-        self.cfg = cfg
-        self.device = cfg.device
-        self.parser = Parser(data_dir=cfg.data_dir, factor=1, normalize=False, test_every=8)
-        self.trainset = Dataset(self.parser, split="train")
-        self.valset = Dataset(self.parser, split="val")
-        self.scene_scale = self.parser.scene_scale * 1.1
         mvgs = MVGSConfig.from_preset(cfg.mvgs_preset, chunk_size=cfg.chunk_size)
-        self.cfg.strategy = MVGSStrategy(self.cfg.strategy, self.trainset, mvgs, steps=cfg.max_steps)
-
-        self.splats, self.optimizers = create_splats_with_optimizers(self.parser, cfg, self.scene_scale)
-
-        self.cfg.strategy.check_sanity(self.splats, self.optimizers)
-        self.strategy_state = self.cfg.strategy.initialize_state(scene_scale=self.scene_scale)
-
-    def rasterize_splats(self, camtoworlds, Ks, width, height, **kwargs):
-        return rasterize_splats(self.splats, self.cfg, self.parser.background, camtoworlds, Ks, width, height, **kwargs)
+        super().__init__(dataclasses.replace(cfg, mvgs_preset=mvgs))  # MVGSStrategy takes a config or a name
 
     def train(self):
         cfg = self.cfg

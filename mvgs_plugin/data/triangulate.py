@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
+from ..densify.mvad import camera_axes
 from .init import CANDIDATES_PER_POINT, init_region, photo_consistent, random_init_points
 from .scene import PointCloud, Scene
 
@@ -99,7 +100,7 @@ def _pose_distance(cameras: Sequence[Camera]) -> torch.Tensor:
     the angle between their optical axes (radians): near views first, whichever way the rig is
     laid out (an orbit, a grid, a walk)."""
     centres = torch.stack([c.center for c in cameras]).to(torch.float64)
-    axes = torch.stack([c.camera_to_world[:3, 2] for c in cameras]).to(torch.float64)
+    axes = camera_axes(cameras).to(torch.float64)
     axes = axes / torch.linalg.norm(axes, dim=1, keepdim=True)
     d = torch.cdist(centres, centres)
     off = d[~torch.eye(len(cameras), dtype=torch.bool)]
