@@ -48,7 +48,10 @@ __all__ = ["GS3DConfig", "GS3DAdapter", "knn_mean_sq_dist", "SH_C0", "PARAM_NAME
 SH_C0 = 0.28209479177387814  # the degree-0 real SH basis constant, 1 / (2 sqrt(pi))
 PARAM_NAMES = ("means", "sh0", "shN", "scales", "quats", "opacities")
 # The densification statistics and how two ranks' values combine (see statistics()).
-STAT_NAMES = {"grad_accum": "sum", "denom": "sum", "max_radii2D": "max"}
+STAT_NAMES = {"grad_accum": "sum", "denom": "sum", "max_radii2D": "max", "grad_sq_accum": "sum",
+              "coverage_accum": "sum"}
+# Statistics a checkpoint of an earlier release may lack (they start from zero when it is loaded).
+_LATER_STATS = ("grad_sq_accum", "coverage_accum")
 _STATE_FORMAT = "mvgs-gs3d/1"
 # Config fields tied to the running process (a function, backend options): never saved or loaded.
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
@@ -157,6 +160,15 @@ class GS3DConfig:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if f.name not in _RUNTIME_FIELDS}
 
+
+
+def keep_scores_of(opacity: Tensor, coverage: Tensor) -> Tensor:
+    """opacity x coverage (a Gaussian's summed footprint over the window's views), or, when no
+    view was folded in (coverage all 0), opacity x U(0, 1) drawn from a generator of seed 0."""
+    if bool((coverage > 0).any()):
+        return opacity * coverage.to(opacity)
+    draw = torch.rand(len(opacity), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return opacity * draw.to(opacity)
 
 
 def _n_rest(degree: int) -> int:
@@ -442,7 +454,10 @@ class GS3DAdapter:
         grad_accum += |d loss / d means2d[c]| measured in NDC, i.e. the pixel-space gradient
         scaled by (W/2, H/2) as the original CUDA code reports it (so 2e-4 keeps its meaning);
         denom += 1 (each view is one visit, so a chunk of C views adds up to C);
-        max_radii2D = max(max_radii2D, radius in pixels).
+        max_radii2D = max(max_radii2D, radius in pixels);
+        grad_sq_accum += the same NDC norm squared (for the consistency of densify_scores);
+        coverage_accum += pi radius^2 / (W H), the share of the view its footprint covers (for
+        keep_scores).
 
         gsplat's DefaultStrategy additionally multiplies the gradient by the number of cameras
         of the render call, because its loss averages over them; here the controller's loss is
@@ -469,7 +484,10 @@ class GS3DAdapter:
         norms = ndc.norm(dim=-1).to(self.grad_accum.dtype)  # [C, N]
         vis = visible.to(self.grad_accum.dtype)
         self.grad_accum += (norms * vis).sum(dim=0)
+        self.grad_sq_accum += (norms.square() * vis).sum(dim=0)
         self.denom += vis.sum(dim=0)
+        area = math.pi * radius.to(self.grad_accum.dtype).square() / float(meta["width"] * meta["height"])
+        self.coverage_accum += (area * vis).sum(dim=0)
         radius = torch.where(visible, radius.to(self.max_radii2D.dtype), torch.zeros_like(self.max_radii2D))
         self.max_radii2D = torch.maximum(self.max_radii2D, radius.max(dim=0).values)
 
@@ -479,12 +497,12 @@ class GS3DAdapter:
         return dict(self.params)
 
     def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
-        """grad_accum and denom [N] add up over disjoint sets of views; max_radii2D [N] is a
-        maximum."""
+        """grad_accum, grad_sq_accum, coverage_accum and denom [N] add up over disjoint sets of
+        views; max_radii2D [N] is a maximum."""
         return {name: (self.stats[name], STAT_NAMES[name]) for name in STAT_NAMES}
 
     def load_statistics(self, stats: Dict[str, Tensor]) -> None:
-        """Replace grad_accum, denom and max_radii2D by [N] tensors (cast to the model's dtype)."""
+        """Replace every statistic of STAT_NAMES by [N] tensors (cast to the model's dtype)."""
         names = tuple(STAT_NAMES)
         if set(stats) != set(names):
             raise ValueError(f"statistics must be exactly {list(names)}, got {sorted(stats)}")
@@ -501,6 +519,41 @@ class GS3DAdapter:
         return torch.where(self.denom > 0, self.grad_accum / self.denom.clamp_min(1),
                            torch.zeros_like(self.grad_accum))
 
+    def consistency(self) -> Tensor:
+        """[N] in [1/n, 1]: how evenly a Gaussian's screen-space gradient is shared by the n views
+        that saw it since the last densification, (sum g)^2 / (n sum g^2) over its visits (1: the
+        same gradient in every view; 1/n: one view holds it all; 0 where never visible or never
+        pulled). The views may come from one step (M views) or from the window's one-view steps.
+        Statistics without squares (set by hand, or loaded from a release before grad_sq_accum)
+        count as consistent (1)."""
+        num = self.grad_accum.square()
+        den = self.denom * self.grad_sq_accum
+        unknown = (self.grad_sq_accum <= 0) & (self.grad_accum > 0)
+        ratio = torch.where(den > 0, num / den.clamp_min(torch.finfo(den.dtype).tiny), torch.zeros_like(num))
+        return torch.where(unknown, torch.ones_like(ratio), ratio.clamp(max=1.0))
+
+    def densify_scores(self, rank_by: str = "consistency") -> Tensor:
+        """[N] the order in which growth candidates are kept under a cap (largest first):
+        "gradient" is 3DGS's mean gradient per visit; "consistency" (default) multiplies it by
+        consistency(), so error that every view sees is densified before error one view alone
+        reports (FastGS's multi-view consistency idea, scored here from the statistics every
+        step already collects)."""
+        if rank_by == "gradient":
+            return self.mean_grads()
+        if rank_by == "consistency":
+            return self.mean_grads() * self.consistency()
+        raise ValueError(f"rank_by must be 'gradient' or 'consistency', got {rank_by!r}")
+
+    def keep_scores(self) -> Tensor:
+        """[N] the order in which Gaussians are kept when the model must shrink to a cap (largest
+        kept): opacity times the footprint summed over the views since the last densification
+        (coverage_accum, shares of each view), so a Gaussian that covers much of many views
+        outranks one seen in a single view or nearly transparent. Before any view was folded in
+        (all coverage 0) nothing says which Gaussian helps: opacity times a uniform draw of a
+        fixed seed, so a cut keeps a random subset of the points (size is no guide: the largest
+        initial Gaussians are the isolated ones, and size pruning removes them later)."""
+        return keep_scores_of(self.get_opacities().detach(), self.coverage_accum)
+
     # ---- densification -------------------------------------------------------------------
     def densify(self, ctx: DensifyContext) -> DensifyReport:
         """The original 3DGS densify_and_prune, with MVGS cross-ray boxes before it.
@@ -513,21 +566,24 @@ class GS3DAdapter:
           3. split: g >= β and max scale > percent_dense * E -> split_samples children at
              mean + R (s ⊙ n), n ~ N(0, I), scale s / (0.8 * split_samples), other attributes
              copied; the parent is removed;
-          with config.max_gaussians or ctx.max_primitives, growth stops at the (lower) cap: the
-          candidates of 1-3 are ranked by g together and the best that fit are kept (each adds 1,
-          a split adds samples - 1);
           4. prune (all rows, new ones included): opacity < min_opacity and, with
              ctx.prune_large, max scale > max_world_size * E or (when config.max_screen_size is
              set) max screen radius > max_screen_size.
+        With a cap (the lower of config.max_gaussians and ctx.max_primitives) the count after the
+        call never exceeds it: the rows step 4 prunes are not grown from; when the survivors
+        alone exceed the cap, the ones with the lowest keep_scores() are removed down to it (and
+        nothing grows); otherwise the candidates of 1-3 are ranked by densify_scores(ctx.rank_by)
+        together and the best whose growth fits the room left are kept (each adds 1, a split
+        adds samples - 1).
         New rows start with zero statistics, a zero radius and zero Adam moments; surviving rows
         keep theirs. As in the original, the parameters are new tensors without gradients, so an
         optimizer step right after densify leaves them unchanged for that step. The statistics
         are reset to zero.
 
         Report: cloned / split / from_boxes count the selected Gaussians (a split adds
-        split_samples - 1 net); pruned counts every row the prune rules removed, new rows
-        included (split parents count as split only); so after = before + from_boxes + cloned
-        + split * (split_samples - 1) - pruned.
+        split_samples - 1 net); pruned counts every row removed but split parents (rule prunes,
+        new rows included, and rows shed to the cap, also in extra["shed_to_cap"]); so after =
+        before + from_boxes + cloned + split * (split_samples - 1) - pruned.
         """
         try:
             beta = float(ctx.grad_threshold)
@@ -540,21 +596,40 @@ class GS3DAdapter:
         extent = check_float("scene_extent", ctx.scene_extent, positive=True)
         n0 = self.num_primitives()
         g = self.mean_grads()
+        score = self.densify_scores(getattr(ctx, "rank_by", "consistency"))
         max_scale = self.get_scales().detach().max(dim=1).values
         small = max_scale <= self.config.percent_dense * extent
         box_sel, dropped_box_cap = self.box_selection(ctx, g)
         clone_sel = (g >= beta) & small
         split_sel = (g >= beta) & ~small
-        box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, g,
-                                                                      ctx.max_primitives)
+        cap = growth_cap(self.config.max_gaussians, ctx.max_primitives)
+        shed = torch.zeros(n0, dtype=torch.bool, device=g.device)
+        dropped_cap = 0
+        if cap is not None:
+            gone = self.prune_mask({k: v.detach() for k, v in self.params.items()}, self.max_radii2D, extent,
+                                   ctx.prune_large)
+            excess = n0 - int(gone.sum()) - cap
+            if excess > 0:  # shrink to the cap: the lowest keep scores go
+                keep_score = torch.where(gone, torch.full_like(g, math.inf), self.keep_scores().to(g))
+                shed[torch.sort(keep_score, stable=True).indices[:excess]] = True
+                gone = gone | shed
+            box_sel, clone_sel, split_sel = box_sel & ~gone, clone_sel & ~gone, split_sel & ~gone
+            room = max(0, cap - (n0 - int(gone.sum())))
+            box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room)
 
         new_rows = self._new_rows(box_sel, clone_sel, split_sel)
         n_new = new_rows["means"].shape[0]
         all_rows = {k: torch.cat([self.params[k].detach(), new_rows[k]]) for k in PARAM_NAMES}
         radii = torch.cat([self.max_radii2D, self.max_radii2D.new_zeros(n_new)])
-        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large)
+        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large) | torch.cat([shed, shed.new_zeros(n_new)])
         parents = torch.cat([split_sel, split_sel.new_zeros(n_new)])
         keep = ~(prune | parents)
+        if cap is not None and int(keep.sum()) > cap:  # a subclass's prune rule kept more: the newest rows go
+            kept_new = keep.nonzero().squeeze(1)
+            kept_new = kept_new[kept_new >= n0]
+            over = int(keep.sum()) - cap
+            prune[kept_new[len(kept_new) - over:]] = True
+            keep = ~(prune | parents)
         src = torch.cat([torch.arange(n0, device=keep.device),
                          torch.full((n_new,), -1, dtype=torch.long, device=keep.device)])
         self._replace({k: v[keep] for k, v in all_rows.items()}, src[keep])
@@ -564,7 +639,8 @@ class GS3DAdapter:
             split=int(split_sel.sum()), pruned=int((prune & ~parents).sum()),
             from_boxes=int(box_sel.sum()),
             extra={"grad_threshold": beta, "split_children": int(split_sel.sum()) * self.config.split_samples,
-                   "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap},
+                   "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap,
+                   "shed_to_cap": int(shed.sum()), "cap": cap},
         )
 
     # ---- densification hooks: what a subclass may override (GS4DAdapter tests the boxes at the
@@ -583,25 +659,19 @@ class GS3DAdapter:
             sel = top_by_score(sel, g, check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
 
-    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, g: Tensor,
-                    max_primitives: Optional[int] = None):
-        """Apply config.max_gaussians and the call's ctx.max_primitives (the lower of the two): rank
-        all growth candidates by mean gradient and keep the longest prefix whose net growth fits
-        (measured against the count before pruning, so the result never exceeds the cap). Returns
-        the three masks and how many candidates fell."""
-        cap = growth_cap(self.config.max_gaussians, max_primitives)
-        if cap is None:
-            return box_sel, clone_sel, split_sel, 0
+    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int):
+        """Rank all growth candidates by `score` (largest first, ties in row order) and keep the
+        longest prefix whose net growth fits `room` (a box clone or clone adds 1, a split adds
+        split_samples - 1). Returns the three masks and how many candidates fell."""
         masks = [box_sel, clone_sel, split_sel]
         costs = [1, 1, self.config.split_samples - 1]
         idx = [m.nonzero().squeeze(1) for m in masks]
-        score = torch.cat([g[i] for i in idx])
-        cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=g.device)
+        ranked = torch.cat([score[i] for i in idx])
+        cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=score.device)
                           for i, c in zip(idx, costs)])
-        budget = max(0, cap - self.num_primitives())
-        order = torch.sort(score, descending=True, stable=True).indices
-        fits = torch.zeros_like(score, dtype=torch.bool)
-        fits[order] = torch.cumsum(cost[order], 0) <= budget
+        order = torch.sort(ranked, descending=True, stable=True).indices
+        fits = torch.zeros_like(ranked, dtype=torch.bool)
+        fits[order] = torch.cumsum(cost[order], 0) <= room
         out, start = [], 0
         for m, i in zip(masks, idx):
             kept = torch.zeros_like(m)
@@ -726,10 +796,15 @@ class GS3DAdapter:
             self.config = old_config
             raise
         n = raw["means"].shape[0]
+        stats = {k: torch.zeros(n) for k in _LATER_STATS if k not in state["stats"]}  # an earlier release's
+        stats.update(state["stats"])
         for key in STAT_NAMES:
-            if tuple(state["stats"][key].shape) != (n,):
+            if key not in stats:
                 self.config = old_config
-                raise ValueError(f"stats[{key!r}] must be [{n}], got {list(state['stats'][key].shape)}")
+                raise ValueError(f"state has no statistic {key!r}; not a GS3DAdapter state_dict")
+            if tuple(stats[key].shape) != (n,):
+                self.config = old_config
+                raise ValueError(f"stats[{key!r}] must be [{n}], got {list(stats[key].shape)}")
         self.scene_extent = float(state["scene_extent"])
         self._step = int(state["step"])
         self._mean_reference = None
@@ -737,7 +812,7 @@ class GS3DAdapter:
         self._build(raw)
         self.optimizer.load_state_dict(state["optimizer"])
         for key in STAT_NAMES:
-            self.stats[key] = state["stats"][key].to(device=ref.device, dtype=ref.dtype).clone()
+            self.stats[key] = stats[key].to(device=ref.device, dtype=ref.dtype).clone()
         self._generator.set_state(state["generator"])
 
     def export(self, path: str, camera: Optional[Camera] = None) -> None:

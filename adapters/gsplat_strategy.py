@@ -92,8 +92,9 @@ import torch
 from torch import Tensor
 
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import duplicate, reset_opa
+from gsplat.strategy.ops import duplicate, remove, reset_opa
 
+from mvgs_plugin.adapters.gs3d import keep_scores_of
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
@@ -294,7 +295,35 @@ class MVGSStrategy(DefaultStrategy):
 
     # ---- gsplat's Strategy interface ----------------------------------------------------
     def check_sanity(self, params, optimizers) -> None:
+        """The wrapped strategy's check; with config.max_gaussians, a model above the budget is
+        cut to it here (gsplat's trainers call this once, before the first render): its lowest
+        keep scores go (see keep_scores)."""
         self.strategy.check_sanity(params, optimizers)
+        budget = self.config.max_gaussians
+        if budget is not None and len(params["means"]) > budget:
+            self._shed(params, optimizers, {}, budget)
+
+    @staticmethod
+    def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:
+        """[N] the order in which Gaussians are kept when the model must shrink to the budget
+        (largest kept): opacity times the summed footprint of the window's views (pi radius^2 /
+        (W H) per visit, state["mvgs_coverage"]) when any was folded in, else opacity times a
+        uniform draw of a fixed seed (a random subset), as GS3DAdapter.keep_scores."""
+        opacity = torch.sigmoid(params["opacities"].detach().reshape(-1))
+        coverage = None if state is None else state.get("mvgs_coverage")
+        if not (isinstance(coverage, Tensor) and len(coverage) == len(opacity)):
+            coverage = torch.zeros_like(opacity)
+        return keep_scores_of(opacity, coverage)
+
+    def _shed(self, params, optimizers, state, cap: int) -> int:
+        """Remove the lowest keep scores down to `cap` (gsplat's ops.remove); returns how many."""
+        excess = len(params["means"]) - cap
+        if excess <= 0:
+            return 0
+        mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
+        mask[torch.sort(self.keep_scores(params, state), stable=True).indices[:excess]] = True
+        remove(params=params, optimizers=optimizers, state=state, mask=mask)
+        return excess
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         return self.strategy.initialize_state(scene_scale=scene_scale)
@@ -332,8 +361,10 @@ class MVGSStrategy(DefaultStrategy):
                           stacklevel=2)
         if collect:
             self._check_views(info, packed, c, m, step)
-            self._call_strategy(params, optimizers, state, info if c == m else {**info, "n_cameras": m},
-                                packed, refine=None)
+            full = info if c == m else {**info, "n_cameras": m}
+            self._call_strategy(params, optimizers, state, full, packed, refine=None)
+            if self.config.max_gaussians is not None:
+                self._score_statistics(state, full, packed, len(params["means"]))
         if renders is not None and plan.wants_maps and self._targets is not None:
             targets = self._targets[self._reported:self._reported + c]
             if tuple(renders.shape[:3]) != tuple(targets.shape[:3]):
@@ -503,11 +534,62 @@ class MVGSStrategy(DefaultStrategy):
                 if self.verbose:
                     print(f"Step {work['step']}: opacities reset to {self.strategy.prune_opa * 2.0:g}.")
 
+    def _score_statistics(self, state, info, packed: bool, n: int) -> None:
+        """The budget's statistics beside gsplat's grad2d and count, from the same gradient
+        (absgrad when the strategy uses it, scaled as gsplat scales it): the squared norm per
+        visit (mvgs_grad2d_sq, for consistency) and the footprint share pi r^2 / (W H)
+        (mvgs_coverage, for keep_scores). gsplat's ops carry them through grow and prune."""
+        means2d = info["means2d"]
+        grads = (means2d.absgrad if self.strategy.absgrad else means2d.grad).detach().clone()
+        w, h, cams = info["width"], info["height"], info["n_cameras"]
+        grads[..., 0] *= w / 2.0 * cams
+        grads[..., 1] *= h / 2.0 * cams
+        radii = info["radii"]
+        if packed:  # [nnz, 2] rows, as gsplat counts them
+            ids = info["gaussian_ids"]
+            norms, r = grads.norm(dim=-1), radii.reshape(len(ids), -1).max(-1).values
+        else:
+            sel = (radii > 0).reshape(*radii.shape[:2], -1).all(-1)
+            ids = torch.where(sel)[1]
+            norms, r = grads[sel].norm(dim=-1), radii[sel].reshape(int(sel.sum()), -1).max(-1).values
+        for key in ("mvgs_grad2d_sq", "mvgs_coverage"):
+            if not isinstance(state.get(key), Tensor) or len(state[key]) != n:
+                state[key] = torch.zeros(n, device=grads.device)
+        state["mvgs_grad2d_sq"].index_add_(0, ids, norms.square().to(state["mvgs_grad2d_sq"]))
+        state["mvgs_coverage"].index_add_(0, ids, (math.pi * r.float().square() / float(w * h)).to(state["mvgs_coverage"]))
+
+    def _rank_growth(self, state, threshold: float, room: int) -> int:
+        """Keep only the `room` growth candidates (mean gradient >= threshold) with the best
+        densify score (config.densify_rank, as GS3DAdapter.densify_scores): the others' grad2d is
+        zeroed before the strategy's refine, so it does not grow them. Returns how many fell."""
+        grad2d, count = state.get("grad2d"), state.get("count")
+        if not isinstance(grad2d, Tensor):
+            return 0
+        mean = grad2d / count.clamp_min(1)
+        cand = mean > threshold
+        if int(cand.sum()) <= room:
+            return 0
+        score = mean
+        sq = state.get("mvgs_grad2d_sq")
+        if self.config.densify_rank == "consistency" and isinstance(sq, Tensor) and len(sq) == len(mean):
+            den = count * sq
+            cons = torch.where(den > 0, grad2d.square() / den.clamp_min(torch.finfo(den.dtype).tiny),
+                               torch.ones_like(den)).clamp(max=1.0)
+            score = mean * cons
+        order = torch.sort(torch.where(cand, score, torch.full_like(score, -math.inf)), descending=True,
+                           stable=True).indices
+        dropped = order[room:int(cand.sum())]
+        grad2d[dropped] = 0
+        return len(dropped)
+
     def _refine(self, params, optimizers, state, plan: StepPlan, step) -> None:
         means = params["means"].detach()
         bounds = torch.stack([means.amin(0), means.amax(0)]).double().cpu() if len(means) else None
         ctx = self.schedule.densify_context(plan, None, len(means), bounds)
         before = len(means)
+        cap, dropped, shed = ctx.max_primitives, 0, 0
+        if cap is not None:  # growth ranked into the room the budget leaves (a grow adds one row)
+            dropped = self._rank_growth(state, float(ctx.grad_threshold), max(0, cap - before))
         from_boxes = 0
         if ctx.boxes is not None and len(ctx.boxes):
             from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes)
@@ -515,10 +597,16 @@ class MVGSStrategy(DefaultStrategy):
                 print(f"Step {step}: {from_boxes} GSs copied in {len(ctx.boxes)} cross-ray boxes. "
                       f"Now having {len(params['means'])} GSs.")
         self._call_strategy(params, optimizers, state, None, False, refine=ctx, step=step)
+        if cap is not None:
+            shed = self._shed(params, optimizers, state, cap)  # the boxes' clones may have taken room
+            for key in ("mvgs_grad2d_sq", "mvgs_coverage"):  # the window restarts, as gsplat's grad2d
+                if isinstance(state.get(key), Tensor):
+                    state[key] = torch.zeros(len(params["means"]), device=state[key].device)
         self.last_refine = {"step": plan.step, "loop_step": step, "clock": plan.clock,
                             "threshold": float(ctx.grad_threshold),
                             "boxes": 0 if ctx.boxes is None else len(ctx.boxes), "from_boxes": from_boxes,
-                            "before": before, "after": len(params["means"])}
+                            "before": before, "after": len(params["means"]), "cap": cap,
+                            "dropped_by_max_gaussians": dropped, "shed_to_cap": shed}
 
     def _clone_in_boxes(self, params, optimizers, state, boxes: Tensor, cap: Optional[int]) -> int:
         """Copy every Gaussian strictly inside a box (at most `cap`, largest mean gradient

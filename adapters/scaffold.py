@@ -545,10 +545,12 @@ class ScaffoldAdapter:
              g >= β * 2^i that survive a draw with probability 1 - 0.5^(i+1) seed their cell at
              that level when no anchor (old or added earlier in this call) holds it;
           a new anchor sits at the cell centre, with feature = the element-wise max of its seeds'
-          anchors' features, zero offsets, scaling log(cell edge) x 6; config.max_anchors caps the
-          total (later candidates dropped);
+          anchors' features, zero offsets, scaling log(cell edge) x 6; the cap (the lower of
+          config.max_anchors and ctx.max_primitives) bounds the count after the call (later
+          candidates dropped);
           prune: old anchors with anchor_denom > t_a and opacity_accum < min_opacity *
-          anchor_denom.
+          anchor_denom; when the survivors alone exceed the cap, the ones with the lowest
+          keep_scores() go too (nothing grows then).
         Statistics: judged children and judged anchors restart from 0; new rows start at 0;
         views_seen restarts. Adam moments follow their rows (new rows 0); the MLPs' state is left
         alone. The anchor rows are new tensors without gradients (as in 3DGS densification).
@@ -566,7 +568,13 @@ class ScaffoldAdapter:
         xyz = self.child_positions().reshape(-1, 3)
         feats = self.params["features"].detach().repeat_interleave(k, dim=0)  # [A*k, F]
         cap = growth_cap(self.config.max_anchors, ctx.max_primitives)
-        budget = math.inf if cap is None else max(0, cap - a0)
+        prune = (self.anchor_denom > t_anchor) & (self.opacity_accum < self.config.min_opacity * self.anchor_denom)
+        shed = torch.zeros_like(prune)
+        if cap is not None and a0 - int(prune.sum()) > cap:  # shrink to the cap: the lowest keep scores go
+            score = torch.where(prune, torch.full_like(self.opacity_accum, math.inf), self.keep_scores())
+            shed[torch.sort(score, stable=True).indices[:a0 - int(prune.sum()) - cap]] = True
+            prune = prune | shed
+        budget = math.inf if cap is None else max(0, cap - (a0 - int(prune.sum())))
         added: List[Tuple[Tensor, Tensor, float]] = []  # (centres [Q,3], features [Q,F], cell edge)
         occupied = self.anchors
         box_new = 0
@@ -589,13 +597,24 @@ class ScaffoldAdapter:
             budget -= len(cells)
             added.append((cells, f, size))
             occupied = torch.cat([occupied, cells])
-        prune = (self.anchor_denom > t_anchor) & (self.opacity_accum < self.config.min_opacity * self.anchor_denom)
         anchor_judged = self.anchor_denom > t_anchor
         self._apply(added, prune, judged.reshape(a0, k), anchor_judged)
         n_new = sum(len(c) for c, _, _ in added)
         return DensifyReport(before=a0, after=self.num_primitives(), pruned=int(prune.sum()), from_boxes=box_new,
                              extra={"grad_threshold": beta, "grown": n_new - box_new, "grown_per_level": per_level,
-                                    "visit_thresholds": (t_child, t_anchor)})
+                                    "visit_thresholds": (t_child, t_anchor), "shed_to_cap": int(shed.sum()),
+                                    "cap": cap})
+
+    def keep_scores(self) -> Tensor:
+        """[A] the order in which anchors are kept when the model must shrink to a cap (largest
+        kept): the opacity their children showed summed over the views since the last
+        densification (opacity_accum), so an anchor that shows in many views outranks one seen in
+        a single view. Before any view was folded in, a uniform draw of a fixed seed (a random
+        subset of the anchors is kept)."""
+        if bool((self.opacity_accum > 0).any()):
+            return self.opacity_accum.clone()
+        return torch.rand(self.num_primitives(), generator=torch.Generator().manual_seed(0),
+                          dtype=torch.float64).to(self.opacity_accum)
 
     def _seed(self, xyz: Tensor, feats: Tensor, g: Tensor, sel: Tensor, occupied: Tensor, size: float,
               cap: Optional[int], budget: float) -> Tuple[Tensor, Tensor]:

@@ -10,6 +10,8 @@ Variants (each a change of MVGSConfig.baseline() before it is compressed to the 
   noreset   no opacity resets
   every3x   densification 3x less often (every 30 steps of a 3k run instead of 10)
   window4   densification ends at 1/4 of the run instead of 1/2 (resets with it)
+  sh1       SH degree 1 instead of 3 (the model's view-dependent colour, not the clock)
+  lrhalf    the means' learning rate decays over half the run instead of all of it
 
     python benchmarks/probe_baseline_schedule.py --data scenes/reflective scenes/clutter --steps 1000 2000 3000
 """
@@ -17,6 +19,7 @@ Variants (each a change of MVGSConfig.baseline() before it is compressed to the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
@@ -25,7 +28,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {"plain": {}, "noreset": {"opacity_reset_every": 10**9}, "every3x": {"densify_every": 300},
-            "window4": {"densify_until": 7_500}}
+            "window4": {"densify_until": 7_500}, "sh1": {}, "lrhalf": {}}
+# variants that change the model's config (mvgs_plugin.cli.model_config) rather than the clock
+MODEL_VARIANTS = {"sh1": lambda c: dataclasses.replace(c, sh_degree=1),
+                  "lrhalf": lambda c: dataclasses.replace(c, position_lr_max_steps=max(1, c.position_lr_max_steps // 2))}
 
 
 def one(variant: str, argv) -> None:
@@ -36,6 +42,11 @@ def one(variant: str, argv) -> None:
 
     made = MVGSConfig.baseline.__func__
     MVGSConfig.baseline = classmethod(lambda cls, **o: made(cls, **{**VARIANTS[variant], **o}))
+    if variant in MODEL_VARIANTS:
+        from mvgs_plugin import cli
+
+        base = cli.model_config
+        cli.model_config = lambda *a, **k: MODEL_VARIANTS[variant](base(*a, **k))
     sys.argv = ["train_3dgs.py", *argv]
     runpy.run_path(str(ROOT / "examples" / "train_3dgs.py"), run_name="__main__")
 

@@ -49,7 +49,7 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     scene = scene_from_args(args)
     config = config_from_args(args, scene)
-    model = model_config(config, args.seed, args.max_gaussians, rasterize_function(args))
+    model = model_config(config, args.seed, rasterize=rasterize_function(args))
     adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0

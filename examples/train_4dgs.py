@@ -62,7 +62,7 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     total = config.clock_length
     coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
-    canonical = model_config(config, args.seed, args.max_gaussians, rasterize_function(args))
+    canonical = model_config(config, args.seed, rasterize=rasterize_function(args))
     return GS4DConfig(canonical=canonical, coarse_steps=coarse,
                       fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
 

@@ -34,7 +34,7 @@ from mvgs_plugin.cli import (
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
-    common_args(ap, "out/train_scaffold")  # --max-gaussians caps the anchors
+    common_args(ap, "out/train_scaffold")  # --max-gaussians: the budget of anchors
     ap.add_argument("--voxel-size", type=float_above(0), default=None,
                     help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
@@ -46,7 +46,7 @@ def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:
     run, as train_3dgs.py compresses the 3DGS schedules."""
     clock = config.clock_length
     return ScaffoldConfig(voxel_size=args.voxel_size, use_distance=args.use_distance, seed=args.seed,
-                          lr_max_steps=clock, max_anchors=args.max_gaussians)
+                          lr_max_steps=clock)
 
 
 def main(argv=None) -> dict:

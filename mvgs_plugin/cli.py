@@ -133,7 +133,8 @@ def scene_from_args(args):
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
-    the rasterizer (None: GS3DConfig's, the reference one)."""
+    the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
+    growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead)."""
     clock = config.clock_length
     extra = {} if rasterize is None else {"rasterize": rasterize}
     return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
@@ -261,8 +262,12 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="cap densification within a stage at this multiple of the count the stage began with "
                          "(default: no cap)")
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
-                    help="cap on the model's primitives (Gaussians; anchors for Scaffold-GS); densification "
-                         "keeps the candidates with the largest gradients that fit (default: no cap)")
+                    help="budget of primitives (Gaussians; anchors for Scaffold-GS): the run never holds more; "
+                         "a larger initial model is cut to it by keep score, growth follows a schedule that "
+                         "reaches it when densification ends (MVGSConfig.max_gaussians; default: no budget)")
+    ap.add_argument("--densify-rank", choices=["consistency", "gradient"], default=None,
+                    help="score that picks growth candidates when a budget binds: consistency (the gradient times "
+                         "how evenly the views share it) or gradient (3DGS) (default: consistency)")
     ap.add_argument("--out", type=Path, default=Path(out),
                     help="output folder (created; metrics.json, test/*.png and the model are written there)")
     ap.add_argument("--seed", type=int_at_least(0), default=0,
@@ -312,7 +317,8 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
-    for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth"):
+    for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
+                 "densify_rank"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)

@@ -238,6 +238,17 @@ class MVGSConfig:
         the first stage), passed to the adapter as DensifyContext.max_primitives (the candidates
         with the largest gradients are kept). Densification tied to the stage, as DashGaussian
         ties the count to the resolution. Measured in docs/equal_compute.md.
+    max_gaussians: None, or the run's budget of primitives (Gaussians; anchors for Scaffold-GS):
+        the model never holds more. A model that starts above it is cut to it before the first
+        step (its lowest keep scores go); growth then follows a schedule that starts at the
+        initial count (at most N) and reaches N when the densification window ends,
+        n0 + (N - n0) (1 - (1 - x)^2), x the share of the window passed (front-loaded: half the
+        growth is allowed by a quarter of the window, as 3DGS grows most early); the candidates
+        are ranked by densify_rank. Passed to the adapter as DensifyContext.max_primitives; the
+        controller stops the run if an adapter exceeds it. Measured in docs/equal_compute.md.
+    densify_rank: which score picks the growth candidates when a cap (max_gaussians,
+        stage_growth) binds: "consistency" (the mean gradient times how evenly the views of the
+        window share it; see GS3DAdapter.densify_scores) or "gradient" (3DGS's mean gradient).
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
         "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
         nearly equal count along the sorted training times, one view per bin; see sampler.py).
@@ -268,6 +279,8 @@ class MVGSConfig:
     views_scaling: str = "none"
     max_views_fraction: Optional[float] = None
     stage_growth: Optional[float] = None
+    max_gaussians: Optional[int] = None
+    densify_rank: str = "consistency"
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
@@ -291,7 +304,8 @@ class MVGSConfig:
             elif not isinstance(value, kind):
                 raise ValueError(f"{group} must be a {kind.__name__}, got {value!r}")
         choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "time_spread": ("random", "stratified"),
-                   "forward_rig": ("pyramid", "finest"), "views_scaling": ("none", "sqrt")}
+                   "forward_rig": ("pyramid", "finest"), "views_scaling": ("none", "sqrt"),
+                   "densify_rank": ("consistency", "gradient")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -307,6 +321,8 @@ class MVGSConfig:
         if self.max_views_fraction is not None and self.max_views_fraction > 1:
             raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
         _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
+        if self.max_gaussians is not None:
+            check_int("max_gaussians", self.max_gaussians, 1)
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
@@ -387,13 +403,15 @@ class MVGSConfig:
     @classmethod
     def multiview(cls, **overrides) -> "MVGSConfig":
         """The paper's method with our fixes (the default before the equal-compute study):
-        continuous schedule, statistics from all views, MVAD about the scene centre, CRD with
-        its guards and a cap, and β = 2e-4 meant for 800 px wide images (NeRF-synthetic's,
-        where 3DGS set it), scaled to the width of every pyramid level (grad_threshold_width).
-        M views at every level: it wins at equal steps and loses at equal compute."""
+        continuous schedule, statistics from all views, MVAD about the scene centre, and β = 2e-4
+        meant for 800 px wide images (NeRF-synthetic's, where 3DGS set it), scaled to the width of
+        every pyramid level (grad_threshold_width). M views at every level: it wins at equal steps
+        and loses at equal compute. Cross-ray densification is off (paper() keeps it): with its
+        guards it cloned almost nothing in every run measured and did not change the result
+        (docs/ablation/README.md); CRDConfig(enabled=True) or --crd turns it back on with them."""
         stages = (Stage(8, 48, 3_000), Stage(4, 24, 3_000), Stage(2, 12, 3_000), Stage(1, 8, 30_000))
         return cls(**{"stages": stages, "preset": "multiview", "mvad": MVADConfig(enabled=True),
-                      "crd": CRDConfig(enabled=True), "grad_threshold_width": 800.0, **overrides})
+                      "grad_threshold_width": 800.0, **overrides})
 
     @classmethod
     def default(cls, **overrides) -> "MVGSConfig":

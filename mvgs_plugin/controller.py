@@ -29,7 +29,7 @@ from .distributed import Collective, require_support
 from .io import load_checked, save_checked
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
-from .protocol import Adapter, DensifyReport
+from .protocol import Adapter, DensifyContext, DensifyReport
 from .schedule import ViewSchedule
 
 # MVGSConfig fields a resumed run may change (speed, memory and guards, not what it trains)
@@ -182,6 +182,9 @@ class MVGS:
     def step(self) -> StepInfo:
         """Runs the next training step and returns what it did."""
         t_step = time.perf_counter()
+        budget = self.config.max_gaussians
+        if budget is not None and self.adapter.num_primitives() > budget:
+            self._shrink_to(budget)
         self.schedule.primitive_count = self.adapter.num_primitives()
         plan = self.schedule.next()
         adapter = self.adapter
@@ -214,6 +217,7 @@ class MVGS:
                 ctx = self.schedule.densify_context(plan, maps, adapter.num_primitives(), bounds)
                 with timer("adapter"):
                     report = adapter.densify(ctx)
+                self._check_cap(ctx.max_primitives)
         with timer("adapter"):
             if plan.reset_opacity:
                 with torch.no_grad():
@@ -236,6 +240,24 @@ class MVGS:
             mvad_fired=ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan),
             loss_seconds=seconds["loss"], adapter_seconds=seconds["adapter"],
         )
+
+    def _shrink_to(self, budget: int) -> None:
+        """Cut a model above config.max_gaussians to it before a step renders: a densification
+        call that grows nothing (threshold +inf) with the budget as its cap, so the adapter drops
+        its lowest-ranked rows (GS3DAdapter.keep_scores)."""
+        ctx = DensifyContext(step=self.schedule.step_count, grad_threshold=math.inf,
+                             scene_extent=float(self.scene.extent), max_primitives=budget,
+                             rank_by=self.config.densify_rank)
+        with torch.no_grad():
+            self.adapter.densify(ctx)
+        self._check_cap(budget)
+
+    def _check_cap(self, cap: Optional[int]) -> None:
+        n = self.adapter.num_primitives()
+        if cap is not None and n > cap:
+            raise RuntimeError(f"{type(self.adapter).__name__}.densify left {n} primitives, above the cap "
+                               f"{cap} it was given (DensifyContext.max_primitives, from config.max_gaussians or "
+                               "stage_growth): the adapter must not hold more than the cap after a densify call")
 
     def _render_and_backward(self, plan, mine: Sequence[int], maps: Optional[List], timer: "PhaseTimer") -> float:
         """Renders and backpropagates the step's views at positions `mine`, chunk by chunk (the

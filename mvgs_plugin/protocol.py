@@ -66,8 +66,14 @@ class DensifyContext:
     prune_large: whether size-based pruning (screen radius / world size) is active now (the
         original 3DGS turns it on after the first opacity reset).
     cameras: the cameras of the step that triggered the call (stage resolution).
-    max_primitives: a cap on the primitive count this call's growth may reach (None: no cap from
-        the controller; MVGSConfig.stage_growth sets it). Pruning runs as usual.
+    max_primitives: a cap on the primitive count after the call (None: no cap from the
+        controller; MVGSConfig.max_gaussians and stage_growth set it). Growth stops at it; a model
+        that already holds more after its prune rules sheds its lowest-ranked rows down to it (the
+        bundled adapters rank by keep score: GS3DAdapter.keep_scores). The controller checks the
+        count after the call and stops the run when an adapter exceeds the cap.
+    rank_by: which score orders the growth candidates when a cap binds: "consistency" (the
+        gradient weighted by how evenly the views share it, GS3DAdapter.densify_scores) or
+        "gradient" (3DGS's mean gradient). MVGSConfig.densify_rank sets it.
     """
 
     step: int
@@ -78,6 +84,7 @@ class DensifyContext:
     prune_large: bool = False
     cameras: Sequence[Camera] = ()
     max_primitives: Optional[int] = None
+    rank_by: str = "consistency"
 
 
 @dataclass

@@ -161,6 +161,7 @@ class ViewSchedule:
         self._scaled: Dict[Tuple[int, int], Camera] = {}
         self.step_count = 0
         self.stage_start_count: Optional[int] = None  # primitive_count when the current stage began
+        self.initial_count: Optional[int] = None  # primitive_count when the first step began
         self._warned_no_maps = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
@@ -182,6 +183,8 @@ class ViewSchedule:
         pos = self.plan.locate(s)
         if pos.first_in_stage or self.stage_start_count is None:
             self.stage_start_count = self.primitive_count
+        if self.initial_count is None:
+            self.initial_count = self.primitive_count
         ids = self.sampler.sample(min(pos.stage.views, len(self.scene.train_cameras)))
         cams = [self._camera(i, pos.stage.factor) for i in ids]
         images = ([self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
@@ -276,14 +279,32 @@ class ViewSchedule:
             max_new_from_boxes=cap,
             prune_large=plan.clock > cfg.prune_large_after,
             cameras=tuple(plan.cameras),
-            max_primitives=self._growth_cap(stage_start_count),
+            max_primitives=self._growth_cap(stage_start_count, plan.clock),
+            rank_by=cfg.densify_rank,
         )
 
-    def _growth_cap(self, stage_start_count: Optional[int]) -> Optional[int]:
+    def _growth_cap(self, stage_start_count: Optional[int], clock: float) -> Optional[int]:
+        """The lower of the stage_growth cap and budget_cap(clock), or None when neither is set."""
         start = self.stage_start_count if stage_start_count is None else stage_start_count
-        if self.config.stage_growth is None or start is None:
+        caps = [self.budget_cap(clock)]
+        if self.config.stage_growth is not None and start is not None:
+            caps.append(int(math.floor(self.config.stage_growth * start)))
+        caps = [c for c in caps if c is not None]
+        return min(caps) if caps else None
+
+    def budget_cap(self, clock: float) -> Optional[int]:
+        """The primitive count config.max_gaussians allows at clock `clock` (None without a
+        budget): n0 + (N - n0) (1 - (1 - x)^2), n0 the count the run began with (at most N) and x
+        the share of the densification window passed, reaching 1 at its last call
+        (densify_until - densify_every), so the last densification may fill the budget."""
+        n = self.config.max_gaussians
+        if n is None:
             return None
-        return int(math.floor(self.config.stage_growth * start))
+        start = self.initial_count if self.initial_count is not None else self.primitive_count
+        n0 = min(int(start), n)
+        lo, hi = self.config.densify_from, self.config.densify_until - self.config.densify_every
+        x = 1.0 if hi <= lo else min(1.0, max(0.0, (float(clock) - lo) / (hi - lo)))
+        return int(math.floor(n0 + (n - n0) * (1.0 - (1.0 - x) ** 2)))
 
     def chunk_size(self, m: int, height: int, width: int) -> int:
         """Views per renderer call for a step of m views of height x width: config.chunk_size,
@@ -321,10 +342,11 @@ class ViewSchedule:
 
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
-                "stage_start_count": self.stage_start_count}
+                "stage_start_count": self.stage_start_count, "initial_count": self.initial_count}
 
     def load_state_dict(self, state: Dict) -> None:
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])
         self.stage_start_count = state.get("stage_start_count")  # absent in checkpoints before stage_growth
+        self.initial_count = state.get("initial_count")  # absent in checkpoints before max_gaussians

@@ -423,11 +423,57 @@ def test_the_controllers_cap_is_the_same_ranking_and_the_lower_cap_wins():
         # as with max_gaussians=13 above: the splits of 8, 2 and 5 fit, the rest is dropped
         assert (rep.split, rep.cloned, rep.after) == (3, 0, 13)
         assert sorted(keys(a)) == sorted([0, 1, 3, 4, 6, 7, 9] + [2, 2, 5, 5, 8, 8])
-    a = adapter(10, scale=scales[:, None].expand(10, 3).clone())
-    set_stats(a, accum, [1.0] * 10)
-    assert a.densify(ctx(max_primitives=5)).after == 10  # already above the cap: no growth, nothing lost
     with pytest.raises(ValueError, match="max_primitives"):
         a.densify(ctx(max_primitives=-1))
+
+
+def test_a_model_above_the_cap_sheds_its_lowest_keep_scores():
+    """keep score = opacity x footprint summed over the window's views; the five largest stay,
+    nothing grows, and rows the prune rules remove count towards the cut."""
+    opac = torch.tensor([0.5, 0.9, 0.2, 0.7, 0.004, 0.6, 0.3, 0.8, 0.4, 0.55])
+    a = adapter(10, opacity=opac)
+    accum = [3e-4, 4e-4, 9e-4, 5e-4, 6e-4, 8e-4, 7e-4, 1e-4, 2e-3, 2.5e-4]
+    set_stats(a, accum, [2.0] * 10)
+    coverage = torch.tensor([0.1, 0.05, 0.9, 0.02, 5.0, 0.3, 0.2, 0.01, 0.15, 0.12])
+    a.coverage_accum = coverage.clone()
+    want = opac * coverage
+    want[4] = -1  # pruned by opacity < 0.005 whatever its coverage
+    rep = a.densify(ctx(max_primitives=5))
+    assert rep.after == 5 and rep.cloned == rep.split == 0
+    assert rep.extra["shed_to_cap"] == 4 and rep.pruned == 5
+    assert sorted(keys(a)) == sorted(torch.argsort(want, descending=True)[:5].tolist())
+
+
+def test_consistency_and_scores_from_per_view_gradients():
+    """consistency = (sum g)^2 / (n sum g^2) over a Gaussian's visits, computed here by hand from
+    per-view gradient norms fed through accumulate_stats' statistics."""
+    a = adapter(4)
+    per_view = torch.tensor([[1e-3, 1e-3, 1e-3, 1e-3],   # the same in every view: 1
+                             [4e-3, 0.0, 0.0, 0.0],      # one view of four: 1/4
+                             [2e-3, 1e-3, 0.0, 0.0],     # (3e-3)^2 / (4 * 5e-6) = 0.45
+                             [0.0, 0.0, 0.0, 0.0]])      # never pulled: 0
+    a.grad_accum = per_view.sum(1)
+    a.grad_sq_accum = per_view.square().sum(1)
+    a.denom = torch.full((4,), 4.0)
+    torch.testing.assert_close(a.consistency(), torch.tensor([1.0, 0.25, 0.45, 0.0]))
+    mean = per_view.sum(1) / 4
+    torch.testing.assert_close(a.densify_scores("gradient"), mean)
+    torch.testing.assert_close(a.densify_scores("consistency"), mean * torch.tensor([1.0, 0.25, 0.45, 0.0]))
+    with pytest.raises(ValueError, match="rank_by"):
+        a.densify_scores("loss")
+
+
+def test_consistency_ranks_growth_under_a_cap():
+    """Two candidates with the same mean gradient, one from every view, one from a single view:
+    under a cap of one new row the consistent one is cloned (by gradient alone: row order)."""
+    for rank_by, winner in (("consistency", 1), ("gradient", 0)):
+        a = adapter(2)
+        a.grad_accum = torch.tensor([4e-3, 4e-3])
+        a.grad_sq_accum = torch.tensor([16e-6, 4e-6])  # row 0: one view of four; row 1: 1e-3 in each
+        a.denom = torch.tensor([4.0, 4.0])
+        rep = a.densify(ctx(max_primitives=3, rank_by=rank_by))
+        assert rep.cloned == 1 and rep.after == 3
+        assert sorted(keys(a)) == sorted([0, 1, winner])
 
 
 def test_reset_opacity():

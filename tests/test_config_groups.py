@@ -17,7 +17,10 @@ def test_presets_set_the_groups_as_documented():
     assert paper.mvad == MVADConfig(enabled=True, center="origin")
     assert paper.crd == CRDConfig(enabled=True, window_per_level=False, forward_only=False, max_miss=None,
                                   pad_by_miss=False, min_angle_deg=0.0, clip=False, max_new=None)
-    assert MVGSConfig.multiview().mvad == MVADConfig(enabled=True) and MVGSConfig.multiview().crd == CRDConfig(enabled=True)
+    # cross-ray densification is on in paper() only (it cloned ~nothing with its guards, issue 27)
+    assert MVGSConfig.multiview().mvad == MVADConfig(enabled=True)
+    for cfg in (MVGSConfig.default(), MVGSConfig.baseline(), MVGSConfig(), MVGSConfig.multiview()):
+        assert cfg.crd == CRDConfig() and not cfg.crd.enabled
     for cfg in (MVGSConfig.default(), MVGSConfig.baseline(), MVGSConfig()):
         assert cfg.mvad == MVADConfig() and cfg.crd == CRDConfig() and not cfg.mvad.enabled and not cfg.crd.enabled
 

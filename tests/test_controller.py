@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
-from mvgs_plugin import MVADConfig, MVGS, MVGSConfig, Stage, ViewSchedule
+from mvgs_plugin import CRDConfig, MVADConfig, MVGS, MVGSConfig, Stage, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.testing import check_adapter, synthetic_scene
 
@@ -185,7 +185,7 @@ def test_a_loop_that_does_not_record_loss_maps_skips_cross_ray_densification_wit
     and cross-ray densification is skipped with one warning naming what it needs."""
     import warnings
 
-    config = MVGSConfig.multiview(seed=0).with_total_steps(200)
+    config = MVGSConfig.multiview(seed=0, crd=CRDConfig(enabled=True)).with_total_steps(200)
     schedule = ViewSchedule(scene, config)
     model = make(scene)
     densified = 0
@@ -304,8 +304,9 @@ def test_conformance_suite_catches_a_broken_adapter(scene):
 
 @pytest.mark.parametrize("preset", ["multiview", "paper"])
 def test_mvad_and_crd_reach_the_adapter(scene, preset):
+    extra = {"crd": CRDConfig(enabled=True)} if preset == "multiview" else {}  # CRD with multiview()'s guards
     config = MVGSConfig.from_preset(preset, stages=(Stage(1, 6, 4),), densify_from=1, densify_every=2,
-                                    restart_per_stage=False, opacity_reset_at_handoff=False)
+                                    restart_per_stage=False, opacity_reset_at_handoff=False, **extra)
     trainer = MVGS(make(scene), scene, config)
     seen = []
     original = trainer.adapter.densify

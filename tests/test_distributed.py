@@ -430,7 +430,8 @@ def test_conformance_suite_checks_the_distributed_methods():
         check_distributed_support(lambda s: RadiiSummed.from_scene(s, GS3DConfig()), scene)
     with pytest.raises(ValueError, match=r"statistics\['denom'\] must be \[80\], got \[3\]"):
         make(scene).load_statistics({"grad_accum": torch.zeros(80), "denom": torch.zeros(3),
-                                     "max_radii2D": torch.zeros(80)})
+                                     "max_radii2D": torch.zeros(80), "grad_sq_accum": torch.zeros(80),
+                                     "coverage_accum": torch.zeros(80)})
 
 
 def _torchrun(script: str, args: list, out: Path) -> dict:

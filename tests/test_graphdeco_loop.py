@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from mvgs_plugin import CRDConfig
 from mvgs_plugin.camera import stack_cameras
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.reference_renderer import rasterization
@@ -93,7 +94,9 @@ def test_densify_and_prune_follows_the_3dgs_rules(scene):
 @pytest.mark.parametrize("preset,views", [("default", None), pytest.param("multiview", 4, marks=pytest.mark.slow)])
 def test_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, scene, preset, views):
     steps = 300
-    full, log = train_mvgs.training(scene, steps, preset, checkpoint_iterations=(120,), out=tmp_path, views=views)
+    extra = {"crd": CRDConfig(enabled=True)} if preset == "multiview" else {}  # CRD is on in paper() only
+    full, log = train_mvgs.training(scene, steps, preset, checkpoint_iterations=(120,), out=tmp_path, views=views,
+                                    **extra)
     cfg = train_mvgs.MVGSConfig.from_preset(preset).with_total_steps(steps)
     assert len(cfg.stages) > 1  # pyramid hand-offs happen
     assert len(log["densify"]) >= 3 and log["reset"], log
@@ -101,7 +104,7 @@ def test_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, scene, pr
     if preset == "multiview":
         assert log["from_boxes"] > 0  # cross-ray boxes reached the graphdeco model
     resumed, log2 = train_mvgs.training(scene, steps, preset, start_checkpoint=tmp_path / "chkpnt120.pth",
-                                        out=tmp_path / "b", views=views)
+                                        out=tmp_path / "b", views=views, **extra)
     assert log2["densify"] == [s for s in log["densify"] if s > 120]
     for a, b in zip(full.capture()[1:7], resumed.capture()[1:7]):
         assert torch.equal(a, b)

@@ -24,6 +24,7 @@ from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
 from mvgs_plugin import CRDConfig, MVGSConfig
 from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy, views_of
+from mvgs_plugin.adapters import gsplat_strategy
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import load_checked
 from mvgs_plugin.losses import ssim
@@ -563,7 +564,7 @@ def test_cross_ray_boxes_reach_the_strategy_through_renders(tabletop):
     assert found and any(b > 0 for b, _ in found) and sum(c for _, c in found) > 0
     # without renders= the rule is skipped, once, with a warning
     cfg, splats, optimizers = fresh_model(tabletop)
-    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(), steps=12)
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.multiview(crd=CRDConfig(enabled=True)), steps=12)
     state = strategy.initialize_state(scene_scale=tabletop.extent)
     with pytest.warns(UserWarning, match="cross-ray densification .* is skipped"):
         for _, batch in zip(range(4), strategy.batches()):
@@ -627,3 +628,55 @@ def test_example_cli_writes_metrics(tmp_path):
     assert (out / "metrics.json").exists()
     with pytest.raises(SystemExit):
         common.parse_config(["--device", "cuda"] if not torch.cuda.is_available() else ["--steps", "1"])
+
+
+def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp_path, forward, monkeypatch):
+    """MVGSConfig.max_gaussians through MVGSStrategy: the model is cut to the budget at
+    check_sanity (before any render), every refine ends at or under the schedule's cap (so no
+    render sees more), growth is ranked into the room left, and a resumed run is the same run."""
+    steps, budget = 300, 150
+    n_points = len(forward.points)
+    assert n_points > budget
+    mvgs = MVGSConfig.default(max_gaussians=budget)
+    cfg = example_config(tmp_path / "a", steps, mvgs, save_steps=[120])
+    torch.manual_seed(0)
+    runner = simple_trainer_mvgs.Runner(cfg)
+    assert len(runner.splats["means"]) == budget  # cut before training
+    strategy = runner.cfg.strategy
+    refines = []
+    original = strategy._refine
+
+    def spy(params, optimizers, state, plan, step):
+        original(params, optimizers, state, plan, step)
+        refines.append(dict(strategy.last_refine))
+
+    strategy._refine = spy
+    resets = []
+    real_reset = gsplat_strategy.reset_opa
+    monkeypatch.setattr(gsplat_strategy, "reset_opa", lambda **kw: (resets.append(1), real_reset(**kw)))
+    runner.train()
+    assert len(refines) >= 5 and any(r["after"] > r["before"] - 1 for r in refines)
+    for r in refines:
+        assert r["cap"] is not None and r["after"] <= r["cap"] <= budget
+    assert any(r["dropped_by_max_gaussians"] > 0 for r in refines)  # the ranking bound
+    assert resets  # opacities were reset
+    resumed_cfg = example_config(tmp_path / "b", steps, mvgs, resume=tmp_path / "a" / "ckpt_120.pt")
+    torch.manual_seed(123)
+    resumed = simple_trainer_mvgs.Runner(resumed_cfg)
+    resumed.train()
+    for k in runner.splats.keys():
+        assert torch.equal(resumed.splats[k], runner.splats[k]), k
+
+
+def test_keep_scores_and_the_cut_at_check_sanity(forward):
+    cfg, splats, optimizers = fresh_model(forward)
+    n = len(splats["means"])
+    # no view folded in yet: opacity x a uniform draw of seed 0 (a random subset)
+    draw = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
+    want = torch.sigmoid(splats["opacities"].detach()) * draw
+    kept = set(torch.argsort(want, descending=True)[:n // 2].tolist())
+    ref = {tuple(splats["means"][i].tolist()) for i in kept}
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n // 2), steps=12)
+    strategy.check_sanity(splats, optimizers)
+    assert {tuple(m) for m in splats["means"].detach().tolist()} == ref
+    assert all(len(opt.param_groups[0]["params"][0]) == n // 2 for opt in optimizers.values())

@@ -29,7 +29,7 @@ from plyfile import PlyData, PlyElement
 
 from mvgs_plugin.adapters.gs3d import MAX_LOG_SCALE, GS3DAdapter, GS3DConfig
 from mvgs_plugin.adapters.ply import ply_property_names, read_gaussian_ply, write_gaussian_ply
-from mvgs_plugin import MVGS, MVGSConfig, Stage
+from mvgs_plugin import CRDConfig, MVGS, MVGSConfig, Stage
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data import PointCloud, Scene, load_colmap, load_nerf_synthetic
 from mvgs_plugin.losses import photometric_loss
@@ -448,7 +448,8 @@ def test_mixed_size_step_gradient_is_the_sum_of_single_view_gradients():
 
 def test_crd_densification_step_with_mixed_sizes():
     scene = mixed_scene()
-    config = MVGSConfig.multiview(stages=(Stage(1, 2, 5),), chunk_size=2, densify_from=0, densify_every=1)
+    config = MVGSConfig.multiview(stages=(Stage(1, 2, 5),), chunk_size=2, densify_from=0, densify_every=1,
+                                  crd=CRDConfig(enabled=True))
     assert config.crd and config.mvad
     trainer = MVGS(make_adapter(scene, torch.float32), scene, config)
     shapes = []

@@ -63,13 +63,14 @@ def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
 
 def training(scene, iterations: int, preset: str = "default", seed: int = 0, checkpoint_iterations=(),
              start_checkpoint=None, out: Path = Path("out/graphdeco_loop"), lambda_dssim: float = 0.2,
-             views=None):
+             views=None, **overrides):
     """Returns the trained GaussianModel and a log of what ran (densify / reset steps).
-    views: M of the full-resolution stage (coarser stages keep their ratio), None: the preset's."""
+    views: M of the full-resolution stage (coarser stages keep their ratio), None: the preset's;
+    overrides: MVGSConfig fields given to the preset (e.g. crd=CRDConfig(enabled=True))."""
     torch.manual_seed(seed)
     gaussians = GaussianModel(sh_degree=3)
     gaussians.create_from_pcd(scene.points.xyz, scene.points.rgb, spatial_lr_scale=scene.extent)
-    config = MVGSConfig.from_preset(preset, seed=seed).with_total_steps(iterations)  # MVGS
+    config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
     clock_length = schedule.config.clock_length  # MVGS: the schedules' length (steps, or work on a work clock)
     gaussians.training_setup(clock_length)

@@ -41,6 +41,7 @@ from gsplat.strategy import DefaultStrategy
 from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
 from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function
+from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
@@ -324,6 +325,9 @@ def parse_config(argv=None, doc: str = "") -> Config:
                     help="DataLoader workers (default: %(default)s; gsplat's trainer uses 4)")
     ap.add_argument("--chunk-size", type=int_at_least(1), default=None,
                     help="views per render call in simple_trainer_chunked.py (default: what chunk_memory_mb allows)")
+    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
+                    help="budget of Gaussians of the MVGS loops (MVGSConfig.max_gaussians): the model is cut to it at "
+                         "check_sanity and never holds more; growth follows its schedule (default: no budget)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
@@ -338,7 +342,9 @@ def parse_config(argv=None, doc: str = "") -> Config:
         ap.error(f"--resume {args.resume}: no such checkpoint file")
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg = Config(data_dir=args.data, result_dir=args.out, mvgs_preset=args.preset, save_steps=args.save_steps,
+    preset = args.preset if args.max_gaussians is None else MVGSConfig.from_preset(args.preset,
+                                                                                   max_gaussians=args.max_gaussians)
+    cfg = Config(data_dir=args.data, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
                  grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size)
     cfg.adjust_steps(args.steps)

@@ -27,7 +27,8 @@ class Runner(simple_trainer_mvgs.Runner):
     cfg.chunk_size) with train() rendering each step in chunks."""
 
     def __init__(self, cfg: Config):
-        mvgs = MVGSConfig.from_preset(cfg.mvgs_preset, chunk_size=cfg.chunk_size)
+        mvgs = (dataclasses.replace(cfg.mvgs_preset, chunk_size=cfg.chunk_size) if isinstance(cfg.mvgs_preset, MVGSConfig)
+                else MVGSConfig.from_preset(cfg.mvgs_preset, chunk_size=cfg.chunk_size))
         super().__init__(dataclasses.replace(cfg, mvgs_preset=mvgs))  # MVGSStrategy takes a config or a name
 
     def train(self):

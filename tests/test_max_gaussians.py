@@ -1,0 +1,147 @@
+"""The exact Gaussian budget (MVGSConfig.max_gaussians, issue 27): a run never holds more than N
+primitives, through densification, opacity resets, pyramid hand-offs and a checkpoint resume;
+a larger initial model is cut before the first render; growth follows the schedule
+n0 + (N - n0) (1 - (1 - x)^2), written out here from its definition; an adapter that ignores the
+cap stops the run."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mvgs_plugin import MVGS, MVGSConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
+from mvgs_plugin.protocol import DensifyReport
+from mvgs_plugin.testing import synthetic_scene
+
+STEPS = 300
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_scene(n_train=8, n_test=2, size=16, n_points=80)
+
+
+def make(scene):
+    torch.manual_seed(0)
+    return GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=STEPS, sh_degree_interval=30))
+
+
+def config(budget, **kw):
+    # default(): three pyramid stages, clocks on work; β unscaled so that 16 px views densify
+    return MVGSConfig.default(max_gaussians=budget, grad_threshold_width=None, **kw).with_total_steps(STEPS)
+
+
+def schedule_cap(cfg, n0, budget, clock):
+    """The budget's cap at a densification call, from its definition."""
+    start = min(n0, budget)
+    x = (clock - cfg.densify_from) / (cfg.densify_until - cfg.densify_every - cfg.densify_from)
+    x = min(1.0, max(0.0, x))
+    return math.floor(start + (budget - start) * (1 - (1 - x) ** 2))
+
+
+def watch_renders(trainer):
+    """Records the primitive count at every render call."""
+    counts = []
+    original = trainer.adapter.render
+
+    def render(cams, bgs):
+        counts.append(trainer.adapter.num_primitives())
+        return original(cams, bgs)
+
+    trainer.adapter.render = render
+    return counts
+
+
+def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
+    budget = 50
+    trainer = MVGS(make(scene), scene, config(budget))
+    # no view folded in yet: opacity x a uniform draw of seed 0 (a random subset)
+    draw = torch.rand(80, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
+    scores = trainer.adapter.get_opacities().detach() * draw
+    want = sorted(torch.argsort(scores, descending=True)[:budget].tolist())
+    means0 = trainer.adapter.params["means"].detach().clone()
+    counts = watch_renders(trainer)
+    trainer.step()
+    assert counts[0] == budget
+    kept = trainer.adapter.params["means"].detach()
+    # the first step moved the means a little: match each kept row to its nearest initial one
+    nearest = torch.cdist(kept.double(), means0.double()).argmin(1)
+    assert sorted(nearest.tolist()) == want
+
+
+def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tmp_path):
+    budget = 120
+    cfg = config(budget)
+    trainer = MVGS(make(scene), scene, cfg)
+    n0 = trainer.adapter.num_primitives()
+    assert n0 == 80 < budget
+    counts = watch_renders(trainer)
+    seen = {"densify": 0, "reset": 0, "stages": set(), "grew": 0, "capped": 0}
+    for _ in range(STEPS // 2):
+        info = trainer.step()
+        seen["stages"].add(info.stage)
+        seen["reset"] += info.opacity_reset
+        if info.densify is not None:
+            seen["densify"] += 1
+            seen["grew"] += info.densify.after > info.densify.before
+            cap = schedule_cap(trainer.config, n0, budget, trainer.schedule.plan.locate(info.step).clock)
+            assert info.densify.extra["cap"] == cap
+            assert info.num_primitives <= cap
+            seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
+    trainer.save_checkpoint(str(tmp_path / "half.pt"))
+    resumed = MVGS(make(scene), scene, cfg)
+    resumed.load_checkpoint(str(tmp_path / "half.pt"))
+    resumed_counts = watch_renders(resumed)
+    for run in (trainer, resumed):
+        while run.step_count < run.total_steps:
+            info = run.step()
+            seen["stages"].add(info.stage)
+            seen["reset"] += info.opacity_reset and run is trainer
+            if info.densify is not None and run is trainer:
+                seen["densify"] += 1
+                seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
+    assert max(counts + resumed_counts) <= budget
+    assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == {0, 1, 2}
+    assert seen["grew"] >= 1 and seen["capped"] >= 1  # it grew, and the schedule held it back
+    for name, p in trainer.adapter.params.items():  # the resumed run is the same run
+        torch.testing.assert_close(resumed.adapter.params[name], p, rtol=0, atol=0)
+    # without the budget the same run holds more than it
+    free = MVGS(make(scene), scene, config(None)).fit(progress=False)
+    assert free.adapter.num_primitives() > budget
+
+
+def test_scaffold_anchors_keep_the_budget(scene):
+    budget = 40
+    adapter = ScaffoldAdapter.from_scene(scene, ScaffoldConfig(voxel_size=0.05, lr_max_steps=STEPS, seed=0))
+    assert adapter.num_primitives() > budget
+    trainer = MVGS(adapter, scene, config(budget))
+    counts = watch_renders(trainer)
+    densified = 0
+    for _ in range(STEPS):
+        info = trainer.step()
+        densified += info.densify is not None
+    assert densified >= 5 and max(counts) <= budget and counts[0] == budget
+
+
+def test_an_adapter_that_ignores_the_cap_stops_the_run(scene):
+    class Careless(GS3DAdapter):
+        def densify(self, ctx):
+            return DensifyReport(before=self.num_primitives(), after=self.num_primitives())
+
+    torch.manual_seed(0)
+    adapter = Careless.from_scene(scene, GS3DConfig())
+    trainer = MVGS(adapter, scene, config(50))
+    with pytest.raises(RuntimeError, match="above the cap 50"):
+        trainer.step()
+
+
+def test_bad_budgets_are_refused():
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(ValueError, match="max_gaussians"):
+            MVGSConfig(max_gaussians=bad)
+    with pytest.raises(ValueError, match="densify_rank"):
+        MVGSConfig(densify_rank="loss")
