@@ -162,6 +162,15 @@ class GS3DConfig:
 
 
 
+def consistency_of(grad_sum: Tensor, grad_sq_sum: Tensor, visits: Tensor) -> Tensor:
+    """(sum g)^2 / (visits sum g^2) per row, clamped to 1 (see GS3DAdapter.consistency): 0 where
+    nothing was pulled, 1 where a gradient was summed without its squares."""
+    num = grad_sum.square()
+    den = visits * grad_sq_sum
+    ratio = torch.where(den > 0, num / den.clamp_min(torch.finfo(den.dtype).tiny), torch.zeros_like(num))
+    return torch.where((grad_sq_sum <= 0) & (grad_sum > 0), torch.ones_like(ratio), ratio.clamp(max=1.0))
+
+
 def keep_scores_of(opacity: Tensor, coverage: Tensor) -> Tensor:
     """opacity x coverage (a Gaussian's summed footprint over the window's views), or, when no
     view was folded in (coverage all 0), opacity x U(0, 1) drawn from a generator of seed 0."""
@@ -526,11 +535,7 @@ class GS3DAdapter:
         pulled). The views may come from one step (M views) or from the window's one-view steps.
         Statistics without squares (set by hand, or loaded from a release before grad_sq_accum)
         count as consistent (1)."""
-        num = self.grad_accum.square()
-        den = self.denom * self.grad_sq_accum
-        unknown = (self.grad_sq_accum <= 0) & (self.grad_accum > 0)
-        ratio = torch.where(den > 0, num / den.clamp_min(torch.finfo(den.dtype).tiny), torch.zeros_like(num))
-        return torch.where(unknown, torch.ones_like(ratio), ratio.clamp(max=1.0))
+        return consistency_of(self.grad_accum, self.grad_sq_accum, self.denom)
 
     def densify_scores(self, rank_by: str = "consistency") -> Tensor:
         """[N] the order in which growth candidates are kept under a cap (largest first):
@@ -596,7 +601,7 @@ class GS3DAdapter:
         extent = check_float("scene_extent", ctx.scene_extent, positive=True)
         n0 = self.num_primitives()
         g = self.mean_grads()
-        score = self.densify_scores(getattr(ctx, "rank_by", "consistency"))
+        score = self.densify_scores(ctx.rank_by)
         max_scale = self.get_scales().detach().max(dim=1).values
         small = max_scale <= self.config.percent_dense * extent
         box_sel, dropped_box_cap = self.box_selection(ctx, g)

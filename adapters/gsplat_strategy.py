@@ -94,7 +94,7 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
-from mvgs_plugin.adapters.gs3d import keep_scores_of
+from mvgs_plugin.adapters.gs3d import consistency_of, keep_scores_of
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
@@ -572,10 +572,7 @@ class MVGSStrategy(DefaultStrategy):
         score = mean
         sq = state.get("mvgs_grad2d_sq")
         if self.config.densify_rank == "consistency" and isinstance(sq, Tensor) and len(sq) == len(mean):
-            den = count * sq
-            cons = torch.where(den > 0, grad2d.square() / den.clamp_min(torch.finfo(den.dtype).tiny),
-                               torch.ones_like(den)).clamp(max=1.0)
-            score = mean * cons
+            score = mean * consistency_of(grad2d, sq, count)
         order = torch.sort(torch.where(cand, score, torch.full_like(score, -math.inf)), descending=True,
                            stable=True).indices
         dropped = order[room:int(cand.sum())]

@@ -60,7 +60,7 @@ from mvgs_plugin.io import save_atomic
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from mvgs_plugin.reference_renderer import rasterization
 
-from .gs3d import SH_C0
+from .gs3d import SH_C0, keep_scores_of
 from .knn import knn_mean_sq_dist
 from .ops import growth_cap, log_linear, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import write_gaussian_ply
@@ -611,10 +611,7 @@ class ScaffoldAdapter:
         densification (opacity_accum), so an anchor that shows in many views outranks one seen in
         a single view. Before any view was folded in, a uniform draw of a fixed seed (a random
         subset of the anchors is kept)."""
-        if bool((self.opacity_accum > 0).any()):
-            return self.opacity_accum.clone()
-        return torch.rand(self.num_primitives(), generator=torch.Generator().manual_seed(0),
-                          dtype=torch.float64).to(self.opacity_accum)
+        return keep_scores_of(torch.ones_like(self.opacity_accum), self.opacity_accum)
 
     def _seed(self, xyz: Tensor, feats: Tensor, g: Tensor, sel: Tensor, occupied: Tensor, size: float,
               cap: Optional[int], budget: float) -> Tuple[Tensor, Tensor]:
