@@ -265,6 +265,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="budget of primitives (Gaussians; anchors for Scaffold-GS): the run never holds more; "
                          "a larger initial model is cut to it by keep score, growth follows a schedule that "
                          "reaches it when densification ends (MVGSConfig.max_gaussians; default: no budget)")
+    ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
+                    help="budget from the data: --max-gaussians = the training views' pixels / P (3DGS ends near "
+                         "70-210 on its benchmarks; MVGSConfig.pixels_per_gaussian; ignored with --max-gaussians)")
     ap.add_argument("--densify-rank", choices=["consistency", "gradient"], default=None,
                     help="score that picks growth candidates when a budget binds: consistency (the gradient times "
                          "how evenly the views share it) or gradient (3DGS) (default: consistency)")
@@ -318,7 +321,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
-                 "densify_rank"):
+                 "pixels_per_gaussian", "densify_rank"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)

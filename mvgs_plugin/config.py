@@ -246,6 +246,12 @@ class MVGSConfig:
         growth is allowed by a quarter of the window, as 3DGS grows most early); the candidates
         are ranked by densify_rank. Passed to the adapter as DensifyContext.max_primitives; the
         controller stops the run if an adapter exceeds it. Measured in docs/equal_compute.md.
+    pixels_per_gaussian: None, or the budget as a ratio to the training data: for_scene() sets
+        max_gaussians = round(training pixels / pixels_per_gaussian) (the training views' pixels at
+        the finest stage's resolution) when max_gaussians is not given. 3DGS itself ends near 70
+        (Mip-NeRF 360) to 210 (NeRF-synthetic) pixels per Gaussian on its benchmarks; a 128 px
+        scene densified by the compressed schedule reaches 35 and overfits its views
+        (docs/equal_compute.md, "A baseline that does not fall").
     densify_rank: which score picks the growth candidates when a cap (max_gaussians,
         stage_growth) binds: "consistency" (the mean gradient times how evenly the views of the
         window share it; see GS3DAdapter.densify_scores) or "gradient" (3DGS's mean gradient).
@@ -280,6 +286,7 @@ class MVGSConfig:
     max_views_fraction: Optional[float] = None
     stage_growth: Optional[float] = None
     max_gaussians: Optional[int] = None
+    pixels_per_gaussian: Optional[float] = None
     densify_rank: str = "consistency"
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
@@ -323,6 +330,8 @@ class MVGSConfig:
         _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
         if self.max_gaussians is not None:
             check_int("max_gaussians", self.max_gaussians, 1)
+        _check_finite_above("pixels_per_gaussian", self.pixels_per_gaussian, 0,
+                            "None or a finite number of training pixels per Gaussian > 0", optional=True)
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")
         if not (0.0 <= self.lambda_dssim <= 1.0):
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
@@ -498,9 +507,11 @@ class MVGSConfig:
         return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / 30_000))
 
     def for_scene(self, scene) -> "MVGSConfig":
-        """This config as it runs on `scene` (its train_cameras). Two scene-dependent rules, both
+        """This config as it runs on `scene` (its train_cameras). Three scene-dependent rules, all
         keeping every clock-valued field:
 
+        * pixels_per_gaussian (when max_gaussians is None): max_gaussians = the training views'
+          pixels at the finest stage's resolution / pixels_per_gaussian, at least 1.
         * max_views_fraction: every stage's views are capped at that fraction of the training
           views (at least 1); a capped stage keeps its work when the clocks count work (a budget,
           or clock_unit="work"), so it gets more steps, and its steps when they count steps.
@@ -514,17 +525,20 @@ class MVGSConfig:
         were not resolved: on an already rescaled config it keeps the work, so a --steps run may
         get fewer, dearer steps but every schedule (and clock_length) stays as planned."""
         out = self
+        if self.pixels_per_gaussian is not None and self.max_gaussians is None:
+            out = dataclasses.replace(out, max_gaussians=max(1, round(
+                training_pixels(scene.train_cameras, min(s.factor for s in self.stages)) / self.pixels_per_gaussian)))
         if self.max_views_fraction is not None:
             cap = max(1, math.floor(self.max_views_fraction * len(scene.train_cameras)))
-            if any(s.views > cap for s in self.stages):
+            if any(s.views > cap for s in out.stages):
                 stages = []
-                for s in self.stages:
+                for s in out.stages:
                     views = min(s.views, cap)
                     steps = s.steps
                     if self.counts_work and views != s.views:  # keep the stage's work
                         steps = max(1, round(s.steps * s.views / views))
                     stages.append(Stage(s.factor, views, steps))
-                out = dataclasses.replace(self, stages=tuple(stages))
+                out = dataclasses.replace(out, stages=tuple(stages))
         finest = min(s.factor for s in out.stages)
         if out.forward_rig == "pyramid" or all(s.factor == finest for s in out.stages):
             return out
@@ -569,6 +583,16 @@ class MVGSConfig:
         if "view_cost" in d:
             d["view_cost"] = tuple(d["view_cost"])
         return cls(**d)
+
+
+def training_pixels(cameras, factor: int = 1) -> int:
+    """Pixels of the training views at pyramid factor `factor` (the sizes the pyramid renders)."""
+    from .camera import scaled_size
+    total = 0
+    for c in cameras:
+        w, h = scaled_size(int(c.width), int(c.height), factor)
+        total += w * h
+    return total
 
 
 def _merge_flat_names(kwargs: dict, flat: dict) -> dict:

@@ -630,6 +630,22 @@ def test_example_cli_writes_metrics(tmp_path):
         common.parse_config(["--device", "cuda"] if not torch.cuda.is_available() else ["--steps", "1"])
 
 
+def test_the_example_cli_takes_a_budget_from_the_data(tmp_path, forward):
+    """--pixels-per-gaussian P: the strategy resolves max_gaussians = training pixels / P for the
+    loop's own training set, and the runner's model is cut to it before training."""
+    from mvgs_plugin.camera import scaled_size
+
+    pixels = sum(math.prod(scaled_size(c.width, c.height, 1)) for c in forward.train_cameras)
+    p = pixels / 150.0  # a budget of 150 Gaussians, below the scene's points
+    cfg = common.parse_config(["--data", str(FORWARD), "--steps", "20", "--out", str(tmp_path / "o"),
+                               "--pixels-per-gaussian", repr(p), "--threads", "1"])
+    runner = simple_trainer_mvgs.Runner(cfg)
+    assert len(forward.points) > 150
+    assert runner.cfg.strategy.config.max_gaussians == 150 and len(runner.splats["means"]) == 150
+    with pytest.raises(SystemExit):
+        common.parse_config(["--data", str(FORWARD), "--pixels-per-gaussian", "0"])
+
+
 def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp_path, forward, monkeypatch):
     """MVGSConfig.max_gaussians through MVGSStrategy: the model is cut to the budget at
     check_sanity (before any render), every refine ends at or under the schedule's cap (so no

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from mvgs_plugin import MVGS, MVGSConfig
+from mvgs_plugin.config import Stage
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin.protocol import DensifyReport
@@ -145,3 +146,38 @@ def test_bad_budgets_are_refused():
             MVGSConfig(max_gaussians=bad)
     with pytest.raises(ValueError, match="densify_rank"):
         MVGSConfig(densify_rank="loss")
+
+
+def test_pixels_per_gaussian_sets_the_budget_from_the_training_views(scene):
+    # 8 training views of 16 x 16 px: 2048 pixels; at 64 pixels per Gaussian, 32 Gaussians
+    assert len(scene.train_cameras) == 8 and {(c.width, c.height) for c in scene.train_cameras} == {(16, 16)}
+    assert MVGSConfig.baseline(pixels_per_gaussian=64).for_scene(scene).max_gaussians == 32
+    # counted at the finest stage's resolution: factor 2 renders 8 x 8 px views, 512 pixels
+    coarse = MVGSConfig.baseline(pixels_per_gaussian=64, stages=(Stage(4, 1, 10), Stage(2, 1, 10)))
+    assert coarse.for_scene(scene).max_gaussians == 8
+    # an explicit budget wins; the rule is idempotent; at least one Gaussian
+    assert MVGSConfig.baseline(pixels_per_gaussian=64, max_gaussians=7).for_scene(scene).max_gaussians == 7
+    once = MVGSConfig.default(pixels_per_gaussian=64).for_scene(scene)
+    assert once.for_scene(scene) == once
+    assert MVGSConfig.baseline(pixels_per_gaussian=1e9).for_scene(scene).max_gaussians == 1
+    # a run with it holds the same budget: the controller resolves the config for its scene
+    trainer = MVGS(make(scene), scene, config(None, pixels_per_gaussian=64))
+    counts = watch_renders(trainer)
+    trainer.step()
+    assert trainer.config.max_gaussians == 32 and counts[0] == 32
+
+
+def test_pixels_per_gaussian_reaches_the_config_from_the_command_line(scene):
+    from mvgs_plugin import cli
+
+    import argparse
+
+    ap = cli.common_args(argparse.ArgumentParser(), out="out")
+    args = ap.parse_args(["--preset", "baseline", "--pixels-per-gaussian", "128", "--steps", "100"])
+    assert cli.config_from_args(args, scene).max_gaussians == 16  # 2048 / 128
+    for bad in ("0", "-3", "nan", "inf"):
+        with pytest.raises(SystemExit):
+            ap.parse_args(["--pixels-per-gaussian", bad])
+    for bad in (0, -1.0, float("nan"), float("inf"), True, "64"):
+        with pytest.raises(ValueError, match="pixels_per_gaussian"):
+            MVGSConfig(pixels_per_gaussian=bad)

@@ -1,0 +1,53 @@
+"""bench_equal_compute's cross-scene summary: a run is compared with the reference run of its own
+file, else with one of another file of the same scene and seed, and with the reference's best
+so far (the best evaluation point of any of its runs within the row's CPU), checked here
+against numbers worked out by hand."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import bench_equal_compute as bench  # noqa: E402
+
+
+def run(kind, budget, psnr, cpu, curve, gaussians=1000):
+    return {"kind": kind, "budget": budget, "clock": "budget", "views": 1, "psnr": psnr, "ssim": 0.5,
+            "gaussians": gaussians, "steps": int(budget), "work": budget, "cpu": cpu, "wall": cpu,
+            "curve": [{"cpu": c, "step": 0, "work": 0, "psnr": p} for c, p in curve]}
+
+
+def write(path, data, runs):
+    path.write_text(json.dumps({"args": {"data": data, "seed": "0"}, "runs": runs}))
+    return path
+
+
+def rows_of(text):
+    return [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines()[2:] if line]
+
+
+def test_summary_pairs_across_files_and_against_the_best_so_far(tmp_path):
+    # the baseline falls with more compute: 22 dB at 60 s (1k), 20 dB at 180 s (3k), whose curve
+    # peaked at 23 dB at 120 s
+    a = write(tmp_path / "a.json", "scenes/clutter", [
+        run("baseline", 1000, 22.0, 60.0, [(30.0, 21.0), (60.0, 22.0)]),
+        run("baseline", 3000, 20.0, 180.0, [(90.0, 21.5), (120.0, 23.0), (180.0, 20.0)]),
+        run("default", 3000, 21.5, 150.0, [(150.0, 21.5)], gaussians=500)])
+    # another file of the same scene: a candidate without a baseline of its own; and another scene
+    b = write(tmp_path / "b.json", "scenes/clutter", [run("coarse-mv-budget", 3000, 22.5, 100.0, [(100.0, 22.5)], 300)])
+    c = write(tmp_path / "c.json", "scenes/sparse", [run("coarse-mv-budget", 3000, 25.0, 100.0, [(100.0, 25.0)])])
+    rows = {r[5]: r for r in rows_of(bench.summary([a, b, c]))}
+    assert set(rows) == {"default", "coarse-mv-budget"}  # no baseline for sparse: no row
+    # default at 150 s: 3k baseline 20.0 -> +1.50; best so far within 150 s is 23.0 -> -1.50
+    assert rows["default"][7] == "+1.50" and rows["default"][9] == "-1.50" and rows["default"][10] == "0.50x"
+    # the candidate at 100 s: best so far within 100 s is 22.0 (the 1k run's end) -> +0.50
+    cand = rows["coarse-mv-budget"]
+    assert cand[0] == "clutter" and cand[7] == "+2.50" and cand[9] == "+0.50" and cand[10] == "0.30x"
+    # another reference kind
+    ref = rows_of(bench.summary([a, b], reference="default"))
+    assert {r[5] for r in ref} == {"baseline", "coarse-mv-budget"}
+    assert bench.best_so_far(json.loads(a.read_text())["runs"], "baseline", 29.0) is None
