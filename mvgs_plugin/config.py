@@ -26,6 +26,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Optional, Tuple, Union
 
+from .camera import scaled_size
 from .checks import check_int, is_int
 
 
@@ -587,12 +588,7 @@ class MVGSConfig:
 
 def training_pixels(cameras, factor: int = 1) -> int:
     """Pixels of the training views at pyramid factor `factor` (the sizes the pyramid renders)."""
-    from .camera import scaled_size
-    total = 0
-    for c in cameras:
-        w, h = scaled_size(int(c.width), int(c.height), factor)
-        total += w * h
-    return total
+    return sum(math.prod(scaled_size(int(c.width), int(c.height), factor)) for c in cameras)
 
 
 def _merge_flat_names(kwargs: dict, flat: dict) -> dict:

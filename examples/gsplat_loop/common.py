@@ -328,7 +328,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
                     help="budget of Gaussians of the MVGS loops (MVGSConfig.max_gaussians): the model is cut to it at "
                          "check_sanity and never holds more; growth follows its schedule (default: no budget)")
-    ap.add_argument("--pixels-per-gaussian", type=float, default=None, metavar="P",
+    ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
                     help="budget from the data (MVGSConfig.pixels_per_gaussian): --max-gaussians = the training "
                          "views' pixels / P (ignored with --max-gaussians; default: no budget)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
@@ -347,10 +347,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
         torch.set_num_threads(args.threads)
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
                                 ("pixels_per_gaussian", args.pixels_per_gaussian)) if v is not None}
-    try:
-        preset = MVGSConfig.from_preset(args.preset, **budget) if budget else args.preset
-    except ValueError as err:
-        ap.error(str(err))
+    preset = MVGSConfig.from_preset(args.preset, **budget) if budget else args.preset
     cfg = Config(data_dir=args.data, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
                  grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size)
