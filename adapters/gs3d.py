@@ -577,9 +577,11 @@ class GS3DAdapter:
         With a cap (the lower of config.max_gaussians and ctx.max_primitives) the count after the
         call never exceeds it: the rows step 4 prunes are not grown from; when the survivors
         alone exceed the cap, the ones with the lowest keep_scores() are removed down to it (and
-        nothing grows); otherwise the candidates of 1-3 are ranked by densify_scores(ctx.rank_by)
-        together and the best whose growth fits the room left are kept (each adds 1, a split
-        adds samples - 1).
+        nothing grows); otherwise, when the candidates' growth exceeds the room left, up to
+        floor(ctx.swap_share x cap) of the lowest keep_scores() among the other rows are removed
+        to make more room (the swap: _swap_out), and the candidates of 1-3 are ranked by
+        densify_scores(ctx.rank_by) together and the best whose growth fits the room are kept
+        (each adds 1, a split adds samples - 1).
         New rows start with zero statistics, a zero radius and zero Adam moments; surviving rows
         keep theirs. As in the original, the parameters are new tensors without gradients, so an
         optimizer step right after densify leaves them unchanged for that step. The statistics
@@ -587,7 +589,8 @@ class GS3DAdapter:
 
         Report: cloned / split / from_boxes count the selected Gaussians (a split adds
         split_samples - 1 net); pruned counts every row removed but split parents (rule prunes,
-        new rows included, and rows shed to the cap, also in extra["shed_to_cap"]); so after =
+        new rows included, rows shed to the cap, also in extra["shed_to_cap"], and rows swapped
+        out, in extra["swapped"]); so after =
         before + from_boxes + cloned + split * (split_samples - 1) - pruned.
         """
         try:
@@ -609,6 +612,7 @@ class GS3DAdapter:
         split_sel = (g >= beta) & ~small
         cap = growth_cap(self.config.max_gaussians, ctx.max_primitives)
         shed = torch.zeros(n0, dtype=torch.bool, device=g.device)
+        swapped = torch.zeros_like(shed)
         dropped_cap = 0
         if cap is not None:
             gone = self.prune_mask({k: v.detach() for k, v in self.params.items()}, self.max_radii2D, extent,
@@ -620,6 +624,9 @@ class GS3DAdapter:
                 gone = gone | shed
             box_sel, clone_sel, split_sel = box_sel & ~gone, clone_sel & ~gone, split_sel & ~gone
             room = max(0, cap - (n0 - int(gone.sum())))
+            if excess <= 0:  # a model that had to shrink to the cap swaps nothing
+                swapped = self._swap_out(box_sel, clone_sel, split_sel, gone, room, cap, ctx.swap_share)
+                shed, gone, room = shed | swapped, gone | swapped, room + int(swapped.sum())
             box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room)
 
         new_rows = self._new_rows(box_sel, clone_sel, split_sel)
@@ -645,7 +652,7 @@ class GS3DAdapter:
             from_boxes=int(box_sel.sum()),
             extra={"grad_threshold": beta, "split_children": int(split_sel.sum()) * self.config.split_samples,
                    "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap,
-                   "shed_to_cap": int(shed.sum()), "cap": cap},
+                   "shed_to_cap": int((shed & ~swapped).sum()), "swapped": int(swapped.sum()), "cap": cap},
         )
 
     # ---- densification hooks: what a subclass may override (GS4DAdapter tests the boxes at the
@@ -663,6 +670,23 @@ class GS3DAdapter:
         if ctx.max_new_from_boxes is not None:
             sel = top_by_score(sel, g, check_int("max_new_from_boxes", ctx.max_new_from_boxes, 0))
         return sel, total - int(sel.sum())
+
+    def _swap_out(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, gone: Tensor, room: int, cap: int,
+                  share: float) -> Tensor:
+        """[N] bool: the rows a call at a binding cap removes so that more candidates can grow
+        (DensifyContext.swap_share): the lowest keep_scores() among the rows that are neither
+        candidates nor already gone, as many as the candidates' growth exceeds the room (a box
+        clone or clone grows 1, a split split_samples - 1) and at most floor(share x cap)."""
+        out = torch.zeros_like(gone)
+        growth = int(box_sel.sum()) + int(clone_sel.sum()) + int(split_sel.sum()) * (self.config.split_samples - 1)
+        want = min(growth - room, math.floor(float(share) * cap))
+        if want <= 0:
+            return out
+        eligible = ~(gone | box_sel | clone_sel | split_sel)
+        score = torch.where(eligible, self.keep_scores().to(torch.float64), torch.full_like(gone, math.inf, dtype=torch.float64))
+        order = torch.sort(score, stable=True).indices[:min(want, int(eligible.sum()))]
+        out[order] = True
+        return out
 
     def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int):
         """Rank all growth candidates by `score` (largest first, ties in row order) and keep the

@@ -584,9 +584,11 @@ class MVGSStrategy(DefaultStrategy):
         bounds = torch.stack([means.amin(0), means.amax(0)]).double().cpu() if len(means) else None
         ctx = self.schedule.densify_context(plan, None, len(means), bounds)
         before = len(means)
-        cap, dropped, shed = ctx.max_primitives, 0, 0
+        cap, dropped, shed, swapped = ctx.max_primitives, 0, 0, 0
         if cap is not None:  # growth ranked into the room the budget leaves (a grow adds one row)
-            dropped = self._rank_growth(state, float(ctx.grad_threshold), max(0, cap - before))
+            room = max(0, cap - before)
+            swapped = self._swap_out(params, optimizers, state, float(ctx.grad_threshold), room, cap, ctx.swap_share)
+            dropped = self._rank_growth(state, float(ctx.grad_threshold), room + swapped)
         from_boxes = 0
         if ctx.boxes is not None and len(ctx.boxes):
             from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes)
@@ -603,7 +605,25 @@ class MVGSStrategy(DefaultStrategy):
                             "threshold": float(ctx.grad_threshold),
                             "boxes": 0 if ctx.boxes is None else len(ctx.boxes), "from_boxes": from_boxes,
                             "before": before, "after": len(params["means"]), "cap": cap,
-                            "dropped_by_max_gaussians": dropped, "shed_to_cap": shed}
+                            "dropped_by_max_gaussians": dropped, "shed_to_cap": shed, "swapped": swapped}
+
+    def _swap_out(self, params, optimizers, state, threshold: float, room: int, cap: int, share: float) -> int:
+        """At a binding cap (more growth candidates, mean grad2d > threshold, than room), remove
+        up to floor(share x cap) of the lowest keep scores among the rows that are not candidates,
+        as many as the candidates exceed the room (gsplat's ops.remove, state included), so that
+        more candidates grow (MVGSConfig.budget_swap, as GS3DAdapter.densify). Returns how many."""
+        grad2d, count = state.get("grad2d"), state.get("count")
+        if share <= 0 or not isinstance(grad2d, Tensor) or len(grad2d) != len(params["means"]):
+            return 0
+        cand = grad2d / count.clamp_min(1) > threshold
+        want = min(int(cand.sum()) - room, math.floor(share * cap), int((~cand).sum()))
+        if want <= 0:
+            return 0
+        score = torch.where(cand, torch.full_like(grad2d, math.inf), self.keep_scores(params, state).to(grad2d))
+        mask = torch.zeros(len(grad2d), dtype=torch.bool, device=grad2d.device)
+        mask[torch.sort(score, stable=True).indices[:want]] = True
+        remove(params=params, optimizers=optimizers, state=state, mask=mask)
+        return want
 
     def _clone_in_boxes(self, params, optimizers, state, boxes: Tensor, cap: Optional[int]) -> int:
         """Copy every Gaussian strictly inside a box (at most `cap`, largest mean gradient

@@ -15,7 +15,9 @@ SH degree 3. Per N, medians over --repeats of:
   densify    one densification call after 20 views were folded in, with a threshold that makes
              the top tenth of the visible Gaussians candidates: uncapped (3DGS's rule), and
              with a cap that binds (growth ranked by the consistency score into the room left),
-             and with a cap below the count (the lowest keep scores are cut).
+             with the same cap and a swap of 2 % of it (MVGSConfig.budget_swap: the lowest keep
+             scores make way for more candidates), and with a cap below the count (the lowest
+             keep scores are cut).
 Prints a markdown table; the "share of a step" column is the time of the call over one step's;
 a densification call runs once per densify_every steps (10-100), so its share of the run is
 that divided by densify_every.
@@ -120,6 +122,8 @@ def measure(n: int, repeats: int) -> dict:
     rows["densify, no cap"] = timed(densify(), repeats) - load
     rows[f"densify, cap binds ({max(1, free_growth // 2)} of {free_growth} new)"] = timed(
         densify(max_primitives=n + max(1, free_growth // 2)), repeats) - load
+    rows[f"densify, cap binds, swap 2 % ({max(1, free_growth // 2) + n // 50} new)"] = timed(
+        densify(max_primitives=n + max(1, free_growth // 2), swap_share=0.02), repeats) - load
     rows[f"densify, cut to {n // 2}"] = timed(densify(max_primitives=n // 2), repeats) - load
     return rows
 

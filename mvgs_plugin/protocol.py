@@ -74,6 +74,9 @@ class DensifyContext:
     rank_by: which score orders the growth candidates when a cap binds: "consistency" (the
         gradient weighted by how evenly the views share it, GS3DAdapter.densify_scores) or
         "gradient" (3DGS's mean gradient). MVGSConfig.densify_rank sets it.
+    swap_share: while the cap binds (more growth candidates than room), the adapter may remove
+        up to floor(swap_share x cap) of its lowest-ranked rows that are not candidates and grow
+        that many more of the best candidates in their place (MVGSConfig.budget_swap; 0 = never).
     """
 
     step: int
@@ -85,6 +88,7 @@ class DensifyContext:
     cameras: Sequence[Camera] = ()
     max_primitives: Optional[int] = None
     rank_by: str = "consistency"
+    swap_share: float = 0.0
 
 
 @dataclass

@@ -444,6 +444,41 @@ def test_a_model_above_the_cap_sheds_its_lowest_keep_scores():
     assert sorted(keys(a)) == sorted(torch.argsort(want, descending=True)[:5].tolist())
 
 
+def test_a_full_budget_swaps_its_lowest_keep_scores_for_the_best_candidates():
+    """At its cap (room 0) with four clone candidates, swap_share S lets floor(S x cap) rows go:
+    the lowest keep scores (opacity x coverage) among the six rows that are not candidates, hand-
+    sorted here; that many of the best candidates (by gradient: the squared sums are 0, so the
+    consistency is 1) are cloned; the count stays at the cap. S = 0 grows nothing."""
+    opac = torch.tensor([0.5, 0.9, 0.2, 0.7, 0.3, 0.6, 0.3, 0.8, 0.4, 0.55])
+    coverage = torch.tensor([0.1, 0.05, 0.9, 0.02, 0.4, 0.3, 0.2, 0.01, 0.15, 0.12])
+    accum = [1e-4, 9e-4, 1e-4, 6e-4, 1e-4, 1e-4, 3e-4, 1e-4, 1e-4, 5e-4]  # candidates (>= 2e-4): 1, 3, 6, 9
+    candidates = [1, 3, 9, 6]  # best first
+    others = [i for i in range(10) if i not in candidates]
+    by_keep = sorted(others, key=lambda i: float(opac[i] * coverage[i]))  # 7 (0.008), 0 (0.05), 8 (0.06), ...
+    for share, swaps in ((0.0, 0), (0.3, 3), (0.9, 4)):
+        a = adapter(10, opacity=opac)
+        set_stats(a, accum, [1.0] * 10)
+        a.coverage_accum = coverage.clone()
+        rep = a.densify(ctx(max_primitives=10, swap_share=share))
+        assert rep.after == 10 and rep.cloned == swaps and rep.split == 0
+        assert rep.extra["swapped"] == swaps and rep.extra["shed_to_cap"] == 0 and rep.pruned == swaps
+        assert rep.extra["dropped_by_max_gaussians"] == 4 - swaps
+        want = [i for i in range(10) if i not in by_keep[:swaps]] + candidates[:swaps]
+        assert sorted(keys(a)) == sorted(want)
+
+
+def test_the_swap_counts_a_split_as_its_growth_and_never_takes_the_room_twice():
+    """One split candidate (a large Gaussian: it grows by split_samples - 1 = 1) and room 1 left
+    under the cap: its growth fits, so nothing is swapped whatever the share."""
+    scales = torch.full((6,), SMALL)
+    scales[2] = LARGE
+    a = adapter(6, scale=scales[:, None].expand(6, 3).clone())
+    set_stats(a, [1e-4, 1e-4, 9e-4, 1e-4, 1e-4, 1e-4], [1.0] * 6)
+    a.coverage_accum = torch.full((6,), 0.5)
+    rep = a.densify(ctx(max_primitives=7, swap_share=0.5))
+    assert (rep.split, rep.after, rep.extra["swapped"]) == (1, 7, 0)
+
+
 def test_consistency_and_scores_from_per_view_gradients():
     """consistency = (sum g)^2 / (n sum g^2) over a Gaussian's visits, computed here by hand from
     per-view gradient norms fed through accumulate_stats' statistics."""

@@ -675,6 +675,8 @@ def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp
     for r in refines:
         assert r["cap"] is not None and r["after"] <= r["cap"] <= budget
     assert any(r["dropped_by_max_gaussians"] > 0 for r in refines)  # the ranking bound
+    assert strategy.config.budget_swap == 0.02  # a forward-facing rig: a full budget swaps
+    assert any(r["swapped"] > 0 for r in refines)
     assert resets  # opacities were reset
     resumed_cfg = example_config(tmp_path / "b", steps, mvgs, resume=tmp_path / "a" / "ckpt_120.pt")
     torch.manual_seed(123)
@@ -696,3 +698,32 @@ def test_keep_scores_and_the_cut_at_check_sanity(forward):
     strategy.check_sanity(splats, optimizers)
     assert {tuple(m) for m in splats["means"].detach().tolist()} == ref
     assert all(len(opt.param_groups[0]["params"][0]) == n // 2 for opt in optimizers.values())
+
+
+def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward):
+    """MVGSStrategy._swap_out on a hand-made window: candidates (mean grad2d > threshold) beyond
+    the room make up to floor(share x cap) rows go, the lowest opacity x coverage among the
+    others (sorted here by hand); the state shrinks with the model."""
+    cfg, splats, optimizers = fresh_model(forward)
+    n = len(splats["means"])
+    g = torch.Generator().manual_seed(1)
+    grad2d = torch.rand(n, generator=g)
+    count = torch.ones(n)
+    coverage = torch.rand(n, generator=g)
+    state = {"grad2d": grad2d.clone(), "count": count.clone(), "radii": torch.zeros(n), "mvgs_coverage": coverage.clone()}
+    threshold = float(torch.quantile(grad2d, 0.8))
+    cand = grad2d > threshold
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n), steps=12)
+    keep = torch.sigmoid(splats["opacities"].detach()) * coverage
+    others = [i for i in range(n) if not cand[i]]
+    for share, room in ((0.05, 0), (0.5, 3)):
+        sp = {k: torch.nn.Parameter(v.detach().clone()) for k, v in splats.items()}
+        opts = {k: torch.optim.Adam([sp[k]], lr=1e-3) for k in sp}
+        st = {k: v.clone() for k, v in state.items()}
+        want = min(int(cand.sum()) - room, math.floor(share * n))
+        gone = set(sorted(others, key=lambda i: float(keep[i]))[:want])
+        assert strategy._swap_out(sp, opts, st, threshold, room, n, share) == want > 0
+        kept = [i for i in range(n) if i not in gone]
+        assert torch.equal(sp["means"].detach(), splats["means"].detach()[kept])
+        assert torch.equal(st["grad2d"], grad2d[kept]) and len(st["mvgs_coverage"]) == n - want
+    assert strategy._swap_out(splats, optimizers, dict(state), threshold, int(cand.sum()), n, 0.5) == 0  # room enough

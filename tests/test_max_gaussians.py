@@ -76,12 +76,12 @@ def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
 
 def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tmp_path):
     budget = 120
-    cfg = config(budget)
+    cfg = config(budget, budget_swap=0.02)  # an orbit would resolve None to 0: the swap runs here too
     trainer = MVGS(make(scene), scene, cfg)
     n0 = trainer.adapter.num_primitives()
     assert n0 == 80 < budget
     counts = watch_renders(trainer)
-    seen = {"densify": 0, "reset": 0, "stages": set(), "grew": 0, "capped": 0}
+    seen = {"densify": 0, "reset": 0, "stages": set(), "grew": 0, "capped": 0, "swapped": 0}
     for _ in range(STEPS // 2):
         info = trainer.step()
         seen["stages"].add(info.stage)
@@ -93,6 +93,7 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
             assert info.densify.extra["cap"] == cap
             assert info.num_primitives <= cap
             seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
+            seen["swapped"] += info.densify.extra["swapped"]
     trainer.save_checkpoint(str(tmp_path / "half.pt"))
     resumed = MVGS(make(scene), scene, cfg)
     resumed.load_checkpoint(str(tmp_path / "half.pt"))
@@ -105,9 +106,11 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
             if info.densify is not None and run is trainer:
                 seen["densify"] += 1
                 seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
+                seen["swapped"] += info.densify.extra["swapped"]
     assert max(counts + resumed_counts) <= budget
     assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == {0, 1, 2}
     assert seen["grew"] >= 1 and seen["capped"] >= 1  # it grew, and the schedule held it back
+    assert seen["swapped"] >= 1  # and at the cap, rows made way for candidates (budget_swap 0.02)
     for name, p in trainer.adapter.params.items():  # the resumed run is the same run
         torch.testing.assert_close(resumed.adapter.params[name], p, rtol=0, atol=0)
     # without the budget the same run holds more than it
@@ -146,6 +149,9 @@ def test_bad_budgets_are_refused():
             MVGSConfig(max_gaussians=bad)
     with pytest.raises(ValueError, match="densify_rank"):
         MVGSConfig(densify_rank="loss")
+    for bad in (-0.1, 1.0, True, "0.1", math.nan):
+        with pytest.raises(ValueError, match="budget_swap"):
+            MVGSConfig(budget_swap=bad)
 
 
 def test_pixels_per_gaussian_sets_the_budget_from_the_training_views(scene):
@@ -181,3 +187,34 @@ def test_pixels_per_gaussian_reaches_the_config_from_the_command_line(scene):
     for bad in (0, -1.0, float("nan"), float("inf"), True, "64"):
         with pytest.raises(ValueError, match="pixels_per_gaussian"):
             MVGSConfig(pixels_per_gaussian=bad)
+
+
+def test_budget_swap_reaches_the_config_from_the_command_line(scene, capsys):
+    from mvgs_plugin import cli
+
+    import argparse
+
+    ap = cli.common_args(argparse.ArgumentParser(), out="out")
+    assert cli.config_from_args(ap.parse_args(["--steps", "100"]), scene).budget_swap is None  # no budget
+    args = ap.parse_args(["--preset", "baseline", "--max-gaussians", "50", "--steps", "100"])
+    assert cli.config_from_args(args, scene).budget_swap == 0.0  # the synthetic scene is an orbit
+    args = ap.parse_args(["--preset", "baseline", "--max-gaussians", "50", "--budget-swap", "0.3", "--steps", "100"])
+    assert cli.config_from_args(args, scene).budget_swap == 0.3
+    for bad in ("1", "-0.1", "nan", "x"):
+        with pytest.raises(SystemExit):
+            ap.parse_args(["--budget-swap", bad])
+        assert "--budget-swap" in capsys.readouterr().err
+
+
+def test_budget_swap_none_resolves_by_the_rig_only_with_a_budget():
+    from mvgs_plugin.config import FORWARD_RIG_SWAP
+    from test_forward_rig import Rig, parallel_rig, ring
+
+    fwd, orbit = Rig(parallel_rig([-1.0, 0.0, 1.0])), Rig(ring(12))
+    for preset in ("default", "baseline"):
+        budgeted = MVGSConfig.from_preset(preset, max_gaussians=500)
+        assert budgeted.for_scene(fwd).budget_swap == FORWARD_RIG_SWAP == 0.02
+        assert budgeted.for_scene(orbit).budget_swap == 0.0
+        assert MVGSConfig.from_preset(preset, pixels_per_gaussian=64.0).for_scene(fwd).budget_swap == 0.02
+        assert MVGSConfig.from_preset(preset).for_scene(fwd).budget_swap is None  # no budget: nothing to swap
+        assert MVGSConfig.from_preset(preset, max_gaussians=500, budget_swap=0.1).for_scene(orbit).budget_swap == 0.1
