@@ -274,6 +274,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--budget-swap", type=float_above(0, inclusive=True, high=0.999999), default=None, metavar="S",
                     help="share of the budget a densification call may swap while it binds: the lowest keep scores "
                          "make way for the best growth candidates (MVGSConfig.budget_swap; 0 = off) (default: 0.02 on a forward-facing rig, 0 elsewhere)")
+    ap.add_argument("--budget-size-pruning", action="store_true", default=None,
+                    help="with a budget, still prune Gaussians by size after the first opacity reset, as 3DGS "
+                         "(MVGSConfig.budget_size_pruning; default: off with a budget, on without)")
     ap.add_argument("--out", type=Path, default=Path(out),
                     help="output folder (created; metrics.json, test/*.png and the model are written there)")
     ap.add_argument("--seed", type=int_at_least(0), default=0,
@@ -324,7 +327,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
-                 "pixels_per_gaussian", "densify_rank", "budget_swap"):
+                 "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)

@@ -192,7 +192,8 @@ class MVGSConfig:
         averages over W × H pixels, the NDC factor is W / 2), so 3DGS's 2e-4, tuned on ~800 px
         images, densifies a 64 px image at a twelfth of the error; and a coarse pyramid level
         would densify detail it cannot show. See resolution_threshold().
-    prune_large_after: size-based pruning is active once the step exceeds this.
+    prune_large_after: size-based pruning is active once the step exceeds this (not with a
+        budget, unless budget_size_pruning: see there).
     restart_per_stage: restart the learning-rate and densification clocks at each stage (the
         released code ran its stages as separate processes).
     opacity_reset_at_handoff: reset opacities when a stage hands over (released code: a side
@@ -269,6 +270,13 @@ class MVGSConfig:
         and +1.45 dB at a quarter budget, on the 360-degree and sparse scenes, which overfit their
         views under a budget, -0.04 to -3.60 dB (docs/equal_compute.md). GS3DAdapter,
         GS4DAdapter and MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
+    budget_size_pruning: whether a run with a budget (max_gaussians) still prunes by size
+        (3DGS's rule after the first opacity reset: world size above max_world_size x the scene
+        extent, screen radius above max_screen_size). Off by default: the budget bounds the
+        count, and a small model covers the scene with large Gaussians that the size rule
+        removes at every reset, so it never recovers inside the densification window (the
+        generated sparse scene at 1280 Gaussians and 10k steps: 18.82 dB with the rule, 26.72
+        without; docs/equal_compute.md). Without a budget size pruning runs as in 3DGS.
     densify_rank: which score picks the growth candidates when a cap (max_gaussians,
         stage_growth) binds: "consistency" (the mean gradient times how evenly the views of the
         window share it; see GS3DAdapter.densify_scores) or "gradient" (3DGS's mean gradient).
@@ -306,6 +314,7 @@ class MVGSConfig:
     pixels_per_gaussian: Optional[float] = None
     densify_rank: str = "consistency"
     budget_swap: Optional[float] = None
+    budget_size_pruning: bool = False
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
     budget: Optional[float] = None
@@ -343,6 +352,8 @@ class MVGSConfig:
             check_int(name, v, low)
         _check_finite_above("max_views_fraction", self.max_views_fraction, 0, "None or a fraction in (0, 1]",
                             optional=True)
+        if not isinstance(self.budget_size_pruning, bool):
+            raise ValueError(f"budget_size_pruning must be a bool, got {self.budget_size_pruning!r}")
         if self.budget_swap is not None and (isinstance(self.budget_swap, bool) or not isinstance(
                 self.budget_swap, (int, float)) or not 0.0 <= self.budget_swap < 1.0):
             raise ValueError(f"budget_swap must be None or a share of the cap in [0, 1), got {self.budget_swap!r}")

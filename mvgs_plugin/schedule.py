@@ -277,7 +277,7 @@ class ViewSchedule:
             scene_extent=float(self.scene.extent),
             boxes=boxes,
             max_new_from_boxes=cap,
-            prune_large=plan.clock > cfg.prune_large_after,
+            prune_large=plan.clock > cfg.prune_large_after and (cfg.max_gaussians is None or cfg.budget_size_pruning),
             cameras=tuple(plan.cameras),
             max_primitives=self._growth_cap(stage_start_count, plan.clock),
             rank_by=cfg.densify_rank,

@@ -218,3 +218,37 @@ def test_budget_swap_none_resolves_by_the_rig_only_with_a_budget():
         assert MVGSConfig.from_preset(preset, pixels_per_gaussian=64.0).for_scene(fwd).budget_swap == 0.02
         assert MVGSConfig.from_preset(preset).for_scene(fwd).budget_swap is None  # no budget: nothing to swap
         assert MVGSConfig.from_preset(preset, max_gaussians=500, budget_swap=0.1).for_scene(orbit).budget_swap == 0.1
+
+
+def test_a_budget_turns_size_pruning_off_unless_asked(scene):
+    """ctx.prune_large after prune_large_after: on without a budget (3DGS), off with one, on with
+    one and budget_size_pruning."""
+    seen = {}
+    for name, budget, kw in (("free", None, {}), ("budget", 500, {}), ("budget+size", 500, {"budget_size_pruning": True})):
+        trainer = MVGS(make(scene), scene, config(budget, **kw))
+        flags = []
+        original = trainer.adapter.densify
+
+        def spy(ctx, original=original, flags=flags, trainer=trainer):
+            flags.append((trainer.schedule.plan.locate(trainer.step_count).clock, ctx.prune_large))
+            return original(ctx)
+
+        trainer.adapter.densify = spy
+        trainer.fit(progress=False)
+        after = [f for c, f in flags if c > trainer.config.prune_large_after]
+        assert len(after) >= 3
+        seen[name] = set(after)
+    assert seen == {"free": {True}, "budget": {False}, "budget+size": {True}}
+    with pytest.raises(ValueError, match="budget_size_pruning"):
+        MVGSConfig(budget_size_pruning=1)
+
+
+def test_budget_size_pruning_from_the_command_line(scene):
+    from mvgs_plugin import cli
+
+    import argparse
+
+    ap = cli.common_args(argparse.ArgumentParser(), out="out")
+    assert cli.config_from_args(ap.parse_args(["--max-gaussians", "50"]), scene).budget_size_pruning is False
+    args = ap.parse_args(["--max-gaussians", "50", "--budget-size-pruning"])
+    assert cli.config_from_args(args, scene).budget_size_pruning is True
