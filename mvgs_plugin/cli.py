@@ -273,7 +273,7 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "how evenly the views share it) or gradient (3DGS) (default: consistency)")
     ap.add_argument("--budget-swap", type=float_above(0, inclusive=True, high=0.999999), default=None, metavar="S",
                     help="share of the budget a densification call may swap while it binds: the lowest keep scores "
-                         "make way for the best growth candidates (MVGSConfig.budget_swap; 0 = off) (default: 0.02 on a forward-facing rig, 0 elsewhere)")
+                         "make way for the best growth candidates (MVGSConfig.budget_swap) (default: 0, off)")
     ap.add_argument("--budget-size-pruning", action="store_true", default=None,
                     help="with a budget, still prune Gaussians by size after the first opacity reset, as 3DGS "
                          "(MVGSConfig.budget_size_pruning; default: off with a budget, on without)")

@@ -59,11 +59,6 @@ class Stage:
 DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((4, 1, 0.10), (2, 1, 0.20), (1, 1, 0.70))
 
 
-# The share of the budget a densification call swaps on a forward-facing rig when budget_swap is
-# None (fixed before it was measured; 0.1 measured worse on the forward scene, docs/equal_compute.md).
-FORWARD_RIG_SWAP = 0.02
-
-
 def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[float, float] = (0.1, 0.9)
                        ) -> Tuple[Stage, ...]:
     """A stage plan from (factor, views, share of the work) triples: each stage gets the steps
@@ -259,17 +254,15 @@ class MVGSConfig:
         (Mip-NeRF 360) to 210 (NeRF-synthetic) pixels per Gaussian on its benchmarks; a 128 px
         scene densified by the compressed schedule reaches 35 and overfits its views
         (docs/equal_compute.md, "A baseline that does not fall").
-    budget_swap: None, or the share of the cap one densification call may swap while the cap
-        binds (the growth candidates outnumber the room): that many of the lowest keep scores
-        among the rows that are not candidates are removed and the best-ranked candidates take
-        their place, so a model at its budget keeps moving Gaussians from where they show little
-        to where the views still pull (0: growth waits for the prune rules to free room). None:
-        for_scene() sets FORWARD_RIG_SWAP (0.02) on a forward-facing rig and 0 elsewhere when a
-        budget is set. The swap fits the training views better under the same count: on the
-        generated forward-facing rigs (test views between nearby training views) that is +2.05
-        and +1.45 dB at a quarter budget, on the 360-degree and sparse scenes, which overfit their
-        views under a budget, -0.04 to -3.60 dB (docs/equal_compute.md). GS3DAdapter,
-        GS4DAdapter and MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
+    budget_swap: the share of the cap one densification call may swap while the cap binds (the
+        growth candidates outnumber the room): that many of the lowest keep scores among the rows
+        that are not candidates are removed and the best-ranked candidates take their place, so a
+        model at its budget keeps moving Gaussians from where they show little to where the views
+        still pull. 0 (the default): growth waits for the prune rules to free room. It fits the
+        training views better under the same count and measured both ways at a quarter budget
+        (docs/equal_compute.md): +0.72 dB on the forward rig, -3.69 on forward-clutter, -0.04 to
+        -3.60 on the 360-degree scenes (those with size pruning on). GS3DAdapter, GS4DAdapter and
+        MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
     budget_size_pruning: whether a run with a budget (max_gaussians) still prunes by size
         (3DGS's rule after the first opacity reset: world size above max_world_size x the scene
         extent, screen radius above max_screen_size). Off by default: the budget bounds the
@@ -313,7 +306,7 @@ class MVGSConfig:
     max_gaussians: Optional[int] = None
     pixels_per_gaussian: Optional[float] = None
     densify_rank: str = "consistency"
-    budget_swap: Optional[float] = None
+    budget_swap: float = 0.0
     budget_size_pruning: bool = False
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
@@ -354,9 +347,9 @@ class MVGSConfig:
                             optional=True)
         if not isinstance(self.budget_size_pruning, bool):
             raise ValueError(f"budget_size_pruning must be a bool, got {self.budget_size_pruning!r}")
-        if self.budget_swap is not None and (isinstance(self.budget_swap, bool) or not isinstance(
-                self.budget_swap, (int, float)) or not 0.0 <= self.budget_swap < 1.0):
-            raise ValueError(f"budget_swap must be None or a share of the cap in [0, 1), got {self.budget_swap!r}")
+        if isinstance(self.budget_swap, bool) or not isinstance(self.budget_swap, (int, float)) or not (
+                0.0 <= self.budget_swap < 1.0):
+            raise ValueError(f"budget_swap must be a share of the cap in [0, 1), got {self.budget_swap!r}")
         if self.max_views_fraction is not None and self.max_views_fraction > 1:
             raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
         _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
@@ -544,8 +537,6 @@ class MVGSConfig:
 
         * pixels_per_gaussian (when max_gaussians is None): max_gaussians = the training views'
           pixels at the finest stage's resolution / pixels_per_gaussian, at least 1.
-        * budget_swap None with a budget (max_gaussians): FORWARD_RIG_SWAP on a forward-facing
-          rig, else 0.
         * max_views_fraction: every stage's views are capped at that fraction of the training
           views (at least 1); a capped stage keeps its work when the clocks count work (a budget,
           or clock_unit="work"), so it gets more steps, and its steps when they count steps.
@@ -558,14 +549,10 @@ class MVGSConfig:
         exactly the baseline's N steps (B). MVGS and ViewSchedule call it too, for configs that
         were not resolved: on an already rescaled config it keeps the work, so a --steps run may
         get fewer, dearer steps but every schedule (and clock_length) stays as planned."""
-        from .data.init import is_forward_facing  # the data package imports this module's users
         out = self
         if self.pixels_per_gaussian is not None and self.max_gaussians is None:
             out = dataclasses.replace(out, max_gaussians=max(1, round(
                 training_pixels(scene.train_cameras, min(s.factor for s in self.stages)) / self.pixels_per_gaussian)))
-        if out.budget_swap is None and out.max_gaussians is not None:
-            out = dataclasses.replace(out, budget_swap=FORWARD_RIG_SWAP if is_forward_facing(scene.train_cameras)
-                                      else 0.0)
         if self.max_views_fraction is not None:
             cap = max(1, math.floor(self.max_views_fraction * len(scene.train_cameras)))
             if any(s.views > cap for s in out.stages):
@@ -580,6 +567,7 @@ class MVGSConfig:
         finest = min(s.factor for s in out.stages)
         if out.forward_rig == "pyramid" or all(s.factor == finest for s in out.stages):
             return out
+        from .data.init import is_forward_facing  # the data package imports this module's users
         if not is_forward_facing(scene.train_cameras):
             return out
         kept = [s for s in out.stages if s.factor == finest]

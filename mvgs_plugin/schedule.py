@@ -281,7 +281,7 @@ class ViewSchedule:
             cameras=tuple(plan.cameras),
             max_primitives=self._growth_cap(stage_start_count, plan.clock),
             rank_by=cfg.densify_rank,
-            swap_share=cfg.budget_swap or 0.0,
+            swap_share=cfg.budget_swap,
         )
 
     def _growth_cap(self, stage_start_count: Optional[int], clock: float) -> Optional[int]:

@@ -653,7 +653,7 @@ def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp
     steps, budget = 300, 150
     n_points = len(forward.points)
     assert n_points > budget
-    mvgs = MVGSConfig.default(max_gaussians=budget)
+    mvgs = MVGSConfig.default(max_gaussians=budget, budget_swap=0.02)
     cfg = example_config(tmp_path / "a", steps, mvgs, save_steps=[120])
     torch.manual_seed(0)
     runner = simple_trainer_mvgs.Runner(cfg)
@@ -675,8 +675,7 @@ def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp
     for r in refines:
         assert r["cap"] is not None and r["after"] <= r["cap"] <= budget
     assert any(r["dropped_by_max_gaussians"] > 0 for r in refines)  # the ranking bound
-    assert strategy.config.budget_swap == 0.02  # a forward-facing rig: a full budget swaps
-    assert any(r["swapped"] > 0 for r in refines)
+    assert any(r["swapped"] > 0 for r in refines)  # budget_swap 0.02: a full budget swapped
     assert resets  # opacities were reset
     resumed_cfg = example_config(tmp_path / "b", steps, mvgs, resume=tmp_path / "a" / "ckpt_120.pt")
     torch.manual_seed(123)

@@ -76,7 +76,7 @@ def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
 
 def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tmp_path):
     budget = 120
-    cfg = config(budget, budget_swap=0.02)  # an orbit would resolve None to 0: the swap runs here too
+    cfg = config(budget, budget_swap=0.02)  # off by default: the swap runs here too
     trainer = MVGS(make(scene), scene, cfg)
     n0 = trainer.adapter.num_primitives()
     assert n0 == 80 < budget
@@ -195,29 +195,14 @@ def test_budget_swap_reaches_the_config_from_the_command_line(scene, capsys):
     import argparse
 
     ap = cli.common_args(argparse.ArgumentParser(), out="out")
-    assert cli.config_from_args(ap.parse_args(["--steps", "100"]), scene).budget_swap is None  # no budget
     args = ap.parse_args(["--preset", "baseline", "--max-gaussians", "50", "--steps", "100"])
-    assert cli.config_from_args(args, scene).budget_swap == 0.0  # the synthetic scene is an orbit
+    assert cli.config_from_args(args, scene).budget_swap == 0.0  # off by default
     args = ap.parse_args(["--preset", "baseline", "--max-gaussians", "50", "--budget-swap", "0.3", "--steps", "100"])
     assert cli.config_from_args(args, scene).budget_swap == 0.3
     for bad in ("1", "-0.1", "nan", "x"):
         with pytest.raises(SystemExit):
             ap.parse_args(["--budget-swap", bad])
         assert "--budget-swap" in capsys.readouterr().err
-
-
-def test_budget_swap_none_resolves_by_the_rig_only_with_a_budget():
-    from mvgs_plugin.config import FORWARD_RIG_SWAP
-    from test_forward_rig import Rig, parallel_rig, ring
-
-    fwd, orbit = Rig(parallel_rig([-1.0, 0.0, 1.0])), Rig(ring(12))
-    for preset in ("default", "baseline"):
-        budgeted = MVGSConfig.from_preset(preset, max_gaussians=500)
-        assert budgeted.for_scene(fwd).budget_swap == FORWARD_RIG_SWAP == 0.02
-        assert budgeted.for_scene(orbit).budget_swap == 0.0
-        assert MVGSConfig.from_preset(preset, pixels_per_gaussian=64.0).for_scene(fwd).budget_swap == 0.02
-        assert MVGSConfig.from_preset(preset).for_scene(fwd).budget_swap is None  # no budget: nothing to swap
-        assert MVGSConfig.from_preset(preset, max_gaussians=500, budget_swap=0.1).for_scene(orbit).budget_swap == 0.1
 
 
 def test_a_budget_turns_size_pruning_off_unless_asked(scene):
