@@ -29,7 +29,8 @@ compute). --reference KIND compares with another run kind instead (e.g. baseline
 Issue 27's kinds: "baseline-budget" (the baseline with a Gaussian budget of the training
 pixels / 128), "default-budget", "coarse-mv-budget" (4 views per step at 1/4 resolution, 2 at
 1/2) and "coarse-mv-sqrt-budget" (with Grendel-GS's sqrt(M) rule), all at pixels / 213;
-"default-budget128", the default at the baseline's pixels / 128.
+"default-budget128", the default at the baseline's pixels / 128; "compact" (MVGSConfig.compact(), the
+default at pixels / 213 where the rig is not forward-facing).
 """
 
 from __future__ import annotations
@@ -79,6 +80,8 @@ RUNS = {
     # the default with the baseline's data budget (pixels / 128; no size pruning under a budget):
     # the strongest run at 10k steps on the 360-degree scenes (docs/equal_compute.md)
     "default-budget128": ["--preset", "default", "--pixels-per-gaussian", "128"],
+    # the compact preset: default-budget as a preset (no budget on a forward-facing rig)
+    "compact": ["--preset", "compact"],
     "coarse-mv-budget": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000",
                          "--pixels-per-gaussian", "213"],
     "coarse-mv-sqrt-budget": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000",

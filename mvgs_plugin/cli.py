@@ -219,9 +219,10 @@ def check_out(out: Path) -> None:
 
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
-    ap.add_argument("--preset", choices=["baseline", "paper", "default", "multiview"], default="default",
+    ap.add_argument("--preset", choices=["baseline", "paper", "default", "compact", "multiview"], default="default",
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
-                         "pyramid level with MVAD and CRD (wins at equal steps); paper: the released code; "
+                         "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a Gaussian budget of the "
+                         "training pixels / 213 (none on a forward-facing rig); paper: the released code; "
                          "baseline: plain 3DGS")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
     ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")

@@ -312,7 +312,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     ap.add_argument("--steps", type=int_at_least(2), default=1000, help="training steps (default: %(default)s)")
-    ap.add_argument("--preset", choices=["default", "multiview", "paper", "baseline"], default="default",
+    ap.add_argument("--preset", choices=["default", "compact", "multiview", "paper", "baseline"], default="default",
                     help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
     ap.add_argument("--out", type=Path, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed (default: %(default)s)")
