@@ -226,7 +226,7 @@ class MVGSStrategy(DefaultStrategy):
         scene: the training views: a package Scene, the trainer's own training Dataset (gsplat's
             or any whose items are camera dicts) or a list of Cameras (see :func:`views_of`).
             Dataset item i is view i: the sampler yields those indices.
-        config: an MVGSConfig or a preset name ("default", "multiview", "paper", "baseline").
+        config: an MVGSConfig or a preset name (mvgs_plugin.config.PRESETS).
         steps: the run's length in steps (the loop's max_steps): the config is compressed to it
             with ``with_total_steps`` and the strategy's clock read as set for that many steps.
             None: the config's own length (30k steps for the presets).

@@ -28,7 +28,7 @@ from typing import Callable
 import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DConfig
-from mvgs_plugin.config import MVGSConfig, Stage
+from mvgs_plugin.config import PRESETS, MVGSConfig, Stage
 from mvgs_plugin.controller import MVGS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
@@ -219,7 +219,7 @@ def check_out(out: Path) -> None:
 
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
-    ap.add_argument("--preset", choices=["baseline", "paper", "default", "compact", "multiview"], default="default",
+    ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
                          "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a Gaussian budget of the "
                          "training pixels / 213 (none on a forward-facing rig); paper: the released code; "

@@ -63,6 +63,10 @@ DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((4, 1, 0.10), (2, 1, 0.20)
 # recipe that is to beat the baseline; not tuned (docs/equal_compute.md, "The compact preset").
 COMPACT_PIXELS_PER_GAUSSIAN = 213.0
 
+# The presets by name: MVGSConfig.from_preset's names (each a classmethod of that name) and the
+# --preset choices of every command line, in the order --help lists them.
+PRESETS: Tuple[str, ...] = ("default", "compact", "multiview", "paper", "baseline")
+
 
 def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[float, float] = (0.1, 0.9)
                        ) -> Tuple[Stage, ...]:
@@ -484,11 +488,9 @@ class MVGSConfig:
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "MVGSConfig":
-        makers = {"baseline": cls.baseline, "paper": cls.paper, "default": cls.default, "multiview": cls.multiview,
-                  "compact": cls.compact}
-        if name not in makers:
-            raise ValueError(f"preset must be one of {sorted(makers)}, got {name!r}")
-        return makers[name](**overrides)
+        if name not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+        return getattr(cls, name)(**overrides)
 
     # ---- rescaling for short runs -----------------------------------------------------------
     def with_total_steps(self, total: int) -> "MVGSConfig":
@@ -574,8 +576,17 @@ class MVGSConfig:
         were not resolved: on an already rescaled config it keeps the work, so a --steps run may
         get fewer, dearer steps but every schedule (and clock_length) stays as planned."""
         out = self
+        forward = None  # whether the rig is forward-facing: computed once, when a rule asks
+
+        def forward_facing() -> bool:
+            nonlocal forward
+            if forward is None:
+                from .data.init import is_forward_facing  # the data package imports this module's users
+                forward = is_forward_facing(scene.train_cameras)
+            return forward
+
         if self.pixels_per_gaussian is not None and self.max_gaussians is None and (
-                self.forward_rig_budget or not _forward_facing(scene)):
+                self.forward_rig_budget or not forward_facing()):
             out = dataclasses.replace(out, max_gaussians=max(1, round(
                 training_pixels(scene.train_cameras, min(s.factor for s in self.stages)) / self.pixels_per_gaussian)))
         if self.max_views_fraction is not None:
@@ -592,7 +603,7 @@ class MVGSConfig:
         finest = min(s.factor for s in out.stages)
         if out.forward_rig == "pyramid" or all(s.factor == finest for s in out.stages):
             return out
-        if not _forward_facing(scene):
+        if not forward_facing():
             return out
         kept = [s for s in out.stages if s.factor == finest]
         dropped = [s for s in out.stages if s.factor != finest]
@@ -632,12 +643,6 @@ class MVGSConfig:
         if "view_cost" in d:
             d["view_cost"] = tuple(d["view_cost"])
         return cls(**d)
-
-
-def _forward_facing(scene) -> bool:
-    """Whether the scene's training rig is forward-facing (mvgs_plugin.data.init.is_forward_facing)."""
-    from .data.init import is_forward_facing  # the data package imports this module's users
-    return is_forward_facing(scene.train_cameras)
 
 
 def training_pixels(cameras, factor: int = 1) -> int:

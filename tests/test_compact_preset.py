@@ -1,8 +1,8 @@
 """The compact preset (MVGSConfig.compact): default() with a Gaussian budget of the training pixels
 / 213 on every rig but a forward-facing one. The budget is recomputed here from the cameras'
 sizes; the forward-rig exception against default()'s own resolved config; a run through every
-phase (densification, opacity resets, both pyramid hand-offs, a checkpoint resume) never holds
-more than the budget and ends at it."""
+phase (densification, opacity resets, both pyramid hand-offs, a checkpoint resume) grows, never
+holds more than the budget, never prunes by size and resumes exactly."""
 
 from __future__ import annotations
 
@@ -106,3 +106,15 @@ def test_a_compact_run_holds_its_budget_through_every_phase(orbit, tmp_path):
     for name, p in trainer.adapter.params.items():  # the resumed run is the same run
         torch.testing.assert_close(resumed.adapter.params[name], p, rtol=0, atol=0)
         assert torch.isfinite(p).all()
+
+
+def test_every_preset_name_builds_its_preset_and_every_parser_offers_it():
+    from mvgs_plugin.config import PRESETS
+
+    assert set(PRESETS) == {"default", "compact", "multiview", "paper", "baseline"}
+    for name in PRESETS:
+        assert MVGSConfig.from_preset(name).preset == name
+    with pytest.raises(ValueError, match="preset must be one of"):
+        MVGSConfig.from_preset("fast")
+    ap = cli.common_args(argparse.ArgumentParser(), out="out")
+    assert ap.parse_args(["--preset", "compact"]).preset == "compact"

@@ -29,6 +29,7 @@ import torch
 
 from gaussian_model import GaussianModel, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
+from mvgs_plugin.config import PRESETS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import load_checked, save_checked
@@ -140,7 +141,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder with points (default: the bundled one)")
     ap.add_argument("--steps", type=int_at_least(2), default=1000, help="iterations")
-    ap.add_argument("--preset", choices=["default", "compact", "multiview", "paper", "baseline"], default="default",
+    ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the MVGS recipe (MVGSConfig.from_preset)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "
                     "the preset's)")

@@ -41,7 +41,7 @@ from gsplat.strategy import DefaultStrategy
 from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
 from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function
-from mvgs_plugin.config import MVGSConfig
+from mvgs_plugin.config import PRESETS, MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
@@ -312,7 +312,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     ap.add_argument("--steps", type=int_at_least(2), default=1000, help="training steps (default: %(default)s)")
-    ap.add_argument("--preset", choices=["default", "compact", "multiview", "paper", "baseline"], default="default",
+    ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
     ap.add_argument("--out", type=Path, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed (default: %(default)s)")
