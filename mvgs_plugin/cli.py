@@ -54,6 +54,9 @@ ROOT = Path(__file__).resolve().parents[1]  # the repository, for a checkout or 
 # --resolution-scale may not leave an image's short side under this many pixels: below it a test
 # view is a few pixels of average colour and its PSNR says nothing
 MIN_IMAGE_SIDE = 16
+# --background-points' default (mvgs_plugin.data.init.background_shell; docs/data.md#the-far-background):
+# fixed before it was measured, never varied; 0 keeps 3DGS's init
+BACKGROUND_POINTS = 2000
 
 
 class UsageError(ValueError):
@@ -123,7 +126,8 @@ def scene_from_args(args):
     when it has no point file; the init's threads follow --threads."""
     cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
     try:
-        scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads)
+        scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
+                           background_points=args.background_points)
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
@@ -236,6 +240,10 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "views at their poses, the rest filled with photo-consistent points; falls back to random "
                          "with the reason when too few tracks are found), random (the 3DGS cube when the cameras "
                          "surround the scene, the training frusta when they face one way), frusta or cube")
+    ap.add_argument("--background-points", type=int_at_least(0), default=BACKGROUND_POINTS, metavar="N",
+                    help="N more initial points on a sphere twice the rig's radius for the far background (sky, "
+                         "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
+                         "(3DGS's init). A forward-facing rig gets none")
     ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
                     help="folder the triangulation (features and points) is kept in and read back from by the next "
                          "run (default: OUT/init; the scene folder is never written unless DIR is in it)")

@@ -37,7 +37,7 @@ from ..camera import Camera
 from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
-           "is_forward_facing", "CONVERGING_SPREAD", "FAR_OVER_NEAR"]
+           "is_forward_facing", "background_shell", "CONVERGING_SPREAD", "FAR_OVER_NEAR", "SHELL_RADIUS"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
 # scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
@@ -53,6 +53,11 @@ _DEPTH_STEPS = 141
 CANDIDATES_PER_POINT = 20
 PHOTO_WIDTH = 64
 MIN_VIEWS = 3
+# background shell: its radius in rig radii (the largest distance of a training camera centre from
+# the rig's centre). Twice the rig puts every shell point behind the cameras that stand near it
+# and, with ~2000 points on the sphere, spaces them about 0.16 rig radii apart, small enough for
+# the 3DGS size rule (0.1 x extent = 0.11 rig radii after the first split) to leave their children.
+SHELL_RADIUS = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -236,3 +241,54 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
                   + "; near = the first depth half of the cameras see)",
         near=near, far=far, cameras=tuple(cameras))
 
+
+
+def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, image,
+                     radius: float = SHELL_RADIUS) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """Initial points for what lies beyond a rig that surrounds its scene (sky, horizon, far walls).
+
+    Points from a capture (SfM, a scene's point file, triangulation) stop where matching stops:
+    nothing stands for the far background, so densification grows it from the nearest content
+    outwards and leaves it where gradients stall, at the cameras' own distance from the centre.
+    There it is a haze of small Gaussians between the training cameras, outside their frusta, that
+    fills any new view taken from among them. This puts ``n`` points on a sphere of ``radius`` rig
+    radii about ``center`` (a Fibonacci lattice, so evenly spaced and the same for every run),
+    keeps those that at least one training view sees (in front of it, inside its image), and gives
+    each the mean colour it lands on in those views (:func:`photo_consistent`'s lookup at
+    ``PHOTO_WIDTH`` px). A forward-facing rig gets none (its frusta init already reaches
+    ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them).
+
+    Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
+    """
+    if isinstance(n, bool) or int(n) != n or n < 0:
+        raise ValueError(f"background_shell needs a point count n >= 0, got {n!r}")
+    if not (math.isfinite(radius) and radius > 1.0):
+        raise ValueError(f"background_shell radius must be a finite number of rig radii > 1, got {radius!r}")
+    empty = torch.zeros(0, 3, dtype=torch.float64)
+    if n == 0:
+        return empty, empty.clone(), "no background shell (0 points asked for)"
+    if not cameras:
+        raise ValueError("background_shell needs at least one camera")
+    spread = axis_spread(cameras)
+    if spread < CONVERGING_SPREAD:
+        return empty, empty.clone(), (f"no background shell: forward-facing rig (axis spread {spread:.3f} < "
+                                      f"{CONVERGING_SPREAD})")
+    center = torch.as_tensor(center, dtype=torch.float64)
+    centers = torch.stack([c.center for c in cameras])
+    rig = float(torch.linalg.norm(centers - center, dim=1).max())
+    if not rig > 0:
+        return empty, empty.clone(), "no background shell: all camera centres coincide (no rig radius)"
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    polar = torch.acos(1.0 - 2.0 * i / n)
+    azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
+    dirs = torch.stack([torch.cos(azimuth) * torch.sin(polar), torch.sin(azimuth) * torch.sin(polar),
+                        torch.cos(polar)], dim=1)
+    shell = center + radius * rig * dirs
+    seen = _seen_fraction(cameras, shell) > 0
+    shell = shell[seen]
+    if shell.shape[0] == 0:
+        return empty, empty.clone(), f"no background shell: none of {n} points at {radius:g} rig radii is in a view"
+    xyz, rgb, _ = photo_consistent(shell, cameras, image, shell.shape[0])
+    return xyz, rgb, (f"background shell: {xyz.shape[0]} of {n} points on a sphere of radius {radius * rig:.4g} "
+                      f"({radius:g} rig radii) about {[round(float(v), 3) for v in center]} are seen by a training "
+                      f"view, coloured by the views")

@@ -6,6 +6,8 @@ import logging
 from pathlib import Path
 from typing import Optional
 
+import torch
+
 from .colmap import load_colmap
 from .nerf import is_dynamic, load_dnerf, load_nerf_synthetic
 from .scene import Scene
@@ -14,7 +16,7 @@ LOG = logging.getLogger("mvgs_plugin")
 
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
-               init_cache=None, threads: Optional[int] = None) -> Scene:
+               init_cache=None, threads: Optional[int] = None, background_points: int = 0) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json; D-NeRF when its frames carry a time) or COLMAP (sparse/, sparse/0, or
     cameras.bin / cameras.txt at the top). Raises ValueError naming the folder when it does not
@@ -29,9 +31,14 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     kept), seeded by ``init_seed``. None leaves ``scene.points`` None (the adapters then draw
     random points themselves). ``init_cache``: a folder to keep the triangulation in for the
     next run (None: a temporary folder; the scene folder is never written). ``threads``:
-    pycolmap's threads (default: torch's). What was done is in ``scene.points_origin`` and logged
-    to the "mvgs_plugin" logger.
+    pycolmap's threads (default: torch's). ``background_points``: that many more points on a
+    shell beyond a rig that surrounds the scene, for its far background
+    (:func:`~mvgs_plugin.data.init.background_shell`; 0: none; a forward-facing rig, or a scene left
+    without points by ``init=None``, gets none). What was done is in ``scene.points_origin`` and
+    logged to the "mvgs_plugin" logger.
     """
+    if isinstance(background_points, bool) or not isinstance(background_points, int) or background_points < 0:
+        raise ValueError(f"background_points must be an int >= 0, got {background_points!r}")
     path = Path(path)
     if not path.exists():
         raise ValueError(f"scene folder {path} does not exist")
@@ -49,4 +56,15 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         made = initial_points(scene, init, init_points, init_seed, init_cache, threads)
         scene.points, scene.points_origin = made.points, made.description
         LOG.info("%s: %s", path, made.description)
+    if background_points and scene.points is not None:
+        from .init import background_shell
+        from .scene import PointCloud
+
+        xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image)
+        if xyz.shape[0]:
+            pts = scene.points
+            scene.points = PointCloud(xyz=torch.cat([pts.xyz.to(torch.float64), xyz]),
+                                      rgb=torch.cat([pts.rgb.to(torch.float64), rgb]))
+        scene.points_origin = f"{scene.points_origin}; {said}" if scene.points_origin else said
+        LOG.info("%s: %s", path, said)
     return scene
