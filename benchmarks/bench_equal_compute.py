@@ -89,7 +89,8 @@ RUNS = {
 }
 
 
-def train(data, kind: str, budget: float, views: int, points: int, seed: int, scale: int, clock: str = "budget") -> dict:
+def train(data, kind: str, budget: float, views: int, points: int, seed: int, scale: int, clock: str = "budget",
+          background_points: int | None = None) -> dict:
     """One run, in this process (one thread): trains on the budget and evaluates at `points`
     evenly spaced points of the step count; returns the final metrics and the curve."""
     import torch
@@ -102,6 +103,8 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     torch.manual_seed(seed)
     length = ["--budget", str(budget)] if clock == "budget" else ["--steps", str(int(budget))]
     argv = [*RUNS[kind], *length, "--seed", str(seed), "--resolution-scale", str(scale)]
+    if background_points is not None:
+        argv += ["--background-points", str(background_points)]
     if kind.startswith("multiview"):
         argv += ["--views", str(views)]  # the candidates keep their own stage plans
     if data is not None:
@@ -109,7 +112,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", type=ex.scene_folder, default=ex.BUNDLED)
     args = ex.common_args(parser, "out/bench").parse_args(argv)
-    scene = ex.load_scene(args.data)
+    scene = ex.load_scene(args.data, background_points=args.background_points)  # the examples' init
     config = ex.config_from_args(args, scene)
     adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))
     trainer = MVGS(adapter, scene, config)
@@ -226,6 +229,8 @@ def main(argv=None) -> list:
     ap.add_argument("--resolution-scale", type=int, default=1)
     ap.add_argument("--processes", type=int, default=2, help="runs side by side (one thread each)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--background-points", type=int, default=None, metavar="N",
+                    help="initial points on the background shell (default: the examples' default; 0: 3DGS's init)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "equal_compute")
     ap.add_argument("--summary", type=Path, nargs="+", default=None, metavar="RUNS_JSON",
                     help="print one table from these runs.json files and exit (no training)")
@@ -241,7 +246,10 @@ def main(argv=None) -> list:
     if args.out.exists() and not args.out.is_dir():
         ap.error(f"--out {args.out} exists and is not a folder")
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock)
+    if args.background_points is not None and args.background_points < 0:
+        ap.error(f"--background-points must be >= 0, got {args.background_points}")
+    jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock,
+             args.background_points)
             for b in args.budgets for kind in args.runs]
     # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each.
     with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:

@@ -51,3 +51,26 @@ def test_summary_pairs_across_files_and_against_the_best_so_far(tmp_path):
     ref = rows_of(bench.summary([a, b], reference="default"))
     assert {r[5] for r in ref} == {"baseline", "coarse-mv-budget"}
     assert bench.best_so_far(json.loads(a.read_text())["runs"], "baseline", 29.0) is None
+
+
+def test_a_bench_run_starts_from_the_examples_init_with_its_background_shell():
+    """bench_equal_compute builds its runs as train_3dgs.py does, so it must start from the same
+    points: the scene's, plus the background shell the examples add (counted here from
+    mvgs_plugin.data.init.background_shell itself), or the scene's alone with 0. A 10-step budget
+    ends before densification starts, so the final count is the initial one."""
+    import torch
+
+    from mvgs_plugin.cli import BACKGROUND_POINTS, BUNDLED
+    from mvgs_plugin.data import load_scene
+    from mvgs_plugin.data.init import background_shell
+
+    scene = load_scene(BUNDLED)
+    shell, _, _ = background_shell(scene.train_cameras, scene.center, BACKGROUND_POINTS, scene.image)
+    threads = torch.get_num_threads()
+    try:
+        plain = bench.train(None, "baseline", 10, 1, 1, 0, 4, background_points=0)
+        shelled = bench.train(None, "baseline", 10, 1, 1, 0, 4)
+    finally:
+        torch.set_num_threads(threads)
+    assert plain["gaussians"] == len(scene.points)
+    assert shelled["gaussians"] == len(scene.points) + shell.shape[0] > len(scene.points)
