@@ -45,7 +45,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from mvgs_plugin.cli import repo_path  # noqa: E402
+from mvgs_plugin.cli import int_at_least, repo_path  # noqa: E402
 from mvgs_plugin.io import atomic_write_text  # noqa: E402
 RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
@@ -229,7 +229,7 @@ def main(argv=None) -> list:
     ap.add_argument("--resolution-scale", type=int, default=1)
     ap.add_argument("--processes", type=int, default=2, help="runs side by side (one thread each)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--background-points", type=int, default=None, metavar="N",
+    ap.add_argument("--background-points", type=int_at_least(0), default=None, metavar="N",
                     help="initial points on the background shell (default: the examples' default; 0: 3DGS's init)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "equal_compute")
     ap.add_argument("--summary", type=Path, nargs="+", default=None, metavar="RUNS_JSON",
@@ -246,8 +246,6 @@ def main(argv=None) -> list:
     if args.out.exists() and not args.out.is_dir():
         ap.error(f"--out {args.out} exists and is not a folder")
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.background_points is not None and args.background_points < 0:
-        ap.error(f"--background-points must be >= 0, got {args.background_points}")
     jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock,
              args.background_points)
             for b in args.budgets for kind in args.runs]

@@ -37,7 +37,7 @@ from ..camera import Camera
 from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
-           "is_forward_facing", "background_shell", "CONVERGING_SPREAD", "FAR_OVER_NEAR", "SHELL_RADIUS"]
+           "is_forward_facing", "background_shell", "view_colours", "CONVERGING_SPREAD", "FAR_OVER_NEAR", "SHELL_RADIUS"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
 # scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
@@ -99,20 +99,16 @@ class InitRegion:
         return out
 
 
-def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image, n: int,
-                     max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The n candidates whose colour agrees best across the training views, and that colour.
-
-    Every candidate [P, 3] is projected into every camera (its image downsampled to at most
-    ``max_width`` pixels across by ``image(camera, factor)``); the score is the variance of
-    the colours it lands on over the views that see it (a crude plane sweep: a point on a
-    surface sees one colour from everywhere, a point in free space sees several). Candidates
-    seen by fewer than ``MIN_VIEWS`` views rank last. Returns (xyz [n, 3] float64, rgb [n, 3]
-    in [0, 1] the mean colour, how many of the n are seen by at least MIN_VIEWS views).
-    """
-    p = candidates.shape[0]
+def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
+                 max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What each point [P, 3] lands on in the training views: every point is projected into every
+    camera (its image downsampled to at most ``max_width`` pixels across by ``image(camera,
+    factor)``). Returns (mean colour [P, 3] float64 over the views that see the point, the variance
+    of those colours [P] (summed over the channels), how many views see it [P]); a point no view
+    sees has mean and variance 0."""
+    p = points.shape[0]
     # float32 is plenty for a pixel lookup at <= 64 px; sums of <= a few thousand views in float64
-    points = candidates.to(torch.float32)
+    pts = points.to(torch.float32)
     total = torch.zeros(p, 3, dtype=torch.float64)
     squares = torch.zeros(p, dtype=torch.float64)
     count = torch.zeros(p, dtype=torch.float64)
@@ -121,7 +117,7 @@ def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image,
         small = cam.scaled(factor)
         img = image(cam, factor).to(torch.float32).reshape(-1, 3)
         w2c = small.world_to_camera.to(torch.float32)
-        cam_xyz = points @ w2c[:3, :3].T + w2c[:3, 3]
+        cam_xyz = pts @ w2c[:3, :3].T + w2c[:3, 3]
         z = cam_xyz[:, 2]
         zs = z.clamp_min(1e-12)
         px = small.fx * cam_xyz[:, 0] / zs + small.cx
@@ -135,9 +131,28 @@ def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image,
         count += inside.to(torch.float64)
     mean = total / count.clamp_min(1)[:, None]
     variance = squares / count.clamp_min(1) - (mean * mean).sum(1)
-    score = torch.where(count >= MIN_VIEWS, variance, torch.full_like(variance, math.inf))
-    keep = torch.argsort(score)[:n]
+    return mean, variance, count
+
+
+def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image, n: int,
+                     max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The n candidates whose colour agrees best across the training views, and that colour.
+
+    The score of a candidate [P, 3] is the variance of the colours it lands on over the views that
+    see it (:func:`view_colours`; a crude plane sweep: a point on a surface sees one colour from
+    everywhere, a point in free space sees several). Candidates seen by fewer than ``MIN_VIEWS``
+    views rank last. Returns (xyz [n, 3] float64, rgb [n, 3] in [0, 1] the mean colour, how many
+    of the n are seen by at least MIN_VIEWS views).
+    """
+    mean, variance, count = view_colours(candidates, cameras, image, max_width)
+    keep = _photo_rank(variance, count)[:n]
     return candidates[keep], mean[keep].clamp(0.0, 1.0), int((count[keep] >= MIN_VIEWS).sum())
+
+
+def _photo_rank(variance: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    """Indices from the most to the least photo-consistent (lowest colour variance first; points
+    seen by fewer than MIN_VIEWS views last)."""
+    return torch.argsort(torch.where(count >= MIN_VIEWS, variance, torch.full_like(variance, math.inf)))
 
 
 def random_init_points(scene, n: int, generator: torch.Generator,
@@ -254,8 +269,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     fills any new view taken from among them. This puts ``n`` points on a sphere of ``radius`` rig
     radii about ``center`` (a Fibonacci lattice, so evenly spaced and the same for every run),
     keeps those that at least one training view sees (in front of it, inside its image), and gives
-    each the mean colour it lands on in those views (:func:`photo_consistent`'s lookup at
-    ``PHOTO_WIDTH`` px). A forward-facing rig gets none (its frusta init already reaches
+    each the mean colour it lands on in those views (:func:`view_colours` at ``PHOTO_WIDTH`` px). A forward-facing rig gets none (its frusta init already reaches
     ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them).
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
@@ -284,11 +298,14 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     dirs = torch.stack([torch.cos(azimuth) * torch.sin(polar), torch.sin(azimuth) * torch.sin(polar),
                         torch.cos(polar)], dim=1)
     shell = center + radius * rig * dirs
-    seen = _seen_fraction(cameras, shell) > 0
-    shell = shell[seen]
-    if shell.shape[0] == 0:
+    mean, variance, count = view_colours(shell, cameras, image)
+    seen = count > 0
+    if not seen.any():
         return empty, empty.clone(), f"no background shell: none of {n} points at {radius:g} rig radii is in a view"
-    xyz, rgb, _ = photo_consistent(shell, cameras, image, shell.shape[0])
+    # listed in photo-consistency order, the order every measurement of docs/data.md was made with
+    # (training is sensitive to the order of its initial points, not to the set alone)
+    order = _photo_rank(variance[seen], count[seen])
+    xyz, rgb = shell[seen][order], mean[seen][order].clamp(0.0, 1.0)
     return xyz, rgb, (f"background shell: {xyz.shape[0]} of {n} points on a sphere of radius {radius * rig:.4g} "
                       f"({radius:g} rig radii) about {[round(float(v), 3) for v in center]} are seen by a training "
                       f"view, coloured by the views")

@@ -62,9 +62,9 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
 
         xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image)
         if xyz.shape[0]:
-            pts = scene.points
-            scene.points = PointCloud(xyz=torch.cat([pts.xyz.to(torch.float64), xyz]),
-                                      rgb=torch.cat([pts.rgb.to(torch.float64), rgb]))
+            pts = scene.points  # float32 (PointCloud's dtype)
+            scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),
+                                      rgb=torch.cat([pts.rgb, rgb.to(pts.rgb.dtype)]))
         scene.points_origin = f"{scene.points_origin}; {said}" if scene.points_origin else said
         LOG.info("%s: %s", path, said)
     return scene
