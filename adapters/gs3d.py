@@ -93,6 +93,12 @@ class GS3DConfig:
         split_samples: children per split Gaussian; their scale is divided by 0.8 * split_samples.
         min_opacity: prune below this opacity.
         max_world_size: with ctx.prune_large, prune max scale > max_world_size * extent.
+        world_size_rule: "extent" is 3DGS's rule (the limit max_world_size * extent everywhere);
+            "distance" keeps it within the extent of the scene centre (ctx.scene_center) and
+            beyond lets it grow with the distance d from the centre, max_world_size * max(extent,
+            d): a fixed angle as seen from the rig, so the far background (sky, horizon, a
+            background shell at twice the rig's radius) may keep the large Gaussians a camera
+            sees as small. Without ctx.scene_center it is the extent rule.
         max_screen_size: with ctx.prune_large, prune max screen radius (pixels) above this.
             Default None: the released 3DGS code zeroes its radius statistic before testing it,
             so this rule never fires there (the authors kept it so to preserve their results,
@@ -124,6 +130,7 @@ class GS3DConfig:
     split_samples: int = 2
     min_opacity: float = 0.005
     max_world_size: float = 0.1
+    world_size_rule: str = "extent"
     max_screen_size: Optional[float] = None
     opacity_reset_value: float = 0.01
     max_gaussians: Optional[int] = None
@@ -150,6 +157,8 @@ class GS3DConfig:
         for name in ("random_init_half_size", "max_screen_size"):
             if getattr(self, name) is not None:
                 check_float(name, getattr(self, name), positive=True)
+        if self.world_size_rule not in ("extent", "distance"):
+            raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {self.world_size_rule!r}")
         if not callable(self.rasterize):
             raise ValueError(f"rasterize must be callable, got {self.rasterize!r}")
         if not isinstance(self.rasterize_kwargs, dict):
@@ -572,8 +581,9 @@ class GS3DAdapter:
              mean + R (s ⊙ n), n ~ N(0, I), scale s / (0.8 * split_samples), other attributes
              copied; the parent is removed;
           4. prune (all rows, new ones included): opacity < min_opacity and, with
-             ctx.prune_large, max scale > max_world_size * E or (when config.max_screen_size is
-             set) max screen radius > max_screen_size.
+             ctx.prune_large, max scale > max_world_size * E (config.world_size_rule "distance":
+             max_world_size * max(E, distance from ctx.scene_center)) or (when
+             config.max_screen_size is set) max screen radius > max_screen_size.
         With a cap (the lower of config.max_gaussians and ctx.max_primitives) the count after the
         call never exceeds it: the rows step 4 prunes are not grown from; when the survivors
         alone exceed the cap, the ones with the lowest keep_scores() are removed down to it (and
@@ -616,7 +626,7 @@ class GS3DAdapter:
         dropped_cap = 0
         if cap is not None:
             gone = self.prune_mask({k: v.detach() for k, v in self.params.items()}, self.max_radii2D, extent,
-                                   ctx.prune_large)
+                                   ctx.prune_large, ctx.scene_center)
             excess = n0 - int(gone.sum()) - cap
             if excess > 0:  # shrink to the cap: the lowest keep scores go
                 keep_score = torch.where(gone, torch.full_like(g, math.inf), self.keep_scores().to(g))
@@ -633,7 +643,7 @@ class GS3DAdapter:
         n_new = new_rows["means"].shape[0]
         all_rows = {k: torch.cat([self.params[k].detach(), new_rows[k]]) for k in PARAM_NAMES}
         radii = torch.cat([self.max_radii2D, self.max_radii2D.new_zeros(n_new)])
-        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large) | torch.cat([shed, shed.new_zeros(n_new)])
+        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large, ctx.scene_center) | torch.cat([shed, shed.new_zeros(n_new)])
         parents = torch.cat([split_sel, split_sel.new_zeros(n_new)])
         keep = ~(prune | parents)
         if cap is not None and int(keep.sum()) > cap:  # a subclass's prune rule kept more: the newest rows go
@@ -729,14 +739,22 @@ class GS3DAdapter:
         out["scales"] = torch.log(s / (0.8 * k))
         return out
 
-    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool,
+                   center: Optional[Tensor] = None) -> Tensor:
         """[rows] bool: the rows (raw attributes after growth) densify() removes: opacity below
         config.min_opacity, and with prune_large world size above config.max_world_size x extent
-        or screen radius above config.max_screen_size."""
+        (world_size_rule "distance" with a center [3]: x max(extent, distance from center)) or
+        screen radius above config.max_screen_size."""
         c = self.config
         prune = torch.sigmoid(rows["opacities"]) < c.min_opacity
         if prune_large:
-            prune |= torch.exp(rows["scales"]).max(dim=1).values > c.max_world_size * extent
+            size = torch.exp(rows["scales"]).max(dim=1).values
+            if c.world_size_rule == "distance" and center is not None:
+                means = rows["means"]
+                d = torch.linalg.norm(means - torch.as_tensor(center).to(means), dim=1)
+                prune |= size > c.max_world_size * torch.clamp_min(d, extent)
+            else:
+                prune |= size > c.max_world_size * extent
             if c.max_screen_size is not None:
                 prune |= radii > c.max_screen_size
         return prune

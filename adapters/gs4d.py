@@ -507,10 +507,11 @@ class GS4DAdapter(GS3DAdapter):
         report.extra["growth_capped"] = capped
         return report
 
-    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool) -> Tensor:
+    def prune_mask(self, rows: Dict[str, Tensor], radii: Tensor, extent: float, prune_large: bool,
+                   center: Optional[Tensor] = None) -> Tensor:
         if rows["means"].shape[0] <= self.gs4d_config.prune_min_count:
             return torch.zeros(rows["means"].shape[0], dtype=torch.bool, device=rows["means"].device)
-        return super().prune_mask(rows, radii, extent, prune_large)
+        return super().prune_mask(rows, radii, extent, prune_large, center)
 
     def box_selection(self, ctx: DensifyContext, g: Tensor) -> Tuple[Tensor, int]:
         """Cross-ray boxes for moving content. The boxes come from rays of views taken at

@@ -31,14 +31,14 @@ import sys
 from mvgs_plugin.adapters.gs3d import GS3DAdapter
 from mvgs_plugin.cli import (
     BUNDLED, HelpFormatter, common_args, config_from_args, launch, metrics_record, model_config,
-    rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
+    rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args, world_size_arg,
 )
 
 
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
-    common_args(ap, "out/train_3dgs")
+    world_size_arg(common_args(ap, "out/train_3dgs"))
     return ap.parse_args(argv)
 
 
@@ -49,7 +49,8 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     scene = scene_from_args(args)
     config = config_from_args(args, scene)
-    model = model_config(config, args.seed, rasterize=rasterize_function(args))
+    model = model_config(config, args.seed, rasterize=rasterize_function(args),
+                         world_size_rule=args.world_size_rule)
     adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0

@@ -31,6 +31,7 @@ from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
     HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, metrics_record,
     model_config, rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
+    world_size_arg,
 )
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
@@ -40,7 +41,7 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, required=True,
                     help="dynamic scene in the D-NeRF layout (frames with 'time'); required")
-    common_args(ap, "out/train_4dgs")  # --steps: coarse + fine together
+    world_size_arg(common_args(ap, "out/train_4dgs"))  # --steps: coarse + fine together
     # 4DGS
     ap.add_argument("--coarse-fraction", type=float_above(0, inclusive=True, high=0.999999), default=ORIGINAL_COARSE_FRACTION,
                     help="share of the steps in the static coarse stage, in [0, 1) (default: 3000/23000, the original's)")
@@ -62,7 +63,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     total = config.clock_length
     coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
-    canonical = model_config(config, args.seed, rasterize=rasterize_function(args))
+    canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
+                             world_size_rule=args.world_size_rule)
     return GS4DConfig(canonical=canonical, coarse_steps=coarse,
                       fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
 

@@ -134,13 +134,17 @@ def scene_from_args(args):
     return scene
 
 
-def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None) -> GS3DConfig:
+def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
+                 world_size_rule=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
-    growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead)."""
+    growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
+    world_size_rule: GS3DConfig.world_size_rule (None: its default)."""
     clock = config.clock_length
     extra = {} if rasterize is None else {"rasterize": rasterize}
+    if world_size_rule is not None:
+        extra["world_size_rule"] = world_size_rule
     return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
                       sh_degree_interval=max(1, round(1000 * clock / 30_000)), **extra)
 
@@ -219,6 +223,17 @@ def check_out(out: Path) -> None:
         raise ValueError(f"--out {out}: {probe} is a file, so the folder cannot be created under it")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: {probe} is not writable by this user")
+
+
+def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """--world-size-rule, for the examples whose model has 3DGS's size pruning (train_3dgs,
+    train_4dgs; Scaffold-GS prunes anchors by opacity only)."""
+    ap.add_argument("--world-size-rule", choices=("extent", "distance"), default=None,
+                    help="3DGS's size pruning: extent prunes Gaussians larger than 0.1 x the scene extent everywhere "
+                         "(3DGS); distance lets the limit grow with the distance from the rig's centre beyond the "
+                         "extent (0.1 x the distance), so the far background keeps its large Gaussians (default: "
+                         "GS3DConfig's)")
+    return ap
 
 
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:

@@ -60,6 +60,8 @@ class DensifyContext:
     grad_threshold: screen-space gradient threshold (NDC units, 2e-4 by default) after the
         multi-view augmented rule (MVAD) has possibly lowered it for this step.
     scene_extent: the scene scale used by size thresholds (Scene.extent).
+    scene_center: [3] the centre the extent is measured from (Scene.center), or None; a size
+        rule may grow with the distance from it (GS3DConfig.world_size_rule).
     boxes: [B, 2, 3] axis-aligned boxes (min corner, max corner) from cross-ray densification
         (CRD): primitives strictly inside any box are densified once; None when CRD is off.
     max_new_from_boxes: cap on how many primitives the boxes may add in this call (None = no cap).
@@ -89,6 +91,7 @@ class DensifyContext:
     max_primitives: Optional[int] = None
     rank_by: str = "consistency"
     swap_share: float = 0.0
+    scene_center: Optional[Tensor] = None
 
 
 @dataclass
