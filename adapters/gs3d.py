@@ -93,12 +93,14 @@ class GS3DConfig:
         split_samples: children per split Gaussian; their scale is divided by 0.8 * split_samples.
         min_opacity: prune below this opacity.
         max_world_size: with ctx.prune_large, prune max scale > max_world_size * extent.
-        world_size_rule: "extent" is 3DGS's rule (the limit max_world_size * extent everywhere);
-            "distance" keeps it within the extent of the scene centre (ctx.scene_center) and
-            beyond lets it grow with the distance d from the centre, max_world_size * max(extent,
-            d): a fixed angle as seen from the rig, so the far background (sky, horizon, a
-            background shell at twice the rig's radius) may keep the large Gaussians a camera
-            sees as small. Without ctx.scene_center it is the extent rule.
+        world_size_rule: "distance" (default) keeps the limit max_world_size * extent within the
+            extent of the scene centre (ctx.scene_center) and beyond lets it grow with the
+            distance d from the centre, max_world_size * max(extent, d): a fixed angle as seen
+            from the rig, so the far background (sky, horizon, a background shell at twice the
+            rig's radius, the far wall of a forward-facing capture) keeps the large Gaussians a
+            camera sees as small. "extent" is 3DGS's rule (the same limit everywhere), which
+            prunes them. Without ctx.scene_center "distance" is the extent rule. Measured in
+            docs/equal_compute.md ("A size rule for the far background").
         max_screen_size: with ctx.prune_large, prune max screen radius (pixels) above this.
             Default None: the released 3DGS code zeroes its radius statistic before testing it,
             so this rule never fires there (the authors kept it so to preserve their results,
@@ -130,7 +132,7 @@ class GS3DConfig:
     split_samples: int = 2
     min_opacity: float = 0.005
     max_world_size: float = 0.1
-    world_size_rule: str = "extent"
+    world_size_rule: str = "distance"
     max_screen_size: Optional[float] = None
     opacity_reset_value: float = 0.01
     max_gaussians: Optional[int] = None

@@ -229,10 +229,10 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """--world-size-rule, for the examples whose model has 3DGS's size pruning (train_3dgs,
     train_4dgs; Scaffold-GS prunes anchors by opacity only)."""
     ap.add_argument("--world-size-rule", choices=("extent", "distance"), default=None,
-                    help="3DGS's size pruning: extent prunes Gaussians larger than 0.1 x the scene extent everywhere "
-                         "(3DGS); distance lets the limit grow with the distance from the rig's centre beyond the "
-                         "extent (0.1 x the distance), so the far background keeps its large Gaussians (default: "
-                         "GS3DConfig's)")
+                    help="size pruning (after the first opacity reset): distance prunes Gaussians larger than 0.1 x "
+                         "the scene extent within the extent of the rig's centre and 0.1 x their distance from it "
+                         "beyond, so the far background keeps its large Gaussians; extent is 3DGS's rule, 0.1 x the "
+                         "extent everywhere (default: GS3DConfig's, distance)")
     return ap
 
 
