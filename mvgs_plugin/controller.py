@@ -246,7 +246,7 @@ class MVGS:
         call that grows nothing (threshold +inf) with the budget as its cap, so the adapter drops
         its lowest-ranked rows (GS3DAdapter.keep_scores)."""
         ctx = DensifyContext(step=self.schedule.step_count, grad_threshold=math.inf,
-                             scene_extent=float(self.scene.extent), scene_center=getattr(self.scene, "center", None),
+                             scene_extent=float(self.scene.extent), scene_center=self.scene.center,
                              max_primitives=budget,
                              rank_by=self.config.densify_rank)
         with torch.no_grad():

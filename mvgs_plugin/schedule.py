@@ -275,7 +275,7 @@ class ViewSchedule:
             step=plan.clock,
             grad_threshold=threshold,
             scene_extent=float(self.scene.extent),
-            scene_center=getattr(self.scene, "center", None),
+            scene_center=self.scene.center,
             boxes=boxes,
             max_new_from_boxes=cap,
             prune_large=plan.clock > cfg.prune_large_after and (cfg.max_gaussians is None or cfg.budget_size_pruning),
