@@ -30,7 +30,9 @@ Issue 27's kinds: "baseline-budget" (the baseline with a Gaussian budget of the 
 pixels / 128), "default-budget", "coarse-mv-budget" (4 views per step at 1/4 resolution, 2 at
 1/2) and "coarse-mv-sqrt-budget" (with Grendel-GS's sqrt(M) rule), all at pixels / 213;
 "default-budget128", the default at the baseline's pixels / 128; "compact" (MVGSConfig.compact(), the
-default at pixels / 213 where the rig is not forward-facing).
+default at pixels / 213 where the rig is not forward-facing); with the shell and the distance
+size rule, "coarse-mv4" (4 views per step at 1/4, 2 at 1/2, no budget) and "coarse-mv4-cap" /
+"default-cap" (the same and the default at the budget --max-gaussians N).
 """
 
 from __future__ import annotations
@@ -86,11 +88,34 @@ RUNS = {
                          "--pixels-per-gaussian", "213"],
     "coarse-mv-sqrt-budget": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000",
                               "--pixels-per-gaussian", "213", "--views-scaling", "sqrt"],
+    # Issue 27 with the background shell and the distance size rule: the M = 4 recipe without a
+    # budget, and the M = 4 recipe and the default with the budget --max-gaussians N of this
+    # script (the kinds ending in "-cap"; e.g. a quarter of the baseline's count)
+    "coarse-mv4": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000"],
+    "coarse-mv4-cap": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000"],
+    "default-cap": ["--preset", "default"],
 }
+CAPPED = tuple(k for k in RUNS if k.endswith("-cap"))  # the kinds that take --max-gaussians
+
+
+def run_argv(kind: str, budget: float, views: int, seed: int, scale: int, clock: str = "budget",
+             background_points: int | None = None, max_gaussians: int | None = None) -> list:
+    """The examples' command line of one run (train_3dgs.py's flags, without --data)."""
+    if kind in CAPPED and max_gaussians is None:
+        raise ValueError(f"run kind {kind!r} needs --max-gaussians N (the budget it is run at)")
+    length = ["--budget", str(budget)] if clock == "budget" else ["--steps", str(int(budget))]
+    argv = [*RUNS[kind], *length, "--seed", str(seed), "--resolution-scale", str(scale)]
+    if background_points is not None:
+        argv += ["--background-points", str(background_points)]
+    if kind in CAPPED:
+        argv += ["--max-gaussians", str(int(max_gaussians))]
+    if kind.startswith("multiview"):
+        argv += ["--views", str(views)]  # the candidates keep their own stage plans
+    return argv
 
 
 def train(data, kind: str, budget: float, views: int, points: int, seed: int, scale: int, clock: str = "budget",
-          background_points: int | None = None) -> dict:
+          background_points: int | None = None, max_gaussians: int | None = None) -> dict:
     """One run, in this process (one thread): trains on the budget and evaluates at `points`
     evenly spaced points of the step count; returns the final metrics and the curve."""
     import torch
@@ -101,12 +126,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
 
     torch.set_num_threads(1)
     torch.manual_seed(seed)
-    length = ["--budget", str(budget)] if clock == "budget" else ["--steps", str(int(budget))]
-    argv = [*RUNS[kind], *length, "--seed", str(seed), "--resolution-scale", str(scale)]
-    if background_points is not None:
-        argv += ["--background-points", str(background_points)]
-    if kind.startswith("multiview"):
-        argv += ["--views", str(views)]  # the candidates keep their own stage plans
+    argv = run_argv(kind, budget, views, seed, scale, clock, background_points, max_gaussians)
     if data is not None:
         argv += ["--data", str(data)]
     parser = argparse.ArgumentParser()
@@ -231,6 +251,8 @@ def main(argv=None) -> list:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--background-points", type=int_at_least(0), default=None, metavar="N",
                     help="initial points on the background shell (default: the examples' default; 0: 3DGS's init)")
+    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None, metavar="N",
+                    help=f"the Gaussian budget of the run kinds {', '.join(CAPPED)} (required with them)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "equal_compute")
     ap.add_argument("--summary", type=Path, nargs="+", default=None, metavar="RUNS_JSON",
                     help="print one table from these runs.json files and exit (no training)")
@@ -241,13 +263,15 @@ def main(argv=None) -> list:
         text = summary(args.summary, args.reference)
         print(text)
         return text
+    if args.max_gaussians is None and any(k in CAPPED for k in args.runs):
+        ap.error(f"--runs {' '.join(k for k in args.runs if k in CAPPED)} need --max-gaussians N")
     if any(not b > 0 for b in args.budgets):
         ap.error(f"--budgets must be > 0, got {args.budgets}")
     if args.out.exists() and not args.out.is_dir():
         ap.error(f"--out {args.out} exists and is not a folder")
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock,
-             args.background_points)
+             args.background_points, args.max_gaussians)
             for b in args.budgets for kind in args.runs]
     # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each.
     with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:

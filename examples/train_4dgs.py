@@ -16,7 +16,9 @@ PLY plus the deformation file (what it takes to render any time).
 The step budget is split into the coarse (static) stage and the fine (deformation) stage by
 --coarse-fraction (the original D-NeRF recipe: 3000 of 23000 steps). With M > 1 views per step
 --time-spread chooses how they spread over time: "stratified" (default: one view from each of M
-time bins) or "random".
+time bins) or "random". With the pyramid presets (default, compact) the work the coarse steps
+save is spent as 2-view steps at the end (--late-views, MVGSConfig.with_late_views), so a run of N
+steps does the baseline's N steps of work, and its last steps see two times of the scene each.
 """
 
 from __future__ import annotations
@@ -31,10 +33,13 @@ from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
     HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, metrics_record,
     model_config, rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
-    world_size_arg,
+    world_size_arg, late_views_arg, resolve_late_views,
 )
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
+# --late-views' default with the pyramid presets: the work the coarse steps save, spent as 2-view
+# steps (two times of the scene) at the end (docs/equal_compute.md, "4DGS: the views the pyramid saves")
+LATE_VIEWS = 2
 
 
 def parse_args(argv=None):
@@ -42,6 +47,7 @@ def parse_args(argv=None):
     ap.add_argument("--data", type=scene_folder, required=True,
                     help="dynamic scene in the D-NeRF layout (frames with 'time'); required")
     world_size_arg(common_args(ap, "out/train_4dgs"))  # --steps: coarse + fine together
+    late_views_arg(ap, LATE_VIEWS)
     # 4DGS
     ap.add_argument("--coarse-fraction", type=float_above(0, inclusive=True, high=0.999999), default=ORIGINAL_COARSE_FRACTION,
                     help="share of the steps in the static coarse stage, in [0, 1) (default: 3000/23000, the original's)")
@@ -53,7 +59,7 @@ def parse_args(argv=None):
                     help="box of the extra random points (default: the scene points' box widened to a cube)")
     ap.add_argument("--export-times", type=float_above(0, inclusive=True, high=1.0), nargs="*", default=[0.0, 0.5, 1.0],
                     help="times in [0, 1] at which to bake a PLY")
-    return ap.parse_args(argv)
+    return resolve_late_views(ap.parse_args(argv))
 
 
 def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:

@@ -236,6 +236,28 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return ap
 
 
+def late_views_arg(ap: argparse.ArgumentParser, default_views: int) -> argparse.ArgumentParser:
+    """--late-views M (MVGSConfig.with_late_views): the work the pyramid saves per step spent as
+    M-view steps at the end of the run. `default_views` is the example's M for the pyramid
+    presets (default, compact) when neither --stages nor --views is given; resolve it with
+    resolve_late_views() after parsing."""
+    ap.add_argument("--late-views", type=int_at_least(1), default=None,
+                    help="the work the pyramid's coarse steps save, spent as M-view full-resolution steps at the end, "
+                         f"so a run of N steps does the work of N baseline steps; 1 turns it off (default: {default_views} "
+                         "with --preset default or compact and neither --stages nor --views, else 1)")
+    ap.set_defaults(late_views_default=default_views)
+    return ap
+
+
+def resolve_late_views(args) -> argparse.Namespace:
+    """args with --late-views resolved: its value, else the example's default for the pyramid
+    presets when the user gave neither --stages nor --views, else 1."""
+    if getattr(args, "late_views", None) is None:
+        plain = args.preset in ("default", "compact") and not getattr(args, "stages", None) and args.views is None
+        args.late_views = getattr(args, "late_views_default", 1) if plain else 1
+    return args
+
+
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=PRESETS, default="default",
@@ -362,6 +384,11 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     if scene is not None:
         config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
+    if getattr(args, "late_views", None) not in (None, 1):  # train_4dgs.py's --late-views, after for_scene:
+        try:  # a forward-facing rig has no coarse stage left, so no saving to spend
+            config = config.with_late_views(args.late_views)
+        except ValueError as err:
+            raise ValueError(f"--late-views {args.late_views}: {err}") from err
     if args.budget is not None:
         config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
     else:

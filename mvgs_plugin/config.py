@@ -625,6 +625,35 @@ class MVGSConfig:
         stages = tuple(Stage(s.factor, max(1, round(s.views * views / last)), s.steps) for s in self.stages)
         return dataclasses.replace(self, stages=stages)
 
+    def with_late_views(self, views: int) -> "MVGSConfig":
+        """The work the pyramid saves per step, spent as `views`-view steps at the end.
+
+        A coarse step of one view costs step_work < 1 full view, so a pyramid run of N steps
+        does less work than a single-view full-resolution run of N steps. Here the last stage's
+        final n steps take `views` views, n = saving / (views - 1) (saving = the sum over the
+        coarse stages of steps x (1 - step_work), rounded), so the plan's work equals its step
+        count: at equal steps it does the baseline's work, and every extra view is a view of
+        another camera (and, on a dynamic scene, another time) in the same optimizer step.
+        Measured on 4DGS, where it is train_4dgs.py's default (docs/equal_compute.md, "4DGS:
+        the views the pyramid saves"). Needs a finest last stage of one view; `views` = 1, or
+        a plan without cheaper stages (as for_scene() leaves on a forward-facing rig) returns the
+        config unchanged. Call it after for_scene() and before with_total_steps() /
+        with_budget(), which keep its proportions."""
+        if isinstance(views, bool) or not isinstance(views, int) or views < 1:
+            raise ValueError(f"late views must be an int >= 1, got {views!r}")
+        last = self.stages[-1]
+        if views == 1:
+            return self
+        if last.views != 1 or last.factor != min(s.factor for s in self.stages):
+            raise ValueError(f"late views need a last stage at the finest factor with one view per step, got "
+                             f"{last} (stages {list(self.stages)})")
+        saving = sum(s.steps * max(0.0, 1.0 - self.step_work(s)) for s in self.stages[:-1])
+        n = min(last.steps - 1, round(saving / (views - 1)))
+        if n < 1:
+            return self
+        stages = self.stages[:-1] + (Stage(last.factor, 1, last.steps - n), Stage(last.factor, views, n))
+        return dataclasses.replace(self, stages=stages)
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["stages"] = [dataclasses.asdict(s) for s in self.stages]

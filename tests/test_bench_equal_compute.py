@@ -6,6 +6,8 @@ against numbers worked out by hand."""
 from __future__ import annotations
 
 import json
+
+import pytest
 import sys
 from pathlib import Path
 
@@ -74,3 +76,28 @@ def test_a_bench_run_starts_from_the_examples_init_with_its_background_shell():
         torch.set_num_threads(threads)
     assert plain["gaussians"] == len(scene.points)
     assert shelled["gaussians"] == len(scene.points) + shell.shape[0] > len(scene.points)
+
+
+def test_capped_run_kinds_take_the_budget_and_their_stage_plan(tmp_path):
+    """The "-cap" kinds run the examples' CLI with --max-gaussians N: their config holds N and,
+    for coarse-mv4-cap, 4 views per step at 1/4 resolution and 2 at 1/2; without N they stop."""
+    import argparse
+
+    from mvgs_plugin import cli
+
+    def config(kind, n):
+        ap = argparse.ArgumentParser()
+        args = cli.common_args(ap, "out").parse_args(bench.run_argv(kind, 3000, 4, 0, 1, max_gaussians=n))
+        return cli.config_from_args(args)
+
+    mv = config("coarse-mv4-cap", 1234)
+    assert mv.max_gaussians == 1234 and [(s.factor, s.views) for s in mv.stages] == [(4, 4), (2, 2), (1, 1)]
+    assert mv.budget == 3000.0
+    plain = config("default-cap", 99)
+    assert plain.max_gaussians == 99 and all(s.views == 1 for s in plain.stages)
+    assert config("coarse-mv4", None).max_gaussians is None
+    with pytest.raises(ValueError, match="needs --max-gaussians"):
+        bench.run_argv("default-cap", 3000, 4, 0, 1)
+    with pytest.raises(SystemExit):
+        bench.main(["--runs", "default-cap", "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,120 @@
+"""MVGSConfig.with_late_views and train_4dgs.py's --late-views: the work the pyramid's coarse
+steps save, spent as M-view steps at the end, so that a run of N steps does N full-resolution
+views of work. The work is recomputed here from the cost model's definition (a view at factor f
+costs 0.1 + 0.9 / f of a full-resolution one), not through MVGSConfig.step_work."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from mvgs_plugin.cli import config_from_args
+from mvgs_plugin.config import MVGSConfig, Stage
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _work(stages) -> float:
+    finest = min(s.factor for s in stages)
+    return sum(s.steps * s.views * (0.1 + 0.9 * finest / s.factor) for s in stages)
+
+
+def _example(script: str):
+    spec = importlib.util.spec_from_file_location(script[:-3] + "_late", ROOT / "examples" / script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("views", [2, 3, 4])
+@pytest.mark.parametrize("total", [600, 3000, 30_000])
+def test_a_late_view_plan_does_the_work_of_its_steps(views, total):
+    plain = MVGSConfig.default().with_total_steps(total)
+    late = MVGSConfig.default().with_late_views(views).with_total_steps(total)
+    assert late.total_steps == total
+    assert _work(plain.stages) < total - 0.2 * total  # the pyramid alone saves over a fifth
+    # every stage rounds to whole steps: the work is the step count within a few views
+    assert abs(_work(late.stages) - total) <= views + 1, (late.stages, _work(late.stages))
+    # the pyramid is kept; the last stage is split into one-view then M-view steps at full resolution
+    assert late.stages[:2] == plain.stages[:2]
+    assert [(s.factor, s.views) for s in late.stages[2:]] == [(1, 1), (1, views)]
+    assert late.stages[2].steps + late.stages[3].steps == plain.stages[2].steps
+
+
+def test_late_views_keep_their_split_at_another_resolution_and_on_a_budget():
+    base = MVGSConfig.default()
+    scaled = MVGSConfig.default(stages=tuple(Stage(s.factor * 2, s.views, s.steps) for s in base.stages))
+    assert [s.steps for s in scaled.with_late_views(2).stages] == [s.steps for s in base.with_late_views(2).stages]
+    on_budget = base.with_late_views(2).with_budget(600)
+    assert abs(_work(on_budget.stages) - 600) <= 3 and on_budget.stages[-1].views == 2
+    # equal work: as many steps as a single-view full-resolution run of the same budget, within rounding
+    assert abs(on_budget.total_steps - 600) <= 3
+
+
+def test_late_views_change_nothing_without_a_cheaper_stage_or_with_one_view():
+    assert MVGSConfig.baseline().with_late_views(2) == MVGSConfig.baseline()
+    assert MVGSConfig.default().with_late_views(1) == MVGSConfig.default()
+
+
+@pytest.mark.parametrize("bad", [0, -2, True, 2.0, "2"])
+def test_a_bad_late_view_count_is_refused_naming_it(bad):
+    with pytest.raises(ValueError, match=f"late views must be an int >= 1, got {bad!r}"):
+        MVGSConfig.default().with_late_views(bad)
+
+
+def test_late_views_refuse_a_plan_whose_last_stage_has_several_views():
+    with pytest.raises(ValueError, match="views=8"):
+        MVGSConfig.multiview().with_late_views(2)
+    with pytest.raises(ValueError, match="one view per step"):
+        MVGSConfig.default().with_views(2).with_late_views(2)
+
+
+def test_train_4dgs_late_views_default_and_overrides(tmp_path):
+    example = _example("train_4dgs.py")
+    data = ["--data", str(tmp_path), "--steps", "600"]
+
+    def resolved(*flags):
+        args = example.parse_args(data + list(flags))
+        return args.late_views, config_from_args(args).stages
+
+    views, stages = resolved()
+    assert views == example.LATE_VIEWS == 2 and stages[-1].views == 2 and abs(_work(stages) - 600) <= 3
+    assert resolved("--preset", "compact")[0] == 2
+    for flags in (["--preset", "baseline"], ["--views", "2"], ["--stages", "4:1:100,1:1:500"], ["--late-views", "1"]):
+        views, stages = resolved(*flags)
+        assert views == 1 and all(s.views == stages[-1].views for s in stages), flags
+    assert resolved("--late-views", "1")[1] == MVGSConfig.default().with_total_steps(600).stages
+    views, stages = resolved("--late-views", "3")
+    assert views == 3 and stages[-1].views == 3 and abs(_work(stages) - 600) <= 4
+    with pytest.raises(SystemExit):
+        example.parse_args(data + ["--late-views", "0"])
+    with pytest.raises(ValueError, match="--late-views 2: late views need"):
+        config_from_args(example.parse_args(data + ["--preset", "multiview", "--late-views", "2"]))
+
+
+def test_train_3dgs_has_no_late_views(capsys):
+    with pytest.raises(SystemExit):
+        _example("train_3dgs.py").parse_args(["--late-views", "2"])
+    assert "unrecognized arguments: --late-views 2" in capsys.readouterr().err
+
+
+def test_on_a_forward_facing_rig_late_views_add_nothing(tmp_path):
+    """for_scene drops the pyramid on a forward-facing rig, so there is no saving to spend: the
+    4DGS example's config there is the single-view full-resolution plan of the baseline's length."""
+    import argparse
+
+    from mvgs_plugin import cli
+    from test_forward_init import parallel_rig
+    from test_forward_rig import Rig
+
+    fwd = Rig(parallel_rig([-1.0, -0.5, 0.0, 0.5, 1.0]))
+    ap = cli.late_views_arg(cli.common_args(argparse.ArgumentParser(), "out"), 2)
+    args = cli.resolve_late_views(ap.parse_args(["--steps", "600"]))
+    assert args.late_views == 2
+    config = config_from_args(args, fwd)
+    assert [(s.factor, s.views) for s in config.stages] == [(1, 1)] and config.total_steps == 600
+    assert abs(_work(config.stages) - 600) < 1e-9
+    # and on a converging rig the same flags spend the pyramid's saving
+    assert config_from_args(args).stages[-1].views == 2
