@@ -148,6 +148,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
                           "psnr": trainer.evaluate(factor=scale).psnr})
     result = trainer.evaluate(factor=scale)
     return {"kind": kind, "budget": budget, "clock": clock, "views": config.stages[-1].views,
+            "max_gaussians": config.max_gaussians,
             "psnr": result.psnr, "ssim": result.ssim, "gaussians": adapter.num_primitives(),
             "steps": trainer.step_count, "work": trainer.schedule.work_done, "cpu": cpu, "wall": wall,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}
@@ -265,6 +266,8 @@ def main(argv=None) -> list:
         return text
     if args.max_gaussians is None and any(k in CAPPED for k in args.runs):
         ap.error(f"--runs {' '.join(k for k in args.runs if k in CAPPED)} need --max-gaussians N")
+    if args.max_gaussians is not None and not any(k in CAPPED for k in args.runs):
+        ap.error(f"--max-gaussians is the budget of the run kinds {', '.join(CAPPED)}; --runs {' '.join(args.runs)} has none")
     if any(not b > 0 for b in args.budgets):
         ap.error(f"--budgets must be > 0, got {args.budgets}")
     if args.out.exists() and not args.out.is_dir():

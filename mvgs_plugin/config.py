@@ -548,7 +548,8 @@ class MVGSConfig:
         budget: full-resolution view renders (a baseline given B does B steps). Each stage
         keeps its share of the recipe's work (its steps x step_work), so a cheap coarse stage
         keeps its many steps; every clock-valued field is the 30k-view 3DGS recipe's value times
-        budget / 30000 (densification from 1/60 to 1/2 of the budget, a reset every 1/10), with
+        budget / 30000 (densification from 1/60 to 1/2 of the budget, a reset every 1/10; with
+        clocks on work, times budget / the recipe's total work, 30000 for default()), with
         with_total_steps()'s floors for short runs. Baseline and MVGS given one budget thus do
         the same work on the same clock.
         """
@@ -559,7 +560,10 @@ class MVGSConfig:
         work = [s.steps * self.step_work(s) for s in self.stages]
         steps = [max(1, round(budget * w / sum(work) / self.step_work(s))) for s, w in zip(self.stages, work)]
         stages = tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps))
-        return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / 30_000))
+        # clocks on work are shares of the recipe's work (30k for default(); more after
+        # with_late_views); clocks on steps are 3DGS's values for its 30k views
+        basis = self.total_work if self.clock_unit == "work" else 30_000
+        return dataclasses.replace(self, stages=stages, budget=float(budget), **self._scaled_clocks(budget / basis))
 
     def for_scene(self, scene) -> "MVGSConfig":
         """This config as it runs on `scene` (its train_cameras). Three scene-dependent rules, all
@@ -631,14 +635,19 @@ class MVGSConfig:
         A coarse step of one view costs step_work < 1 full view, so a pyramid run of N steps
         does less work than a single-view full-resolution run of N steps. Here the last stage's
         final n steps take `views` views, n = saving / (views - 1) (saving = the sum over the
-        coarse stages of steps x (1 - step_work), rounded), so the plan's work equals its step
+        earlier stages of steps x (1 - step_work), rounded), so the plan's work equals its step
         count: at equal steps it does the baseline's work, and every extra view is a view of
-        another camera (and, on a dynamic scene, another time) in the same optimizer step.
-        Measured on 4DGS, where it is train_4dgs.py's default (docs/equal_compute.md, "4DGS:
-        the views the pyramid saves"). Needs a finest last stage of one view; `views` = 1, or
-        a plan without cheaper stages (as for_scene() leaves on a forward-facing rig) returns the
-        config unchanged. Call it after for_scene() and before with_total_steps() /
-        with_budget(), which keep its proportions."""
+        another camera (and, on a dynamic scene, another time) in the same optimizer step. When
+        the clocks count work (clock_unit="work", as default()) they are stretched with the
+        plan's work, so every schedule (densification window, resets, size pruning) keeps its
+        share of the run. Measured on 4DGS, where it is train_4dgs.py's default at equal steps
+        (docs/equal_compute.md, "4DGS: the views the pyramid saves").
+
+        Needs a finest last stage of one view, one continuous clock (not restart_per_stage, no
+        opacity reset at hand-offs: the split adds a stage) and no budget yet; a plan whose
+        earlier stages save nothing (as for_scene() leaves on a forward-facing rig) is returned
+        unchanged, and so is `views` = 1. Call it after for_scene() and before
+        with_total_steps() / with_budget(), which keep its proportions."""
         if isinstance(views, bool) or not isinstance(views, int) or views < 1:
             raise ValueError(f"late views must be an int >= 1, got {views!r}")
         last = self.stages[-1]
@@ -647,12 +656,31 @@ class MVGSConfig:
         if last.views != 1 or last.factor != min(s.factor for s in self.stages):
             raise ValueError(f"late views need a last stage at the finest factor with one view per step, got "
                              f"{last} (stages {list(self.stages)})")
-        saving = sum(s.steps * max(0.0, 1.0 - self.step_work(s)) for s in self.stages[:-1])
-        n = min(last.steps - 1, round(saving / (views - 1)))
+        if self.restart_per_stage or self.opacity_reset_at_handoff:
+            raise ValueError(f"late views need one continuous clock and no opacity reset at stage hand-offs; preset "
+                             f"{self.preset!r} has restart_per_stage={self.restart_per_stage}, "
+                             f"opacity_reset_at_handoff={self.opacity_reset_at_handoff}")
+        if self.budget is not None:
+            raise ValueError(f"late views are planned on the recipe, before with_budget(); this config already "
+                             f"has budget={self.budget}")
+        saving = sum(s.steps * (1.0 - self.step_work(s)) for s in self.stages[:-1])
+        n = round(saving / (views - 1))
         if n < 1:
             return self
+        if n >= last.steps:
+            raise ValueError(f"late views: the earlier stages save the work of {n} {views}-view steps, more than the "
+                             f"last stage's {last.steps} steps can take (stages {list(self.stages)})")
         stages = self.stages[:-1] + (Stage(last.factor, 1, last.steps - n), Stage(last.factor, views, n))
-        return dataclasses.replace(self, stages=stages)
+        out = dataclasses.replace(self, stages=stages)
+        if self.clock_unit == "work":
+            return dataclasses.replace(out, **self._stretched_clocks(out.total_work / self.total_work))
+        return out
+
+    def _stretched_clocks(self, ratio: float) -> dict:
+        """Every clock-valued field times `ratio`, without _scaled_clocks' floors (for a recipe
+        that grows, not a short run)."""
+        return {k: max(1, round(getattr(self, k) * ratio)) for k in (
+            "densify_from", "densify_until", "densify_every", "opacity_reset_every", "prune_large_after")}
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

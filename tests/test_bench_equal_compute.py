@@ -6,10 +6,10 @@ against numbers worked out by hand."""
 from __future__ import annotations
 
 import json
-
-import pytest
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -100,4 +100,6 @@ def test_capped_run_kinds_take_the_budget_and_their_stage_plan(tmp_path):
         bench.run_argv("default-cap", 3000, 4, 0, 1)
     with pytest.raises(SystemExit):
         bench.main(["--runs", "default-cap", "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit):  # a budget no run kind takes
+        bench.main(["--runs", "default", "--max-gaussians", "10", "--out", str(tmp_path / "o")])
     assert not (tmp_path / "o").exists()

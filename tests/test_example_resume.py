@@ -68,7 +68,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     whole = example.main(base + ["--out", str(tmp_path / "whole")])
     # the run went through every phase
     assert len(infos) == STEPS and len({i.stage for i in infos}) == (3 if views else 4)
-    if not views:  # the late 2-view stage: after densification, and it is the part the resume runs
+    if not views:  # the late 2-view stage, in the part the resumed run makes
         late = [i for i in infos if i.stage == 3]
         assert late and all(len(i.views) == 2 for i in late) and late[0].step > EVERY
         assert all(len(i.views) == 1 for i in infos if i.stage < 3)

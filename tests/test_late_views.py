@@ -71,6 +71,32 @@ def test_late_views_refuse_a_plan_whose_last_stage_has_several_views():
         MVGSConfig.default().with_views(2).with_late_views(2)
 
 
+def test_late_views_refuse_restarting_clocks_a_budget_and_a_last_stage_too_short():
+    with pytest.raises(ValueError, match="preset 'paper' has restart_per_stage=True"):
+        MVGSConfig.paper().with_views(1).with_late_views(2)
+    with pytest.raises(ValueError, match="already has budget=600.0"):
+        MVGSConfig.default().with_budget(600).with_late_views(2)
+    # 1000 steps at 1/4 save 1000 x (1 - 0.325) = 675 views of work; a last stage of 10 cannot take them
+    with pytest.raises(ValueError, match="675 2-view steps, more than the last stage's 10 steps"):
+        MVGSConfig.default(stages=(Stage(4, 1, 1000), Stage(1, 1, 10))).with_late_views(2)
+
+
+@pytest.mark.parametrize("total", [1200, 3000, 10_000])
+def test_every_schedule_keeps_its_share_of_the_work_on_either_clock(total):
+    """Densification ends at half the run's work, resets come every tenth, size pruning starts
+    at a tenth: the shares of 3DGS's 30k recipe (15000, 3000, 3000 of 30000), whether the run is
+    asked for in steps or as a budget of the same work (lengths where with_total_steps' floors
+    for short runs, a reset at most every 100, do not act)."""
+    late = MVGSConfig.default().with_late_views(2)
+    by_steps, by_budget = late.with_total_steps(total), late.with_budget(total)
+    for config in (by_steps, by_budget):  # the same plan, to a step of rounding
+        assert [(s.factor, s.views) for s in config.stages] == [(4, 1), (2, 1), (1, 1), (1, 2)]
+        assert all(abs(a.steps - b.steps) <= 1 for a, b in zip(config.stages, by_steps.stages))
+        assert abs(config.densify_until - total / 2) <= 1
+        assert abs(config.opacity_reset_every - total / 10) <= 1
+        assert abs(config.prune_large_after - total / 10) <= 1
+
+
 def test_train_4dgs_late_views_default_and_overrides(tmp_path):
     example = _example("train_4dgs.py")
     data = ["--data", str(tmp_path), "--steps", "600"]
@@ -82,7 +108,8 @@ def test_train_4dgs_late_views_default_and_overrides(tmp_path):
     views, stages = resolved()
     assert views == example.LATE_VIEWS == 2 and stages[-1].views == 2 and abs(_work(stages) - 600) <= 3
     assert resolved("--preset", "compact")[0] == 2
-    for flags in (["--preset", "baseline"], ["--views", "2"], ["--stages", "4:1:100,1:1:500"], ["--late-views", "1"]):
+    for flags in (["--preset", "baseline"], ["--views", "2"], ["--stages", "4:1:100,1:1:500"], ["--late-views", "1"],
+                  ["--budget", "600"]):
         views, stages = resolved(*flags)
         assert views == 1 and all(s.views == stages[-1].views for s in stages), flags
     assert resolved("--late-views", "1")[1] == MVGSConfig.default().with_total_steps(600).stages
@@ -118,3 +145,19 @@ def test_on_a_forward_facing_rig_late_views_add_nothing(tmp_path):
     assert abs(_work(config.stages) - 600) < 1e-9
     # and on a converging rig the same flags spend the pyramid's saving
     assert config_from_args(args).stages[-1].views == 2
+
+
+def test_the_view_cap_of_a_small_rig_applies_to_the_late_stage():
+    """--max-views-fraction caps every stage's views at that share of the training cameras, the
+    late stage too (three cameras, 0.5: one view per step), and the run keeps its --steps."""
+    import argparse
+
+    from mvgs_plugin import cli
+    from test_forward_rig import Rig, ring
+
+    ap = cli.late_views_arg(cli.common_args(argparse.ArgumentParser(), "out"), 2)
+    args = cli.resolve_late_views(ap.parse_args(["--steps", "600", "--max-views-fraction", "0.5"]))
+    config = config_from_args(args, Rig(ring(3)))
+    assert all(s.views == 1 for s in config.stages) and config.total_steps == 600
+    uncapped = config_from_args(cli.resolve_late_views(ap.parse_args(["--steps", "600"])), Rig(ring(3)))
+    assert uncapped.stages[-1].views == 2 and uncapped.total_steps == 600
