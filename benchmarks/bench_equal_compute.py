@@ -49,6 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from mvgs_plugin.cli import int_at_least, repo_path  # noqa: E402
 from mvgs_plugin.io import atomic_write_text  # noqa: E402
+
+COARSE_MV4 = ["--stages", "4:4:2308,2:2:5455,1:1:21000"]  # 4 views per step at 1/4, 2 at 1/2, one at full
 RUNS = {
     "baseline": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-fixed": ["--preset", "baseline"],
@@ -84,15 +86,13 @@ RUNS = {
     "default-budget128": ["--preset", "default", "--pixels-per-gaussian", "128"],
     # the compact preset: default-budget as a preset (no budget on a forward-facing rig)
     "compact": ["--preset", "compact"],
-    "coarse-mv-budget": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000",
-                         "--pixels-per-gaussian", "213"],
-    "coarse-mv-sqrt-budget": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000",
-                              "--pixels-per-gaussian", "213", "--views-scaling", "sqrt"],
+    "coarse-mv-budget": ["--preset", "default", *COARSE_MV4, "--pixels-per-gaussian", "213"],
+    "coarse-mv-sqrt-budget": ["--preset", "default", *COARSE_MV4, "--pixels-per-gaussian", "213", "--views-scaling", "sqrt"],
     # Issue 27 with the background shell and the distance size rule: the M = 4 recipe without a
     # budget, and the M = 4 recipe and the default with the budget --max-gaussians N of this
     # script (the kinds ending in "-cap"; e.g. a quarter of the baseline's count)
-    "coarse-mv4": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000"],
-    "coarse-mv4-cap": ["--preset", "default", "--stages", "4:4:2308,2:2:5455,1:1:21000"],
+    "coarse-mv4": ["--preset", "default", *COARSE_MV4],
+    "coarse-mv4-cap": ["--preset", "default", *COARSE_MV4],
     "default-cap": ["--preset", "default"],
 }
 CAPPED = tuple(k for k in RUNS if k.endswith("-cap"))  # the kinds that take --max-gaussians

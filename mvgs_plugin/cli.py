@@ -239,23 +239,22 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
 def late_views_arg(ap: argparse.ArgumentParser, default_views: int) -> argparse.ArgumentParser:
     """--late-views M (MVGSConfig.with_late_views): the work the pyramid saves per step spent as
     M-view steps at the end of the run. `default_views` is the example's M for the pyramid
-    presets (default, compact) when none of --stages, --views, --budget is given; resolve it with
-    resolve_late_views() after parsing."""
+    presets (default, compact) when none of --stages, --views, --budget is given (help text);
+    resolve_late_views(args, default_views) applies it after parsing."""
     ap.add_argument("--late-views", type=int_at_least(1), default=None,
                     help="the work the pyramid's coarse steps save, spent as M-view full-resolution steps at the end, "
                          f"so a run of N steps does the work of N baseline steps; 1 turns it off (default: {default_views} "
                          "with --preset default or compact and none of --stages, --views, --budget, else 1)")
-    ap.set_defaults(late_views_default=default_views)
     return ap
 
 
-def resolve_late_views(args) -> argparse.Namespace:
-    """args with --late-views resolved: its value, else the example's default for the pyramid
-    presets when the user gave neither --stages nor --views nor --budget, else 1."""
-    if getattr(args, "late_views", None) is None:  # at equal work (--budget) the pyramid saves nothing to spend
-        plain = (args.preset in ("default", "compact") and not getattr(args, "stages", None) and args.views is None
-                 and getattr(args, "budget", None) is None)
-        args.late_views = getattr(args, "late_views_default", 1) if plain else 1
+def resolve_late_views(args, default_views: int) -> argparse.Namespace:
+    """args with --late-views resolved: its value, else `default_views` for the pyramid presets
+    when the user gave none of --stages, --views, --budget (at equal work the pyramid's saving
+    already buys steps), else 1."""
+    if args.late_views is None:
+        plain = args.preset in ("default", "compact") and not args.stages and args.views is None and args.budget is None
+        args.late_views = default_views if plain else 1
     return args
 
 

@@ -63,6 +63,10 @@ DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((4, 1, 0.10), (2, 1, 0.20)
 # recipe that is to beat the baseline; not tuned (docs/equal_compute.md, "The compact preset").
 COMPACT_PIXELS_PER_GAUSSIAN = 213.0
 
+# The config fields that are clocks (steps, or work with clock_unit="work"): rescaled together.
+CLOCK_FIELDS: Tuple[str, ...] = ("densify_from", "densify_until", "densify_every", "opacity_reset_every",
+                                 "prune_large_after")
+
 # The presets by name: MVGSConfig.from_preset's names (each a classmethod of that name) and the
 # --preset choices of every command line, in the order --help lists them.
 PRESETS: Tuple[str, ...] = ("default", "compact", "multiview", "paper", "baseline")
@@ -529,18 +533,18 @@ class MVGSConfig:
         clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
         return dataclasses.replace(self, stages=stages, **self._scaled_clocks(clock_ratio))
 
-    def _scaled_clocks(self, ratio: float) -> dict:
-        """Every clock-valued field times `ratio`, with the floors that keep short runs sane:
-        statistics need some views between densifications, and opacities need time to recover
-        between resets (the original has 30 densifications per reset interval)."""
-        scale = lambda v: max(1, round(v * ratio))  # noqa: E731
-        every = max(min(10, self.densify_every), scale(self.densify_every))
-        return dict(
-            densify_from=max(min(50, self.densify_from), scale(self.densify_from)),
-            densify_until=scale(self.densify_until), densify_every=every,
-            opacity_reset_every=max(min(10 * every, self.opacity_reset_every), scale(self.opacity_reset_every)),
-            prune_large_after=scale(self.prune_large_after),
-        )
+    def _scaled_clocks(self, ratio: float, floors: bool = True) -> dict:
+        """Every clock-valued field (CLOCK_FIELDS) times `ratio`, with the floors that keep short
+        runs sane: statistics need some views between densifications, and opacities need time
+        to recover between resets (the original has 30 densifications per reset interval).
+        floors=False scales them plainly (with_late_views: a recipe that grows, not a short run)."""
+        plain = {k: max(1, round(getattr(self, k) * ratio)) for k in CLOCK_FIELDS}
+        if not floors:
+            return plain
+        every = max(min(10, self.densify_every), plain["densify_every"])
+        return {**plain, "densify_every": every,
+                "densify_from": max(min(50, self.densify_from), plain["densify_from"]),
+                "opacity_reset_every": max(min(10 * every, self.opacity_reset_every), plain["opacity_reset_every"])}
 
     def with_budget(self, budget: float) -> "MVGSConfig":
         """The recipe run on a budget of work instead of a step count (see `budget`).
@@ -673,14 +677,8 @@ class MVGSConfig:
         stages = self.stages[:-1] + (Stage(last.factor, 1, last.steps - n), Stage(last.factor, views, n))
         out = dataclasses.replace(self, stages=stages)
         if self.clock_unit == "work":
-            return dataclasses.replace(out, **self._stretched_clocks(out.total_work / self.total_work))
+            return dataclasses.replace(out, **self._scaled_clocks(out.total_work / self.total_work, floors=False))
         return out
-
-    def _stretched_clocks(self, ratio: float) -> dict:
-        """Every clock-valued field times `ratio`, without _scaled_clocks' floors (for a recipe
-        that grows, not a short run)."""
-        return {k: max(1, round(getattr(self, k) * ratio)) for k in (
-            "densify_from", "densify_until", "densify_every", "opacity_reset_every", "prune_large_after")}
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -138,7 +138,7 @@ def test_on_a_forward_facing_rig_late_views_add_nothing(tmp_path):
 
     fwd = Rig(parallel_rig([-1.0, -0.5, 0.0, 0.5, 1.0]))
     ap = cli.late_views_arg(cli.common_args(argparse.ArgumentParser(), "out"), 2)
-    args = cli.resolve_late_views(ap.parse_args(["--steps", "600"]))
+    args = cli.resolve_late_views(ap.parse_args(["--steps", "600"]), 2)
     assert args.late_views == 2
     config = config_from_args(args, fwd)
     assert [(s.factor, s.views) for s in config.stages] == [(1, 1)] and config.total_steps == 600
@@ -156,8 +156,8 @@ def test_the_view_cap_of_a_small_rig_applies_to_the_late_stage():
     from test_forward_rig import Rig, ring
 
     ap = cli.late_views_arg(cli.common_args(argparse.ArgumentParser(), "out"), 2)
-    args = cli.resolve_late_views(ap.parse_args(["--steps", "600", "--max-views-fraction", "0.5"]))
+    args = cli.resolve_late_views(ap.parse_args(["--steps", "600", "--max-views-fraction", "0.5"]), 2)
     config = config_from_args(args, Rig(ring(3)))
     assert all(s.views == 1 for s in config.stages) and config.total_steps == 600
-    uncapped = config_from_args(cli.resolve_late_views(ap.parse_args(["--steps", "600"])), Rig(ring(3)))
+    uncapped = config_from_args(cli.resolve_late_views(ap.parse_args(["--steps", "600"]), 2), Rig(ring(3)))
     assert uncapped.stages[-1].views == 2 and uncapped.total_steps == 600
