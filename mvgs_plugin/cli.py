@@ -33,7 +33,7 @@ from mvgs_plugin.controller import MVGS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
-from mvgs_plugin.io import atomic_write_text
+from mvgs_plugin.io import atomic_write_text, load_checked
 
 __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
@@ -391,10 +391,16 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
             raise ValueError(f"--late-views {args.late_views}: {err}") from err
         if scene is not None:
             config = config.for_scene(scene)  # its view cap (--max-views-fraction) on the new stage
-    if args.budget is not None:
-        config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
-    else:
-        config = config.with_total_steps(args.steps)
+    try:
+        if args.budget is not None:
+            config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
+        else:
+            config = config.with_total_steps(args.steps)
+    except ValueError as err:  # too short a run for the plan's stages: the user's to fix
+        flag = f"--budget {args.budget}" if args.budget is not None else f"--steps {args.steps}"
+        hint = (f" (--late-views {args.late_views} adds a stage; --late-views 1 does not)"
+                if getattr(args, "late_views", None) not in (None, 1) else "")
+        raise UsageError(f"{flag}: {err}{hint}") from err
     for rule in ("mvad", "crd"):  # --mvad/--no-mvad, --crd/--no-crd switch the preset's rule, keeping its settings
         if getattr(args, rule) is not None:
             config = dataclasses.replace(config, **{rule: dataclasses.replace(getattr(config, rule),
@@ -402,6 +408,29 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     if args.threshold_width is not None:
         config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
     return config
+
+
+def late_views_hint(args, scene) -> str:
+    """For a refused --resume of train_4dgs.py: when the checkpoint's stage plan is the one
+    another --late-views value gives this command line (a checkpoint of the plain default
+    from before --late-views 2 became the default, say), a hint naming that value; else ""."""
+    late = getattr(args, "late_views", None)
+    if late is None:
+        return ""
+    try:
+        saved = MVGSConfig.from_dict(load_checked(str(args.resume))["config"]).stages
+    except Exception:  # the error being reported already says what is wrong with the file
+        return ""
+    for m in range(1, 9):
+        if m == late:
+            continue
+        try:
+            stages = config_from_args(argparse.Namespace(**{**vars(args), "late_views": m}), scene).stages
+        except ValueError:
+            continue
+        if stages == saved:
+            return f" (the checkpoint's stage plan is this command's with --late-views {m}: add it to resume)"
+    return ""
 
 
 def save_test_renders(out: Path, result) -> None:
@@ -426,7 +455,7 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         try:
             trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
-            raise UsageError(f"--resume {args.resume}: {err}") from err
+            raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene)}") from err
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps

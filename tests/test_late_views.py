@@ -161,3 +161,45 @@ def test_the_view_cap_of_a_small_rig_applies_to_the_late_stage():
     assert all(s.views == 1 for s in config.stages) and config.total_steps == 600
     uncapped = config_from_args(cli.resolve_late_views(ap.parse_args(["--steps", "600"]), 2), Rig(ring(3)))
     assert uncapped.stages[-1].views == 2 and uncapped.total_steps == 600
+
+
+def test_a_run_too_short_for_its_plan_is_a_usage_error_naming_the_flag(tmp_path):
+    """--steps below the plan's stage count: a one-line usage error naming the flag (no
+    traceback), and on train_4dgs.py the hint that --late-views 1 drops the late stage."""
+    from mvgs_plugin.cli import UsageError
+
+    example = _example("train_4dgs.py")
+    data = ["--data", str(tmp_path)]
+    with pytest.raises(UsageError, match=r"--steps 3: .*number of stages \(4\).*--late-views 1 does not"):
+        config_from_args(example.parse_args(data + ["--steps", "3"]))
+    assert len(config_from_args(example.parse_args(data + ["--steps", "3", "--late-views", "1"])).stages) == 3
+    with pytest.raises(UsageError, match=r"--steps 2: .*number of stages \(3\)") as err:
+        config_from_args(_example("train_3dgs.py").parse_args(data + ["--steps", "2"]))
+    assert "--late-views" not in str(err.value)
+
+
+def test_a_refused_resume_names_the_late_views_value_of_the_checkpoint(tmp_path):
+    """A checkpoint of the plain default (--late-views 1; train_4dgs.py's default before 2 became
+    it) refused under today's default: the error names the flag that resumes it. A checkpoint of
+    another plan altogether gets no hint."""
+    import torch
+
+    from mvgs_plugin.cli import late_views_hint
+    from mvgs_plugin.io import save_checked
+
+    example = _example("train_4dgs.py")
+    data = ["--data", str(tmp_path), "--steps", "600"]
+    plain = MVGSConfig.default().with_total_steps(600)  # the plan --late-views 1 gives, written out
+    cases = {"plain": plain, "other": MVGSConfig.default().with_total_steps(700)}
+    for name, cfg in cases.items():
+        save_checked({"config": cfg.to_dict(), "schedule": {}, "torch_rng": torch.get_rng_state(), "adapter": {}},
+                     str(tmp_path / f"{name}.pt"))
+    args = example.parse_args(data + ["--resume", str(tmp_path / "plain.pt")])
+    assert late_views_hint(args, None) == (" (the checkpoint's stage plan is this command's with --late-views 1: "
+                                           "add it to resume)")
+    assert late_views_hint(example.parse_args(data + ["--resume", str(tmp_path / "other.pt")]), None) == ""
+    # under --late-views 1 a checkpoint of today's default is named the other way round
+    late = config_from_args(example.parse_args(data))
+    save_checked({"config": late.to_dict()}, str(tmp_path / "late.pt"))
+    args = example.parse_args(data + ["--late-views", "1", "--resume", str(tmp_path / "late.pt")])
+    assert "--late-views 2" in late_views_hint(args, None)
