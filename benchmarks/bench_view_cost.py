@@ -1,0 +1,125 @@
+"""What a training step at pyramid factor f with M views costs, against the budget clock's cost
+model (MVGSConfig.view_cost: a view at factor f counts a + b / f of a full-resolution one,
+(a, b) = (0.1, 0.9), measured on 3DGS's renderer; docs/step_speed.md). Runs the model of one
+example script (train_3dgs.py or train_4dgs.py) built from that script's own flags, so a 4DGS
+step includes its deformation field and the optimizer's pass over it, which do not shrink with
+the image.
+
+For each (f, M) a trainer with one Stage(f x --resolution-scale, M, ...) and no densification
+(the model stays at its initial count) takes --warmup steps, then the pairs take 10 steps each in
+turn for --rounds rounds (interleaved, so drift on a shared machine hits all alike). CPU is the
+process's user+sys time; run it with --threads 1 on the example's flags for the fair clock.
+Prints a markdown table: ms per step, the measured cost in full-resolution one-view steps, and
+the cost model's.
+
+    python benchmarks/bench_view_cost.py train_3dgs.py -- --threads 1
+    python benchmarks/bench_view_cost.py train_4dgs.py -- --data scenes/moving --resolution-scale 2 \\
+        --init-random 2000 --init-box -1.2 -1.2 0 1.2 1.2 1.2 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+# (pyramid factor relative to the finest, views per step): the default's levels, and M-view steps
+PAIRS = ((1, 1), (2, 1), (4, 1), (1, 2), (2, 2), (4, 4))
+
+
+def load_example(name: str):
+    if name not in ("train_3dgs.py", "train_4dgs.py"):
+        raise SystemExit(f"bench_view_cost.py: the example must be train_3dgs.py or train_4dgs.py, got {name!r}")
+    spec = importlib.util.spec_from_file_location(name[:-3] + "_cost", ROOT / "examples" / name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def build(example, name: str, args, scene, config):
+    """The example's adapter for `config` (its run() without the training)."""
+    from mvgs_plugin.cli import model_config, rasterize_function
+
+    if name == "train_3dgs.py":
+        from mvgs_plugin.adapters.gs3d import GS3DAdapter
+
+        model = model_config(config, args.seed, rasterize=rasterize_function(args), world_size_rule=args.world_size_rule)
+        return GS3DAdapter.from_scene(scene, model, device=args.device)
+    from mvgs_plugin.adapters.gs4d import GS4DAdapter
+
+    model = example.gs4d_config(config, args)
+    model = dataclasses.replace(model, coarse_steps=1, fine_steps=10**6)  # time the deforming phase
+    return GS4DAdapter.from_scene(scene, model, device=args.device)
+
+
+def measure(name: str, argv, rounds: int, warmup: int) -> list:
+    from mvgs_plugin.cli import config_from_args, scene_from_args
+    from mvgs_plugin.config import Stage
+    from mvgs_plugin.controller import MVGS
+
+    example = load_example(name)
+    out = tempfile.mkdtemp(prefix="bench_view_cost_")  # the examples' --out (an init cache when the scene has no points)
+    args = example.parse_args(list(argv) + ["--preset", "baseline", "--out", out])
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    scene = scene_from_args(args)
+    extra = {"time_spread": args.time_spread} if name == "train_4dgs.py" else {}
+    base = config_from_args(args, scene, **extra)
+    s = args.resolution_scale
+    trainers = {}
+    for f, m in PAIRS:
+        cfg = dataclasses.replace(base, stages=(Stage(f * s, m, 10**6),), densify_from=10**9, densify_until=10**9 + 1)
+        torch.manual_seed(args.seed)
+        trainer = MVGS(build(example, name, args, scene, cfg), scene, cfg)
+        for _ in range(warmup):
+            trainer.step()
+        trainers[(f, m)] = trainer
+    cpu = dict.fromkeys(trainers, 0.0)
+    for _ in range(rounds):
+        for key, trainer in trainers.items():
+            c0 = time.process_time()
+            for _ in range(10):
+                trainer.step()
+            cpu[key] += time.process_time() - c0
+    full = cpu[(1, 1)]
+    cam = scene.train_cameras[0]
+    rows = []
+    for (f, m), trainer in trainers.items():
+        model = trainer.config.view_cost[0] + trainer.config.view_cost[1] / f
+        rows.append(dict(factor=f, views=m, px=f"{cam.width // (f * s)}x{cam.height // (f * s)}",
+                         gaussians=trainer.adapter.num_primitives(), ms=cpu[(f, m)] / (10 * rounds) * 1000,
+                         measured=cpu[(f, m)] / full, model=m * model))
+    return rows
+
+
+def table(rows: list) -> str:
+    lines = ["| factor (x finest) | views | image | Gaussians | CPU ms / step | measured (full 1-view steps) | "
+             "cost model | measured / model |", "|---:|---:|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['factor']} | {r['views']} | {r['px']} | {r['gaussians']} | {r['ms']:.1f} | "
+                     f"{r['measured']:.2f} | {r['model']:.2f} | {r['measured'] / r['model']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    own, rest = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("example", help="train_3dgs.py or train_4dgs.py; its flags follow --")
+    ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds of 10 steps per pair (default: 6)")
+    ap.add_argument("--warmup", type=int, default=5, help="untimed steps per pair first (default: 5)")
+    opts = ap.parse_args(own)
+    if opts.rounds < 1 or opts.warmup < 0:
+        ap.error(f"--rounds must be >= 1 and --warmup >= 0, got {opts.rounds} and {opts.warmup}")
+    print(table(measure(opts.example, rest, opts.rounds, opts.warmup)))
+
+
+if __name__ == "__main__":
+    main()
