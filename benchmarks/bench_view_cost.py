@@ -10,7 +10,8 @@ For each (f, M) a trainer with one Stage(f x --resolution-scale, M, ...) and no 
 turn for --rounds rounds (interleaved, so drift on a shared machine hits all alike). CPU is the
 process's user+sys time; run it with --threads 1 on the example's flags for the fair clock.
 Prints a markdown table: ms per step, the measured cost in full-resolution one-view steps, and
-the cost model's.
+the cost model's; then the A of `--view-cost A` that fits the one-view rows (least squares), which
+makes a `--budget` of this model and resolution count its CPU.
 
     python benchmarks/bench_view_cost.py train_3dgs.py -- --threads 1
     python benchmarks/bench_view_cost.py train_4dgs.py -- --data scenes/moving --resolution-scale 2 \\
@@ -99,6 +100,16 @@ def measure(name: str, argv, rounds: int, warmup: int) -> list:
     return rows
 
 
+def fitted_view_cost(rows: list) -> float:
+    """The A of --view-cost that fits the one-view rows best (least squares on A + (1 - A) / f =
+    measured, the full-resolution row exact by construction), clipped to [0, 1]."""
+    pts = [(1.0 - 1.0 / r["factor"], r["measured"] - 1.0 / r["factor"]) for r in rows if r["views"] == 1 and r["factor"] > 1]
+    den = sum(u * u for u, _ in pts)
+    if not pts or den == 0:
+        raise ValueError("fitting A needs a one-view row at a factor > 1")
+    return min(1.0, max(0.0, sum(u * c for u, c in pts) / den))
+
+
 def table(rows: list) -> str:
     lines = ["| factor (x finest) | views | image | Gaussians | CPU ms / step | measured (full 1-view steps) | "
              "cost model | measured / model |", "|---:|---:|---|---:|---:|---:|---:|---:|"]
@@ -118,7 +129,10 @@ def main(argv=None) -> None:
     opts = ap.parse_args(own)
     if opts.rounds < 1 or opts.warmup < 0:
         ap.error(f"--rounds must be >= 1 and --warmup >= 0, got {opts.rounds} and {opts.warmup}")
-    print(table(measure(opts.example, rest, opts.rounds, opts.warmup)))
+    rows = measure(opts.example, rest, opts.rounds, opts.warmup)
+    print(table(rows))
+    print(f"\none-view steps fit --view-cost {fitted_view_cost(rows):.2f} (a view at factor f costs A + (1 - A) / f; "
+          f"the default is 0.1)")
 
 
 if __name__ == "__main__":

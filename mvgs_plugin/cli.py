@@ -269,8 +269,12 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")
     ap.add_argument("--budget", type=float_above(0), default=None,
                     help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
-                         "step is 1; a view at pyramid factor f counts 0.1 + 0.9 / f); every schedule runs on it (default: "
-                         "not set, --steps counts)")
+                         "step is 1; a view at pyramid factor f counts A + (1 - A) / f, --view-cost); every schedule runs "
+                         "on it (default: not set, --steps counts)")
+    ap.add_argument("--view-cost", type=float_above(0, inclusive=True, high=1.0), default=None, metavar="A",
+                    help="the cost model of the budget clock and of the default's stage shares: a view at pyramid "
+                         "factor f costs A + (1 - A) / f of a full-resolution one (MVGSConfig.view_cost = (A, 1 - A)); "
+                         "measure your model's with benchmarks/bench_view_cost.py (default: 0.1, 3DGS's renderer)")
     ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--init", choices=list(INIT_METHODS), default="triangulate",
                     help="initial points of a scene without a point file: triangulate (pycolmap from the training "
@@ -376,6 +380,8 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
                  "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
+    if getattr(args, "view_cost", None) is not None:
+        preset_overrides = {**preset_overrides, "view_cost": (args.view_cost, 1.0 - args.view_cost)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
     if args.views is not None:
         config = config.with_views(args.views)

@@ -72,6 +72,18 @@ CLOCK_FIELDS: Tuple[str, ...] = ("densify_from", "densify_until", "densify_every
 PRESETS: Tuple[str, ...] = ("default", "compact", "multiview", "paper", "baseline")
 
 
+def checked_view_cost(view_cost) -> Tuple[float, float]:
+    """MVGSConfig.view_cost as a tuple of two floats a, b >= 0 with a + b = 1, or a ValueError
+    naming the value."""
+    try:
+        out = tuple(float(v) for v in view_cost)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 2 or not all(0.0 <= v < math.inf for v in out) or not math.isclose(sum(out), 1.0):
+        raise ValueError(f"view_cost must be (a, b) with a, b >= 0 and a + b = 1, got {view_cost!r}")
+    return out
+
+
 def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[float, float] = (0.1, 0.9)
                        ) -> Tuple[Stage, ...]:
     """A stage plan from (factor, views, share of the work) triples: each stage gets the steps
@@ -382,10 +394,7 @@ class MVGSConfig:
         _check_finite_above("grad_threshold", self.grad_threshold, 0, "a finite threshold > 0")
         _check_finite_above("grad_threshold_width", self.grad_threshold_width, 0,
                             "None or a finite width in pixels > 0", optional=True)
-        self.view_cost = tuple(float(v) for v in self.view_cost)
-        if len(self.view_cost) != 2 or not all(0.0 <= v < float("inf") for v in self.view_cost) or not math.isclose(
-                sum(self.view_cost), 1.0):
-            raise ValueError(f"view_cost must be (a, b) with a, b >= 0 and a + b = 1, got {self.view_cost!r}")
+        self.view_cost = checked_view_cost(self.view_cost)
         _check_finite_above("divergence_factor", self.divergence_factor, 1, "None or a finite number > 1",
                             optional=True)
         _check_finite_above("budget", self.budget, 0, "None or a finite number of full-resolution views > 0",
@@ -481,7 +490,9 @@ class MVGSConfig:
         given to the baseline too, it is above 3DGS at equal CPU at 3k on three of four
         360-degree scenes and below it at 1k on all four (docs/equal_compute.md, "A size rule
         for the far background"); it has not been re-chosen since."""
-        return cls(**{"stages": stages_from_shares(DEFAULT_SHARES), "preset": "default", "clock_unit": "work",
+        view_cost = checked_view_cost(overrides.get("view_cost", cls.view_cost))  # shares of the work it counts
+        return cls(**{"stages": stages_from_shares(DEFAULT_SHARES, view_cost=view_cost), "preset": "default",
+                      "clock_unit": "work",
                       "grad_threshold_width": 800.0, "forward_rig": "finest", **overrides})
 
     @classmethod

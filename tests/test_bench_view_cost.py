@@ -33,3 +33,18 @@ def test_the_table_has_every_pair_with_the_cost_model_written_out():
 def test_an_example_other_than_3dgs_or_4dgs_is_refused():
     with pytest.raises(SystemExit, match="train_3dgs.py or train_4dgs.py, got 'train_scaffold.py'"):
         bench.load_example("train_scaffold.py")
+
+
+def test_the_fitted_view_cost_recovers_a_model_it_was_made_from():
+    """Rows made exactly from A + (1 - A) / f give A back; noisy ones the least-squares value
+    worked out by hand; multi-view rows are not used."""
+    for a in (0.0, 0.1, 0.64, 1.0):
+        rows = [dict(factor=f, views=1, measured=a + (1 - a) / f) for f in (1, 2, 4)]
+        rows.append(dict(factor=4, views=4, measured=9.0))
+        assert math.isclose(bench.fitted_view_cost(rows), a, abs_tol=1e-12)
+    # f = 2: 0.81, f = 4: 0.76 -> u = (0.5, 0.75), c = (0.31, 0.51): A = (0.155 + 0.3825) / 0.8125
+    rows = [dict(factor=1, views=1, measured=1.0), dict(factor=2, views=1, measured=0.81),
+            dict(factor=4, views=1, measured=0.76)]
+    assert math.isclose(bench.fitted_view_cost(rows), 0.5375 / 0.8125, rel_tol=1e-12)
+    with pytest.raises(ValueError, match="one-view row at a factor > 1"):
+        bench.fitted_view_cost([dict(factor=1, views=1, measured=1.0)])

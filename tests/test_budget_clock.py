@@ -159,3 +159,37 @@ def test_default_on_steps_keeps_its_clocks_at_the_same_fractions_of_the_work(sce
         MVGSConfig(clock_unit="views")
     with pytest.raises(ValueError, match="clock_unit"):
         MVGSConfig.paper(clock_unit="work")
+
+
+def test_view_cost_flag_sets_the_clock_and_the_defaults_shares_of_its_work(tmp_path):
+    """--view-cost A: a view at factor f costs A + (1 - A) / f. The default's stages keep their
+    shares of the work (10 % at 1/4, 20 % at 1/2, 70 % at full resolution) under that cost,
+    recomputed here from the formula; a budget B is then B of that work; a bad A is a usage
+    error naming it."""
+    import importlib.util
+    from pathlib import Path
+
+    from mvgs_plugin.cli import config_from_args
+
+    spec = importlib.util.spec_from_file_location("t3_cost", Path(__file__).resolve().parents[1] / "examples" / "train_3dgs.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    a = 0.66
+    cost = {4: a + (1 - a) / 4, 2: a + (1 - a) / 2, 1: 1.0}
+    recipe = MVGSConfig.default(view_cost=(a, 1 - a))
+    assert recipe.view_cost == (a, 1 - a)
+    assert [(s.factor, s.steps) for s in recipe.stages] == [
+        (f, round(30_000 * w / cost[f])) for f, w in ((4, 0.1), (2, 0.2), (1, 0.7))]
+    config = config_from_args(example.parse_args(["--data", str(tmp_path), "--view-cost", str(a), "--budget", "600"]))
+    assert config.view_cost == (a, 1 - a) and config.budget == 600
+    assert abs(sum(s.steps * cost[s.factor] for s in config.stages) - 600) <= 1.5
+    work = [s.steps * cost[s.factor] / 600 for s in config.stages]
+    assert all(math.isclose(w, share, abs_tol=0.01) for w, share in zip(work, (0.1, 0.2, 0.7)))
+    # the baseline has one full-resolution stage: the cost model does not change its plan
+    base = config_from_args(example.parse_args(["--data", str(tmp_path), "--view-cost", "0.9", "--preset", "baseline",
+                                                "--budget", "600"]))
+    assert [(s.factor, s.steps) for s in base.stages] == [(1, 600)]
+    with pytest.raises(SystemExit):
+        example.parse_args(["--data", str(tmp_path), "--view-cost", "1.5"])
+    with pytest.raises(ValueError, match=r"view_cost must be \(a, b\) with a, b >= 0 and a \+ b = 1, got \(0.5, 0.6\)"):
+        MVGSConfig.default(view_cost=(0.5, 0.6))
