@@ -1,9 +1,10 @@
 """What a training step at pyramid factor f with M views costs, against the budget clock's cost
 model (MVGSConfig.view_cost: a view at factor f counts a + b / f of a full-resolution one,
 (a, b) = (0.1, 0.9), measured on 3DGS's renderer; docs/step_speed.md). Runs the model of one
-example script (train_3dgs.py or train_4dgs.py) built from that script's own flags, so a 4DGS
-step includes its deformation field and the optimizer's pass over it, which do not shrink with
-the image.
+example script (train_3dgs.py, train_4dgs.py or train_scaffold.py) built from that script's own
+flags, so a 4DGS step includes its deformation field and the optimizer's pass over it, and a
+Scaffold-GS step its per-view decoding of every anchor's neural Gaussians, which do not shrink
+with the image.
 
 For each (f, M) a trainer with one Stage(f x --resolution-scale, M, ...) and no densification
 (the model stays at its initial count) takes --warmup steps, then the pairs take 10 steps each in
@@ -14,6 +15,7 @@ the cost model's; then the A of `--view-cost A` that fits the one-view rows (lea
 makes a `--budget` of this model and resolution count its CPU.
 
     python benchmarks/bench_view_cost.py train_3dgs.py -- --threads 1
+    python benchmarks/bench_view_cost.py train_scaffold.py -- --threads 1
     python benchmarks/bench_view_cost.py train_4dgs.py -- --data scenes/moving --resolution-scale 2 \\
         --init-random 2000 --init-box -1.2 -1.2 0 1.2 1.2 1.2 --threads 1
 """
@@ -33,11 +35,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 # (pyramid factor relative to the finest, views per step): the default's levels, and M-view steps
 PAIRS = ((1, 1), (2, 1), (4, 1), (1, 2), (2, 2), (4, 4))
+EXAMPLES = ("train_3dgs.py", "train_4dgs.py", "train_scaffold.py")
 
 
 def load_example(name: str):
-    if name not in ("train_3dgs.py", "train_4dgs.py"):
-        raise SystemExit(f"bench_view_cost.py: the example must be train_3dgs.py or train_4dgs.py, got {name!r}")
+    if name not in EXAMPLES:
+        raise SystemExit(f"bench_view_cost.py: the example must be one of {', '.join(EXAMPLES)}, got {name!r}")
     spec = importlib.util.spec_from_file_location(name[:-3] + "_cost", ROOT / "examples" / name)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -53,6 +56,11 @@ def build(example, name: str, args, scene, config):
 
         model = model_config(config, args.seed, rasterize=rasterize_function(args), world_size_rule=args.world_size_rule)
         return GS3DAdapter.from_scene(scene, model, device=args.device)
+    if name == "train_scaffold.py":
+        from mvgs_plugin.adapters.scaffold import ScaffoldAdapter
+
+        model = dataclasses.replace(example.scaffold_config(config, args), rasterize=rasterize_function(args))
+        return ScaffoldAdapter.from_scene(scene, model, device=args.device)
     from mvgs_plugin.adapters.gs4d import GS4DAdapter
 
     model = example.gs4d_config(config, args)
@@ -123,7 +131,7 @@ def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     own, rest = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("example", help="train_3dgs.py or train_4dgs.py; its flags follow --")
+    ap.add_argument("example", help="train_3dgs.py, train_4dgs.py or train_scaffold.py; its flags follow --")
     ap.add_argument("--rounds", type=int, default=6, help="interleaved rounds of 10 steps per pair (default: 6)")
     ap.add_argument("--warmup", type=int, default=5, help="untimed steps per pair first (default: 5)")
     opts = ap.parse_args(own)

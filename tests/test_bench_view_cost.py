@@ -30,9 +30,9 @@ def test_the_table_has_every_pair_with_the_cost_model_written_out():
     assert text.count("\n") == len(rows) + 1 and "| 4 | 4 | 8x8 |" in text
 
 
-def test_an_example_other_than_3dgs_or_4dgs_is_refused():
-    with pytest.raises(SystemExit, match="train_3dgs.py or train_4dgs.py, got 'train_scaffold.py'"):
-        bench.load_example("train_scaffold.py")
+def test_an_example_without_a_model_of_its_own_is_refused():
+    with pytest.raises(SystemExit, match="train_3dgs.py, train_4dgs.py, train_scaffold.py, got 'ablation.py'"):
+        bench.load_example("ablation.py")
 
 
 def test_the_fitted_view_cost_recovers_a_model_it_was_made_from():
