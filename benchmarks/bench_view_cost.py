@@ -1,6 +1,6 @@
 """What a training step at pyramid factor f with M views costs, against the budget clock's cost
 model (MVGSConfig.view_cost: a view at factor f counts a + b / f of a full-resolution one,
-(a, b) = (0.1, 0.9), measured on 3DGS's renderer; docs/step_speed.md). Runs the model of one
+(a, b) = (0.1, 0.9), the reference renderer's per-view times; docs/step_speed.md). Runs the model of one
 example script (train_3dgs.py, train_4dgs.py or train_scaffold.py) built from that script's own
 flags, so a 4DGS step includes its deformation field and the optimizer's pass over it, and a
 Scaffold-GS step its per-view decoding of every anchor's neural Gaussians, which do not shrink
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
+import shutil
 import sys
 import tempfile
 import time
@@ -69,8 +70,9 @@ def build(example, name: str, args, scene, config):
 
 
 def measure(name: str, argv, rounds: int, warmup: int) -> list:
+    from mvgs_plugin.camera import scaled_size
     from mvgs_plugin.cli import config_from_args, scene_from_args
-    from mvgs_plugin.config import Stage
+    from mvgs_plugin.config import Stage, view_work
     from mvgs_plugin.controller import MVGS
 
     example = load_example(name)
@@ -101,10 +103,11 @@ def measure(name: str, argv, rounds: int, warmup: int) -> list:
     cam = scene.train_cameras[0]
     rows = []
     for (f, m), trainer in trainers.items():
-        model = trainer.config.view_cost[0] + trainer.config.view_cost[1] / f
-        rows.append(dict(factor=f, views=m, px=f"{cam.width // (f * s)}x{cam.height // (f * s)}",
-                         gaussians=trainer.adapter.num_primitives(), ms=cpu[(f, m)] / (10 * rounds) * 1000,
-                         measured=cpu[(f, m)] / full, model=m * model))
+        w, h = scaled_size(cam.width, cam.height, f * s)
+        rows.append(dict(factor=f, views=m, px=f"{w}x{h}", gaussians=trainer.adapter.num_primitives(),
+                         ms=cpu[(f, m)] / (10 * rounds) * 1000, measured=cpu[(f, m)] / full,
+                         model=m * view_work(trainer.config.view_cost, f)))
+    shutil.rmtree(out, ignore_errors=True)
     return rows
 
 

@@ -274,7 +274,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--view-cost", type=float_above(0, inclusive=True, high=1.0), default=None, metavar="A",
                     help="the cost model of the budget clock and of the default's stage shares: a view at pyramid "
                          "factor f costs A + (1 - A) / f of a full-resolution one (MVGSConfig.view_cost = (A, 1 - A)); "
-                         "measure your model's with benchmarks/bench_view_cost.py (default: 0.1, 3DGS's renderer)")
+                         "measure your model's with benchmarks/bench_view_cost.py (default: 0.1, the reference renderer's per-view "
+                         "cost)")
     ap.add_argument("--resolution-scale", type=int_at_least(1), default=1, help="train and evaluate at 1/s resolution")
     ap.add_argument("--init", choices=list(INIT_METHODS), default="triangulate",
                     help="initial points of a scene without a point file: triangulate (pycolmap from the training "
@@ -390,23 +391,27 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     if scene is not None:
         config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
-    if getattr(args, "late_views", None) not in (None, 1):  # train_4dgs.py's --late-views, after for_scene:
+    late = getattr(args, "late_views", None) not in (None, 1)  # train_4dgs.py's --late-views, after for_scene:
+    recipe_stages = len(config.stages)
+    if late:
         try:  # a forward-facing rig has no coarse stage left, so no saving to spend
             config = config.with_late_views(args.late_views)
-        except ValueError as err:
-            raise ValueError(f"--late-views {args.late_views}: {err}") from err
+        except ValueError as err:  # a preset whose plan has no room for it: the user's to fix
+            raise UsageError(f"--late-views {args.late_views}: {err}") from err
         if scene is not None:
             config = config.for_scene(scene)  # its view cap (--max-views-fraction) on the new stage
-    try:
-        if args.budget is not None:
-            config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
-        else:
-            config = config.with_total_steps(args.steps)
-    except ValueError as err:  # too short a run for the plan's stages: the user's to fix
-        flag = f"--budget {args.budget}" if args.budget is not None else f"--steps {args.steps}"
-        hint = (f" (--late-views {args.late_views} adds a stage; --late-views 1 does not)"
-                if getattr(args, "late_views", None) not in (None, 1) else "")
-        raise UsageError(f"{flag}: {err}{hint}") from err
+    if args.budget is not None:
+        if config.restart_per_stage:
+            raise UsageError(f"--budget {args.budget:g}: the {args.preset} preset restarts its schedules at every stage, "
+                             "and a budget needs one continuous clock (use --steps)")
+        config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
+    else:
+        if args.steps < len(config.stages):  # every stage needs a step
+            added = (f" (--late-views {args.late_views} added a stage; --late-views 1 does not)"
+                     if len(config.stages) > recipe_stages else "")
+            raise UsageError(f"--steps {args.steps}: the stage plan has {len(config.stages)} stages, so the run needs at "
+                             f"least {len(config.stages)} steps{added}")
+        config = config.with_total_steps(args.steps)
     for rule in ("mvad", "crd"):  # --mvad/--no-mvad, --crd/--no-crd switch the preset's rule, keeping its settings
         if getattr(args, rule) is not None:
             config = dataclasses.replace(config, **{rule: dataclasses.replace(getattr(config, rule),
@@ -416,16 +421,20 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     return config
 
 
-def late_views_hint(args, scene) -> str:
-    """For a refused --resume of train_4dgs.py: when the checkpoint's stage plan is the one
-    another --late-views value gives this command line (a checkpoint of the plain default
-    from before --late-views 2 became the default, say), a hint naming that value; else ""."""
+def late_views_hint(args, scene, config: MVGSConfig) -> str:
+    """For a refused --resume of train_4dgs.py whose checkpoint has another stage plan than this
+    run's `config`: when that plan is the one another --late-views value (1 to 8, the values one
+    would run) gives this command line, a hint naming it; else "" (also when the plans agree and
+    the refusal is about something else). The plan depends only on the flags config_from_args
+    reads, so it is rebuilt from them."""
     late = getattr(args, "late_views", None)
     if late is None:
         return ""
     try:
         saved = MVGSConfig.from_dict(load_checked(str(args.resume))["config"]).stages
     except Exception:  # the error being reported already says what is wrong with the file
+        return ""
+    if saved == config.stages:
         return ""
     for m in range(1, 9):
         if m == late:
@@ -461,7 +470,7 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         try:
             trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
-            raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene)}") from err
+            raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps

@@ -84,6 +84,13 @@ def checked_view_cost(view_cost) -> Tuple[float, float]:
     return out
 
 
+def view_work(view_cost, relative_factor: float) -> float:
+    """Work of one view at `relative_factor` times the finest stage's factor, in full-resolution
+    view renders: a + b / relative_factor for view_cost (a, b)."""
+    a, b = view_cost
+    return a + b / relative_factor
+
+
 def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[float, float] = (0.1, 0.9)
                        ) -> Tuple[Stage, ...]:
     """A stage plan from (factor, views, share of the work) triples: each stage gets the steps
@@ -95,9 +102,8 @@ def stages_from_shares(shares, total_work: float = 30_000.0, view_cost: Tuple[fl
     total = sum(t[2] for t in shares)
     if not all(isinstance(t[2], (int, float)) and t[2] > 0 for t in shares) or not math.isclose(total, 1.0):
         raise ValueError(f"shares must be > 0 and sum to 1, got {[t[2] for t in shares]}")
-    a, b = view_cost
     finest = min(t[0] for t in shares)
-    return tuple(Stage(f, m, max(1, round(total_work * w / (m * (a + b * finest / f))))) for f, m, w in shares)
+    return tuple(Stage(f, m, max(1, round(total_work * w / (m * view_work(view_cost, f / finest))))) for f, m, w in shares)
 
 
 
@@ -420,8 +426,7 @@ class MVGSConfig:
     def step_work(self, stage: Stage) -> float:
         """Work of one step of `stage` in full-resolution view renders (see view_cost); "full
         resolution" is the finest stage's (e.g. 1/4 of the images' with --resolution-scale 4)."""
-        a, b = self.view_cost
-        return stage.views * (a + b * min(s.factor for s in self.stages) / stage.factor)
+        return stage.views * view_work(self.view_cost, stage.factor / min(s.factor for s in self.stages))
 
     @property
     def total_work(self) -> float:

@@ -117,7 +117,9 @@ def test_train_4dgs_late_views_default_and_overrides(tmp_path):
     assert views == 3 and stages[-1].views == 3 and abs(_work(stages) - 600) <= 4
     with pytest.raises(SystemExit):
         example.parse_args(data + ["--late-views", "0"])
-    with pytest.raises(ValueError, match="--late-views 2: late views need"):
+    from mvgs_plugin.cli import UsageError  # one line from launch(), not a traceback
+
+    with pytest.raises(UsageError, match="--late-views 2: late views need"):
         config_from_args(example.parse_args(data + ["--preset", "multiview", "--late-views", "2"]))
 
 
@@ -170,12 +172,15 @@ def test_a_run_too_short_for_its_plan_is_a_usage_error_naming_the_flag(tmp_path)
 
     example = _example("train_4dgs.py")
     data = ["--data", str(tmp_path)]
-    with pytest.raises(UsageError, match=r"--steps 3: .*number of stages \(4\).*--late-views 1 does not"):
+    with pytest.raises(UsageError, match=r"--steps 3: the stage plan has 4 stages, so the run needs at least 4 steps "
+                                         r"\(--late-views 2 added a stage; --late-views 1 does not\)"):
         config_from_args(example.parse_args(data + ["--steps", "3"]))
     assert len(config_from_args(example.parse_args(data + ["--steps", "3", "--late-views", "1"])).stages) == 3
-    with pytest.raises(UsageError, match=r"--steps 2: .*number of stages \(3\)") as err:
+    with pytest.raises(UsageError, match=r"--steps 2: the stage plan has 3 stages, so the run needs at least 3") as err:
         config_from_args(_example("train_3dgs.py").parse_args(data + ["--steps", "2"]))
     assert "--late-views" not in str(err.value)
+    with pytest.raises(UsageError, match=r"--budget 500: the paper preset restarts its schedules at every stage"):
+        config_from_args(example.parse_args(data + ["--preset", "paper", "--budget", "500", "--late-views", "1"]))
 
 
 def test_a_refused_resume_names_the_late_views_value_of_the_checkpoint(tmp_path):
@@ -195,11 +200,18 @@ def test_a_refused_resume_names_the_late_views_value_of_the_checkpoint(tmp_path)
         save_checked({"config": cfg.to_dict(), "schedule": {}, "torch_rng": torch.get_rng_state(), "adapter": {}},
                      str(tmp_path / f"{name}.pt"))
     args = example.parse_args(data + ["--resume", str(tmp_path / "plain.pt")])
-    assert late_views_hint(args, None) == (" (the checkpoint's stage plan is this command's with --late-views 1: "
-                                           "add it to resume)")
-    assert late_views_hint(example.parse_args(data + ["--resume", str(tmp_path / "other.pt")]), None) == ""
+    current = config_from_args(args)
+    assert late_views_hint(args, None, current) == (" (the checkpoint's stage plan is this command's with "
+                                                    "--late-views 1: add it to resume)")
+    assert late_views_hint(example.parse_args(data + ["--resume", str(tmp_path / "other.pt")]), None, current) == ""
+    # a plan with no coarse saving (the baseline) is the same for every --late-views: a checkpoint of
+    # that plan refused for another reason (its seed) gets no hint
+    base = ["--preset", "baseline"]
+    save_checked({"config": MVGSConfig.baseline(seed=1).with_total_steps(600).to_dict()}, str(tmp_path / "seed1.pt"))
+    args = example.parse_args(data + base + ["--resume", str(tmp_path / "seed1.pt")])
+    assert late_views_hint(args, None, config_from_args(args)) == ""
     # under --late-views 1 a checkpoint of today's default is named the other way round
     late = config_from_args(example.parse_args(data))
     save_checked({"config": late.to_dict()}, str(tmp_path / "late.pt"))
     args = example.parse_args(data + ["--late-views", "1", "--resume", str(tmp_path / "late.pt")])
-    assert "--late-views 2" in late_views_hint(args, None)
+    assert "--late-views 2" in late_views_hint(args, None, config_from_args(args))
