@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
-import shutil
 import sys
 import tempfile
 import time
@@ -48,36 +47,23 @@ def load_example(name: str):
     return module
 
 
-def build(example, name: str, args, scene, config):
-    """The example's adapter for `config` (its run() without the training)."""
-    from mvgs_plugin.cli import model_config, rasterize_function
-
-    if name == "train_3dgs.py":
-        from mvgs_plugin.adapters.gs3d import GS3DAdapter
-
-        model = model_config(config, args.seed, rasterize=rasterize_function(args), world_size_rule=args.world_size_rule)
-        return GS3DAdapter.from_scene(scene, model, device=args.device)
-    if name == "train_scaffold.py":
-        from mvgs_plugin.adapters.scaffold import ScaffoldAdapter
-
-        model = dataclasses.replace(example.scaffold_config(config, args), rasterize=rasterize_function(args))
-        return ScaffoldAdapter.from_scene(scene, model, device=args.device)
-    from mvgs_plugin.adapters.gs4d import GS4DAdapter
-
-    model = example.gs4d_config(config, args)
-    model = dataclasses.replace(model, coarse_steps=1, fine_steps=10**6)  # time the deforming phase
-    return GS4DAdapter.from_scene(scene, model, device=args.device)
-
-
 def measure(name: str, argv, rounds: int, warmup: int) -> list:
+    """The table's rows for example `name` run with its flags `argv` (each example's own
+    build_adapter(), the model its run() trains)."""
+    example = load_example(name)
+    with tempfile.TemporaryDirectory(prefix="bench_view_cost_") as out:  # --out: an init cache when the scene has no points
+        return _measure(example, name, argv, rounds, warmup, out)
+
+
+def _measure(example, name: str, argv, rounds: int, warmup: int, out: str) -> list:
     from mvgs_plugin.camera import scaled_size
     from mvgs_plugin.cli import config_from_args, scene_from_args
     from mvgs_plugin.config import Stage, view_work
     from mvgs_plugin.controller import MVGS
 
-    example = load_example(name)
-    out = tempfile.mkdtemp(prefix="bench_view_cost_")  # the examples' --out (an init cache when the scene has no points)
-    args = example.parse_args(list(argv) + ["--preset", "baseline", "--out", out])
+    # 4DGS: no static coarse phase, so every timed step runs the deformation field
+    own = ["--coarse-fraction", "0"] if name == "train_4dgs.py" else []
+    args = example.parse_args(list(argv) + own + ["--preset", "baseline", "--out", out])
     if args.threads:
         torch.set_num_threads(args.threads)
     scene = scene_from_args(args)
@@ -88,7 +74,7 @@ def measure(name: str, argv, rounds: int, warmup: int) -> list:
     for f, m in PAIRS:
         cfg = dataclasses.replace(base, stages=(Stage(f * s, m, 10**6),), densify_from=10**9, densify_until=10**9 + 1)
         torch.manual_seed(args.seed)
-        trainer = MVGS(build(example, name, args, scene, cfg), scene, cfg)
+        trainer = MVGS(example.build_adapter(args, scene, cfg), scene, cfg)
         for _ in range(warmup):
             trainer.step()
         trainers[(f, m)] = trainer
@@ -107,7 +93,6 @@ def measure(name: str, argv, rounds: int, warmup: int) -> list:
         rows.append(dict(factor=f, views=m, px=f"{w}x{h}", gaussians=trainer.adapter.num_primitives(),
                          ms=cpu[(f, m)] / (10 * rounds) * 1000, measured=cpu[(f, m)] / full,
                          model=m * view_work(trainer.config.view_cost, f)))
-    shutil.rmtree(out, ignore_errors=True)
     return rows
 
 

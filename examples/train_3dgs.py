@@ -29,6 +29,7 @@ import argparse
 import sys
 
 from mvgs_plugin.adapters.gs3d import GS3DAdapter
+from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.cli import (
     BUNDLED, HelpFormatter, common_args, config_from_args, launch, metrics_record, model_config,
     rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args, world_size_arg,
@@ -46,12 +47,18 @@ def main(argv=None) -> dict:
     return launch(parse_args(argv), run)
 
 
+def build_adapter(args, scene, config: MVGSConfig) -> GS3DAdapter:
+    """The 3DGS model this command line trains on `scene` under `config` (its schedules
+    compressed with the run; also what benchmarks/bench_view_cost.py times)."""
+    model = model_config(config, args.seed, rasterize=rasterize_function(args),
+                         world_size_rule=args.world_size_rule)
+    return GS3DAdapter.from_scene(scene, model, device=args.device)
+
+
 def run(args, dist) -> dict:
     scene = scene_from_args(args)
     config = config_from_args(args, scene)
-    model = model_config(config, args.seed, rasterize=rasterize_function(args),
-                         world_size_rule=args.world_size_rule)
-    adapter = GS3DAdapter.from_scene(scene, model, device=args.device)
+    adapter = build_adapter(args, scene, config)
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

@@ -75,6 +75,12 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
                       fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
 
 
+def build_adapter(args, scene, config: MVGSConfig) -> GS4DAdapter:
+    """The 4DGS model this command line trains on `scene` under `config` (also what
+    benchmarks/bench_view_cost.py times)."""
+    return GS4DAdapter.from_scene(scene, gs4d_config(config, args), device=args.device)
+
+
 def main(argv=None) -> dict:
     return launch(parse_args(argv), run)
 
@@ -88,8 +94,8 @@ def run(args, dist) -> dict:
         raise ValueError(f"{args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
     config = config_from_args(args, scene, time_spread=args.time_spread)
-    model_cfg = gs4d_config(config, args)
-    adapter = GS4DAdapter.from_scene(scene, model_cfg, device=args.device)
+    adapter = build_adapter(args, scene, config)
+    model_cfg = adapter.gs4d_config
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

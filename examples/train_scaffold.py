@@ -49,6 +49,13 @@ def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:
                           lr_max_steps=clock)
 
 
+def build_adapter(args, scene, config: MVGSConfig) -> ScaffoldAdapter:
+    """The Scaffold-GS model this command line trains on `scene` under `config` (also what
+    benchmarks/bench_view_cost.py times)."""
+    model_cfg = dataclasses.replace(scaffold_config(config, args), rasterize=rasterize_function(args))
+    return ScaffoldAdapter.from_scene(scene, model_cfg, device=args.device)
+
+
 def main(argv=None) -> dict:
     return launch(parse_args(argv), run)
 
@@ -58,9 +65,8 @@ def run(args, dist) -> dict:
     evaluates and writes."""
     scene = scene_from_args(args)
     config = config_from_args(args, scene)
-    model_cfg = scaffold_config(config, args)
-    model_cfg = dataclasses.replace(model_cfg, rasterize=rasterize_function(args))
-    adapter = ScaffoldAdapter.from_scene(scene, model_cfg, device=args.device)
+    adapter = build_adapter(args, scene, config)
+    model_cfg = adapter.config
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     if result is None:  # not rank 0
         return {}

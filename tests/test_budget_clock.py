@@ -166,14 +166,10 @@ def test_view_cost_flag_sets_the_clock_and_the_defaults_shares_of_its_work(tmp_p
     shares of the work (10 % at 1/4, 20 % at 1/2, 70 % at full resolution) under that cost,
     recomputed here from the formula; a budget B is then B of that work; a bad A is a usage
     error naming it."""
-    import importlib.util
-    from pathlib import Path
-
     from mvgs_plugin.cli import config_from_args
+    from test_late_views import _example
 
-    spec = importlib.util.spec_from_file_location("t3_cost", Path(__file__).resolve().parents[1] / "examples" / "train_3dgs.py")
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
+    example = _example("train_3dgs.py")
     a = 0.66
     cost = {4: a + (1 - a) / 4, 2: a + (1 - a) / 2, 1: 1.0}
     recipe = MVGSConfig.default(view_cost=(a, 1 - a))
