@@ -52,6 +52,12 @@ Variants (``--variant``):
   from the other side (azimuth -132 degrees, 35 degrees high). 48 train + 12 test views on two
   interleaved rings at 8-16 and 20-28 degrees elevation, distance 3.0-3.8, looking at points
   near ``TARGET``.
+* ``room``: an inside-out capture. A closed room (5 x 5, 2.4 high: checker floor, brick walls on
+  two sides, marble and spotted walls on the others, a plain ceiling) lit only by a square
+  ceiling lamp, with seven primitives standing near the walls; 48 train + 12 test cameras stand
+  within 0.35 of the room's centre at 0.95-1.25 high and look outwards, their azimuths spread
+  round the full circle, slightly downwards. The cameras surround nothing: what they see lies
+  around them, 1-3.5 away, the rig kind no other variant has.
 
 Examples::
 
@@ -73,7 +79,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor")
+VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
+            "room")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
@@ -100,6 +107,11 @@ CORRIDOR_HALF_WIDTH, CORRIDOR_HEIGHT, CORRIDOR_START, CORRIDOR_END = 1.0, 2.0, -
 CORRIDOR_EYE = np.array([0.0, -1.0, 0.9])
 CORRIDOR_PATCH = (0.8, 0.4)
 CORRIDOR_SUN = (math.radians(-60.0), math.radians(62.0))
+
+# room: half width (x and y), height, the lamp's half width and radiance, the cameras' stand
+ROOM_HALF, ROOM_HEIGHT = 2.5, 2.4
+ROOM_LAMP_HALF, ROOM_LAMP_RADIANCE = 0.8, (9.0, 8.4, 7.6)
+ROOM_EYE_RADIUS, ROOM_EYE_Z = 0.35, (0.95, 1.25)
 
 # clutter: primitive layout seed and the sun (azimuth, elevation) in radians
 CLUTTER_SEED = 2024
@@ -269,6 +281,24 @@ def rig_rings(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return rig
 
 
+def rig_room(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Inside-out (centre, look-at) pairs: centres uniform in a disc of ROOM_EYE_RADIUS about the
+    room's axis at heights ROOM_EYE_Z, each looking outwards at azimuth 2 pi k / n (plus a small
+    jitter), 5-19 degrees below the horizon (a radical-inverse sequence), so consecutive views
+    overlap by about two thirds of their 45 degree field."""
+    rng = np.random.default_rng(RIG_SEED + 3)
+    rig = []
+    for k in range(n_total):
+        r, a = ROOM_EYE_RADIUS * math.sqrt(rng.random()), rng.uniform(0.0, 2 * math.pi)
+        z = ROOM_EYE_Z[0] + (ROOM_EYE_Z[1] - ROOM_EYE_Z[0]) * rng.random()
+        centre = np.array([r * math.cos(a), r * math.sin(a), z])
+        az = 2 * math.pi * k / n_total + 0.3 + rng.uniform(-0.05, 0.05)
+        elev = math.radians(-12.0 + 14.0 * (radical_inverse(k, 3) - 0.5))
+        rig.append((centre, centre + np.array([math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az),
+                                               math.sin(elev)])))
+    return rig
+
+
 def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
     K = intrinsics(size)
     views: list[View] = []
@@ -288,6 +318,8 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
         rig = rig_corridor(n_total)
     elif variant == "clutter":
         rig = rig_rings(n_total)
+    elif variant == "room":
+        rig = rig_room(n_total)
     else:
         rig = [(c, TARGET) for c in rig_dense(n_total)]
     for k, (c, look) in enumerate(rig):
@@ -520,21 +552,47 @@ def corridor_prims() -> list[Prim]:
             Prim("cube", np.array([-0.3, 11.2, 0.4]), 0.4, "green_plastic", yaw_deg=15.0)]
 
 
+def rect(u, v, centre) -> np.ndarray:
+    """[4, 4] map from Mitsuba's rectangle [-1, 1]^2 x {0} (normal +z) to the rectangle centre
+    + a u + b v (a, b in [-1, 1]); its normal is u x v, normalised."""
+    M = np.eye(4)
+    M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = u, v, np.cross(u, v) / np.linalg.norm(np.cross(u, v)), centre
+    return M
+
+
 def corridor_rects() -> dict[str, np.ndarray]:
     """[4, 4] maps from Mitsuba's rectangle [-1, 1]^2 x {0} (normal +z) to the corridor's floor,
     side walls and end wall, each normal pointing into the corridor."""
     w, h, y0, y1 = CORRIDOR_HALF_WIDTH, CORRIDOR_HEIGHT, CORRIDOR_START, CORRIDOR_END
     half_len, mid = 0.5 * (y1 - y0), 0.5 * (y0 + y1)
-
-    def rect(u, v, centre):  # u x v is the normal
-        M = np.eye(4)
-        M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = u, v, np.cross(u, v) / np.linalg.norm(np.cross(u, v)), centre
-        return M
-
     return {"floor": rect([w, 0, 0], [0, half_len, 0], [0, mid, 0]),
             "left": rect([0, half_len, 0], [0, 0, h / 2], [-w, mid, h / 2]),
             "right": rect([0, -half_len, 0], [0, 0, h / 2], [w, mid, h / 2]),
             "end": rect([w, 0, 0], [0, 0, h / 2], [0, y1, h / 2])}
+
+
+def room_rects() -> dict[str, np.ndarray]:
+    """The room's floor, ceiling and four walls as rectangle maps (see rect), each normal
+    pointing into the room, and the lamp just below the ceiling, facing down."""
+    a, h = ROOM_HALF, ROOM_HEIGHT
+    return {"floor": rect([a, 0, 0], [0, a, 0], [0, 0, 0]),
+            "ceiling": rect([0, a, 0], [a, 0, 0], [0, 0, h]),
+            "west": rect([0, a, 0], [0, 0, h / 2], [-a, 0, h / 2]),
+            "east": rect([0, -a, 0], [0, 0, h / 2], [a, 0, h / 2]),
+            "south": rect([-a, 0, 0], [0, 0, h / 2], [0, -a, h / 2]),
+            "north": rect([a, 0, 0], [0, 0, h / 2], [0, a, h / 2]),
+            "lamp": rect([0, ROOM_LAMP_HALF, 0], [ROOM_LAMP_HALF, 0, 0], [0, 0, h - 0.01])}
+
+
+def room_prims() -> list[Prim]:
+    """The room's primitives, standing near its walls all round."""
+    return [Prim("sphere", np.array([1.6, 0.9, 0.35]), 0.35, "red"),
+            Prim("cube", np.array([-1.7, 1.2, 0.3]), 0.3, "ivory", yaw_deg=25.0),
+            Prim("cylinder", np.array([0.8, -1.8, 0.0]), 0.25, "copper", height=0.9),
+            Prim("sphere", np.array([-1.2, -1.6, 0.28]), 0.28, "aluminium"),
+            Prim("cube", np.array([1.9, -1.0, 0.25]), 0.25, "green_plastic", yaw_deg=10.0),
+            Prim("cylinder", np.array([-0.3, 1.9, 0.0]), 0.2, "teal", height=1.3),
+            Prim("sphere", np.array([-2.0, -0.2, 0.22]), 0.22, "violet_plastic")]
 
 
 def clutter_prims() -> list[Prim]:
@@ -577,7 +635,7 @@ class SceneBuilder:
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
         self._cache: dict[float, object] = {}
-        if variant in ("clutter", "forward-clutter", "corridor"):
+        if variant in ("clutter", "forward-clutter", "corridor", "room"):
             # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
             self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
             self.clutter_tex = {
@@ -588,7 +646,7 @@ class SceneBuilder:
             }
         else:
             self.sky = mi.Bitmap(sky_texture())
-        if variant in ("forward", "corridor"):
+        if variant in ("forward", "corridor", "room"):
             self.wall_tex = mi.Bitmap(wall_texture())
 
     def ground_mesh(self, bsdf):
@@ -682,6 +740,29 @@ class SceneBuilder:
         out.update(self.prims_dict(corridor_prims(), mat))
         return out
 
+    def room_dict(self) -> dict:
+        """The room: floor, ceiling, walls, the ceiling lamp (the only light) and primitives."""
+        T = self.mi.ScalarTransform4f
+        mat = self.clutter_materials()
+        span = 2 * ROOM_HALF
+
+        def tex(bitmap, repeat_u, repeat_v):
+            return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap,
+                                                       "to_uv": T().scale([repeat_u, repeat_v, 1.0])}}
+
+        brick = tex(self.wall_tex, span / 4.0, ROOM_HEIGHT / 2.0)
+        skins = {"floor": tex(self.ground_tex, 1.0, 1.0), "ceiling": mat["ivory"], "west": brick,
+                 "east": brick, "south": mat["spots"], "north": mat["marble"]}
+        out = {"type": "scene", "integrator": {"type": "path", "max_depth": 6}}
+        for name, M in room_rects().items():
+            if name == "lamp":
+                out[name] = {"type": "rectangle", "to_world": T(M.tolist()),
+                             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(ROOM_LAMP_RADIANCE)}}}
+            else:
+                out[name] = {"type": "rectangle", "to_world": T(M.tolist()), "bsdf": skins[name]}
+        out.update(self.prims_dict(room_prims(), mat))
+        return out
+
     def prims_dict(self, prims: list[Prim], mat: dict) -> dict:
         """Mitsuba shapes of ``prims`` (cylinders with a top cap), keyed p00, p01, ..."""
         T = self.mi.ScalarTransform4f
@@ -736,6 +817,8 @@ class SceneBuilder:
             return self.clutter_dict()
         if self.variant == "corridor":
             return self.corridor_dict()
+        if self.variant == "room":
+            return self.room_dict()
         mi = self.mi
         T = mi.ScalarTransform4f
         obj = objects_at(self.variant, t)
@@ -894,6 +977,14 @@ def sample_corridor(n, rng):
     return np.concatenate(parts + sample_prims(corridor_prims(), n - sum(len(p) for p in parts), rng))
 
 
+def sample_room(n, rng):
+    """20% on the floor, 10% on the ceiling, 10% on each wall, the rest on the primitives."""
+    rects = room_rects()
+    shares = {"floor": 0.2, "ceiling": 0.1, "west": 0.1, "east": 0.1, "south": 0.1, "north": 0.1}
+    parts = [sample_rectangle(int(f * n), rects[k], rng) for k, f in shares.items()]
+    return np.concatenate(parts + sample_prims(room_prims(), n - sum(len(p) for p in parts), rng))
+
+
 def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray:
     """Candidate surface points [n, 3]: 35% on the ground, the rest on objects by area.
 
@@ -908,6 +999,8 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
         return sample_clutter(n, rng)
     if variant == "corridor":
         return sample_corridor(n, rng)
+    if variant == "room":
+        return sample_room(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
     n = n - n_wall
     obj = objects_at(variant, 0.0)

@@ -6,10 +6,11 @@ turntable): the cube holds what every camera sees. For a forward-facing rig (LLF
 on a small patch, all looking one way) that cube sits around the cameras, not the scene, and a
 run from it trains to nothing (12 dB where points give 34 dB).
 
-:func:`init_region` tells the two apart by how much the optical axes spread:
+:func:`init_region` tells them apart by how much the optical axes spread and where they point:
 
 * ``cube``: the axes spread (the smallest eigenvalue of mean(I - d dᵀ) over the unit viewing
-  directions d is at least ``CONVERGING_SPREAD``: a full orbit gives about 0.65): the 3DGS cube,
+  directions d is at least ``CONVERGING_SPREAD``: a full orbit gives about 0.65) and look in
+  at one place (:func:`look_convergence` at least ``CONVERGING_COSINE``): the 3DGS cube,
   unchanged.
 * ``frusta``: nearly parallel axes (a forward-facing rig gives about 0.01): points in the union
   of the training views' frusta, uniform in disparity (1/depth) between ``near`` and ``far``,
@@ -19,8 +20,12 @@ run from it trains to nothing (12 dB where points give 34 dB).
   point there and keeps the most photo-consistent ones (:func:`photo_consistent`: the colour a
   candidate lands on agrees across the views that see it) with their mean colour: the
   images carry the depth that the rig's geometry cannot.
+* ``frusta`` too for an inside-out rig (spread axes, but :func:`look_convergence` below
+  ``CONVERGING_COSINE``: cameras that stand together and look outwards, a room shot from its
+  middle), where the cube would sit among the cameras: ``near`` is the radius of the camera
+  centres (the free space they stand in), ``far`` = ``FAR_OVER_NEAR`` x near.
 * a rig with nearly parallel axes but one camera centre, or no depth that half of the cameras
-  see, falls back to the cube and says so.
+  see, falls back to the cube and says so (as does an inside-out rig of one centre).
 
 The choice and its numbers are in :attr:`InitRegion.description` (the adapters log it).
 """
@@ -37,7 +42,8 @@ from ..camera import Camera
 from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
-           "is_forward_facing", "background_shell", "view_colours", "CONVERGING_SPREAD", "FAR_OVER_NEAR", "SHELL_RADIUS"]
+           "is_forward_facing", "look_convergence", "background_shell", "view_colours", "CONVERGING_SPREAD",
+           "CONVERGING_COSINE", "FAR_OVER_NEAR", "SHELL_RADIUS"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
 # scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
@@ -58,6 +64,10 @@ MIN_VIEWS = 3
 # and, with ~2000 points on the sphere, spaces them about 0.16 rig radii apart, small enough for
 # the 3DGS size rule (0.1 x extent = 0.11 rig radii after the first split) to leave their children.
 SHELL_RADIUS = 2.0
+# look_convergence at and above which a rig with spread axes looks in at its scene (an orbit, a
+# hemisphere, rings: 1.00 on every generated 360-degree rig) rather than out from within it (an
+# inside-out capture: 0.10 on the generator's room, whose cameras face every way from its middle)
+CONVERGING_COSINE = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,6 +215,26 @@ def axis_spread(cameras: Sequence[Camera]) -> float:
     return float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
 
 
+def look_convergence(cameras: Sequence[Camera]) -> float:
+    """How much a rig looks at one place: the mean, over the cameras, of the cosine between a
+    camera's optical axis and the direction from its centre to the point nearest all the axes
+    (least squares over the lines; the pseudo-inverse when the axes are parallel). 1 for cameras
+    that all look at one point; about 0 or below for cameras that stand together and look out in
+    every direction; a camera at that point counts 0."""
+    if not cameras:
+        raise ValueError("look_convergence needs at least one camera")
+    d = camera_axes(cameras)
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    centers = torch.stack([c.center for c in cameras]).to(d)
+    across = torch.eye(3, dtype=d.dtype) - d[:, :, None] * d[:, None, :]  # projects out each axis
+    point = torch.linalg.pinv(across.sum(0)) @ (across @ centers[:, :, None]).sum(0)[:, 0]
+    to_point = point - centers
+    length = torch.linalg.norm(to_point, dim=1)
+    at_point = length <= 1e-9 * (1.0 + float(centers.abs().max()))  # rounding leaves ~1e-16, not 0
+    cos = torch.where(at_point, torch.zeros_like(length), (to_point * d).sum(1) / length.clamp_min(1e-300))
+    return float(cos.mean())
+
+
 def is_forward_facing(cameras: Sequence[Camera]) -> bool:
     """Whether a rig looks one way (LLFF-like, a walk-through looking ahead) rather than around
     the scene: axis_spread below CONVERGING_SPREAD."""
@@ -231,12 +261,24 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
     d = camera_axes(cameras)
     d = d / torch.linalg.norm(d, dim=1, keepdim=True)  # unit viewing directions
     spread = axis_spread(cameras)
+    centers = torch.stack([c.center for c in cameras])
+    radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
+    convergence = look_convergence(cameras) if spread >= CONVERGING_SPREAD else 1.0
+    if convergence < CONVERGING_COSINE:
+        if not radius > 0:
+            return cube(f"the cameras look outwards (look convergence {convergence:.2f} < {CONVERGING_COSINE}) "
+                        "from one centre: no depth cue")
+        near = radius
+        return InitRegion(
+            "frusta", f"random init: the {len(cameras)} training frusta between depth {near:.4g} and "
+                      f"{FAR_OVER_NEAR * near:.4g}, uniform in disparity (inside-out rig: look convergence "
+                      f"{convergence:.2f} < {CONVERGING_COSINE}, the cameras look outwards from among themselves; "
+                      "near = the radius of their centres, the free space they stand in)",
+            near=near, far=FAR_OVER_NEAR * near, cameras=tuple(cameras))
     if spread >= CONVERGING_SPREAD and kind is None:
         return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
     if float(torch.linalg.norm(d.mean(0))) < 0.5:
         return cube(f"frusta asked for, but the optical axes share no direction (axis spread {spread:.3f})")
-    centers = torch.stack([c.center for c in cameras])
-    radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
     if not radius > 0:
         return cube(f"nearly parallel axes (spread {spread:.3f}) but one camera centre: no depth cue")
     mean_axis = d.mean(0)
@@ -270,7 +312,10 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     radii about ``center`` (a Fibonacci lattice, so evenly spaced and the same for every run),
     keeps those that at least one training view sees (in front of it, inside its image), and gives
     each the mean colour it lands on in those views (:func:`view_colours` at ``PHOTO_WIDTH`` px). A forward-facing rig gets none (its frusta init already reaches
-    ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them).
+    ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them),
+    nor does an inside-out one (:func:`look_convergence` below ``CONVERGING_COSINE``: cameras that
+    stand together and look outwards, as in a room shot from its middle). Its sphere would lie
+    in front of every camera, among the cameras, not behind what they see.
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
     """
@@ -287,6 +332,11 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     if spread < CONVERGING_SPREAD:
         return empty, empty.clone(), (f"no background shell: forward-facing rig (axis spread {spread:.3f} < "
                                       f"{CONVERGING_SPREAD})")
+    convergence = look_convergence(cameras)
+    if convergence < CONVERGING_COSINE:
+        return empty, empty.clone(), (f"no background shell: the cameras look outwards from among themselves, not in "
+                                      f"at a scene (look convergence {convergence:.2f} < {CONVERGING_COSINE}): "
+                                      "a sphere about them would stand in front of every view")
     center = torch.as_tensor(center, dtype=torch.float64)
     centers = torch.stack([c.center for c in cameras])
     rig = float(torch.linalg.norm(centers - center, dim=1).max())
