@@ -1,7 +1,9 @@
-"""Inside-out rigs (cameras that stand together and look outwards, a room shot from its middle):
-mvgs_plugin.data.init.look_convergence tells them from rigs that look in at a scene, and the
-background shell and the random init region follow it. Checked on analytic rigs whose answer is
-known without the code: rings looking in or out, axes through a known point, one shared centre."""
+"""Rigs whose axes spread but do not meet (cameras that stand together and look outwards, a room
+shot from its middle; also walks and several orbits): mvgs_plugin.data.init.look_convergence
+measures it, the background shell is dropped when the scene's points lie beyond its sphere, and
+random init draws from the cube and the frusta for photo-consistency to choose. Checked on
+analytic rigs whose answer is known without the code (rings looking in or out, axes through a
+known point, one shared centre) and on the generator's rigs."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import pytest
 import torch
 
 from mvgs_plugin.data.init import (
-    CONVERGING_COSINE, FAR_OVER_NEAR, background_shell, init_region, look_convergence, random_init_points,
+    CONVERGING_COSINE, FAR_OVER_NEAR, SHELL_RADIUS, background_shell, init_region, look_convergence, random_init_points,
 )
 from test_background_shell import constant_images, orbit
 from test_forward_init import look
@@ -32,7 +34,7 @@ def axis(cam):
     return cam.camera_to_world[:3, 2]
 
 
-def test_a_ring_looking_in_converges_fully_and_one_looking_out_is_minus_one():
+def test_a_ring_looking_in_converges_fully_and_one_looking_out_is_negative():
     assert look_convergence(orbit(n=8)) == pytest.approx(1.0, abs=1e-9)
     # Outward ring: by symmetry the point nearest all axes lies on the ring's vertical axis,
     # (0, 0, z*); z* is found here by a dense scan of the least-squares objective (no linear
@@ -69,20 +71,46 @@ def test_cameras_at_one_centre_count_zero():
     assert look_convergence(cams) == pytest.approx(0.0, abs=1e-6)
 
 
-def test_the_generated_rigs_fall_on_either_side_of_the_threshold():
+def test_the_analytic_rigs_fall_on_either_side_of_the_threshold():
     assert look_convergence(orbit(n=24, radius=4.0, height=2.0)) > CONVERGING_COSINE
     assert look_convergence(inside_out_ring()) < CONVERGING_COSINE
 
 
-def test_an_inside_out_rig_gets_no_background_shell_and_an_orbit_still_does():
+def test_the_shell_is_dropped_when_the_points_lie_beyond_it_and_kept_when_they_lie_inside():
     grey = constant_images([(0.5, 0.5, 0.5)] * 12)
     cams = inside_out_ring()
     centre = torch.stack([c.center for c in cams]).mean(0)
-    xyz, rgb, said = background_shell(cams, centre, 500, grey)
+    rig = float(torch.linalg.norm(torch.stack([c.center for c in cams]) - centre, dim=1).max())
+    # walls all round at 2.5 from the middle: median distance 2.5 > the sphere's 2 x 0.3
+    a = torch.linspace(0, 2 * math.pi, 200, dtype=torch.float64)
+    walls = centre + torch.stack([2.5 * torch.cos(a), 2.5 * torch.sin(a), torch.zeros_like(a)], 1)
+    xyz, rgb, said = background_shell(cams, centre, 500, grey, points=walls)
     assert xyz.shape == (0, 3) and rgb.shape == (0, 3)
-    assert "look convergence" in said and "no background shell" in said
+    assert "beyond its sphere" in said and f"{SHELL_RADIUS * rig:.4g}" in said
+    # the same rig with its content inside the sphere (the median point at 0.5 x its radius) keeps it
+    inside = centre + (0.5 * SHELL_RADIUS * rig / 2.5) * (walls - centre)
+    xyz, _, said = background_shell(cams, centre, 500, grey, points=inside)
+    assert xyz.shape[0] > 0, said
+    # without points the rig's look decides: outwards, none; an orbit looking in, a shell
+    xyz, _, said = background_shell(cams, centre, 500, grey)
+    assert xyz.shape[0] == 0 and "look convergence" in said
     ring = orbit(n=8)
     xyz, _, said = background_shell(ring, torch.stack([c.center for c in ring]).mean(0), 500, grey)
+    assert xyz.shape[0] > 0, said
+
+
+def test_two_orbits_round_two_objects_keep_their_shell_given_their_points():
+    """Two rings of cameras about objects 10 apart do not look at one place (their axes meet at
+    two), but their points lie inside the sphere: the shell stays."""
+    left = [look((-5 + 2 * math.cos(t), 2 * math.sin(t), 0.5), (-5.0, 0.0, 0.0), uid=i)
+            for i, t in enumerate(torch.linspace(0, 6.0, 8).tolist())]
+    right = [look((5 + 2 * math.cos(t), 2 * math.sin(t), 0.5), (5.0, 0.0, 0.0), uid=8 + i)
+             for i, t in enumerate(torch.linspace(0, 6.0, 8).tolist())]
+    cams = left + right
+    assert look_convergence(cams) < CONVERGING_COSINE
+    centre = torch.stack([c.center for c in cams]).mean(0)
+    objects = torch.tensor([[-5.0, 0.0, 0.0], [5.0, 0.0, 0.0]], dtype=torch.float64).repeat(50, 1)
+    xyz, _, said = background_shell(cams, centre, 500, constant_images([(0.5, 0.5, 0.5)] * 16), points=objects)
     assert xyz.shape[0] > 0, said
 
 
@@ -94,24 +122,40 @@ def depth_in(cam, p):
     return float(x[2]), bool(x[2] > 0 and 0 <= u <= cam.width and 0 <= v <= cam.height)
 
 
-def test_an_inside_out_rig_draws_random_points_in_its_frusta_beyond_the_cameras():
+def test_an_inside_out_rig_draws_half_its_candidates_in_the_cube_and_half_in_its_frusta():
     cams = inside_out_ring(radius=0.3)
     centers = torch.stack([c.center for c in cams])
     radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
-    region = init_region(cams, centers.mean(0), extent=1.1 * radius)
-    assert region.kind == "frusta", region.description
+    centre, extent = centers.mean(0), 1.1 * radius
+    region = init_region(cams, centre, extent=extent)
+    assert region.kind == "cube+frusta", region.description
     assert region.near == pytest.approx(radius) and region.far == pytest.approx(FAR_OVER_NEAR * radius)
-    assert "inside-out" in region.description
-    pts = region.sample(400, torch.Generator().manual_seed(3))
-    for p in pts:
-        # some camera sees it at a depth within [near, far] (the 3DGS cube would put it among the cameras)
+    pts = region.sample(401, torch.Generator().manual_seed(3))
+    assert pts.shape == (401, 3)
+    assert bool(((pts[:200] - centre).abs() <= extent + 1e-9).all())  # the 3DGS cube
+    for p in pts[200:]:
+        # some camera sees it at a depth within [near, far]
         assert any(depth_in(c, p)[1] and radius - 1e-9 <= depth_in(c, p)[0] <= FAR_OVER_NEAR * radius + 1e-9
                    for c in cams)
+    # the frusta half lies outside the cube: the content the rig looks out at
+    assert float((pts[200:] - centre).abs().max(dim=1).values.median()) > extent
 
 
-def test_an_inside_out_rig_of_one_centre_has_no_depth_cue_and_keeps_the_cube():
+def test_a_fanning_rig_whose_axes_share_a_direction_keeps_the_forward_rule():
+    """Axes fanned +-40 degrees about +z (spread above the forward threshold, mean axis shared):
+    kind="frusta" (the triangulation's fill) still gets the forward rule's depth scan."""
+    cams = [look((0.1 * i, 0.0, 0.0), (0.1 * i + math.tan(math.radians(a)), 0.0, 1.0), uid=i)
+            for i, a in enumerate([-40.0, -20.0, 0.0, 20.0, 40.0])]
+    region = init_region(cams, torch.stack([c.center for c in cams]).mean(0), extent=0.3, kind="frusta")
+    assert region.kind == "frusta" and "first depth" in region.description, region.description
+    assert init_region(cams, torch.stack([c.center for c in cams]).mean(0), extent=0.3).kind == "cube"
+
+
+@pytest.mark.parametrize("jitter", [0.0, 1e-9])
+def test_an_inside_out_rig_of_one_centre_has_no_depth_cue_and_keeps_the_cube(jitter):
     c = (0.0, 0.0, 1.0)
-    cams = [look(c, (math.cos(a), math.sin(a), 1.0), uid=i) for i, a in enumerate(torch.linspace(0, 6.0, 8).tolist())]
+    cams = [look((c[0] + jitter * i, c[1], c[2]), (math.cos(a), math.sin(a), 1.0), uid=i)
+            for i, a in enumerate(torch.linspace(0, 6.0, 8).tolist())]
     region = init_region(cams, torch.tensor(c, dtype=torch.float64), extent=1.0)
     assert region.kind == "cube" and "no depth cue" in region.description
 
@@ -128,7 +172,7 @@ def test_random_init_of_an_inside_out_scene_keeps_points_where_the_views_agree()
         image = staticmethod(constant_images([(0.4, 0.4, 0.4)] * 8))
 
     xyz, rgb, said = random_init_points(FakeScene, 50, torch.Generator().manual_seed(0))
-    assert xyz.shape == (50, 3) and "inside-out" in said
+    assert xyz.shape == (50, 3) and "photo-consistency chooses" in said
     assert torch.allclose(rgb, torch.full_like(rgb, 0.4), atol=1e-6)
 
 
@@ -144,7 +188,7 @@ def load_make_scene():
     return module
 
 
-def test_the_generators_room_rig_is_inside_out_and_inside_its_room():
+def test_the_generators_room_rig_looks_out_from_inside_its_room_and_its_360_rigs_look_in():
     from mvgs_plugin.camera import Camera
     from mvgs_plugin.data.init import CONVERGING_SPREAD, axis_spread
     ms = load_make_scene()
@@ -154,6 +198,11 @@ def test_the_generators_room_rig_is_inside_out_and_inside_its_room():
                    width=v.width, height=v.height) for i, v in enumerate(views)]
     assert axis_spread(cams) >= CONVERGING_SPREAD  # spread like an orbit's ...
     assert look_convergence(cams) < CONVERGING_COSINE  # ... but looking out
+    for variant in ("default", "sparse", "clutter", "moving"):  # the generator's rigs that look in
+        vs = ms.make_views(variant, 48 if variant != "sparse" else 10, 12, 64)
+        ring = [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
+                       width=v.width, height=v.height) for i, v in enumerate(vs)]
+        assert look_convergence(ring) > 0.99, variant
     for v in views:
         c = v.c2w[:3, 3]
         assert math.hypot(c[0], c[1]) <= ms.ROOM_EYE_RADIUS + 1e-9

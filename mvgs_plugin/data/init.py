@@ -10,8 +10,8 @@ run from it trains to nothing (12 dB where points give 34 dB).
 
 * ``cube``: the axes spread (the smallest eigenvalue of mean(I - d dᵀ) over the unit viewing
   directions d is at least ``CONVERGING_SPREAD``: a full orbit gives about 0.65) and look in
-  at one place (:func:`look_convergence` at least ``CONVERGING_COSINE``): the 3DGS cube,
-  unchanged.
+  at one place (:func:`look_convergence` at least ``CONVERGING_COSINE``) or share a direction:
+  the 3DGS cube, unchanged.
 * ``frusta``: nearly parallel axes (a forward-facing rig gives about 0.01): points in the union
   of the training views' frusta, uniform in disparity (1/depth) between ``near`` and ``far``,
   as NeRF samples LLFF scenes. ``near`` is the first depth along the mean viewing axis that at
@@ -20,12 +20,15 @@ run from it trains to nothing (12 dB where points give 34 dB).
   point there and keeps the most photo-consistent ones (:func:`photo_consistent`: the colour a
   candidate lands on agrees across the views that see it) with their mean colour: the
   images carry the depth that the rig's geometry cannot.
-* ``frusta`` too for an inside-out rig (spread axes, but :func:`look_convergence` below
-  ``CONVERGING_COSINE``: cameras that stand together and look outwards, a room shot from its
-  middle), where the cube would sit among the cameras: ``near`` is the radius of the camera
-  centres (the free space they stand in), ``far`` = ``FAR_OVER_NEAR`` x near.
+* ``cube+frusta`` for a rig whose axes spread every way but do not meet (no shared direction,
+  :func:`look_convergence` below ``CONVERGING_COSINE``): a room shot from its middle, where the
+  cube sits among the cameras and the content stands around them, but also a walk through a
+  scene or two orbits about two objects, where the content lies among the cameras. The rig
+  cannot tell these apart, so half of the candidates come from the cube and half from the
+  training frusta (``near`` = the radius of the camera centres, ``far`` = ``FAR_OVER_NEAR`` x
+  near), and photo-consistency keeps the ones the views agree on.
 * a rig with nearly parallel axes but one camera centre, or no depth that half of the cameras
-  see, falls back to the cube and says so (as does an inside-out rig of one centre).
+  see, falls back to the cube and says so (as does a rig that looks every way from one centre).
 
 The choice and its numbers are in :attr:`InitRegion.description` (the adapters log it).
 """
@@ -64,9 +67,9 @@ MIN_VIEWS = 3
 # and, with ~2000 points on the sphere, spaces them about 0.16 rig radii apart, small enough for
 # the 3DGS size rule (0.1 x extent = 0.11 rig radii after the first split) to leave their children.
 SHELL_RADIUS = 2.0
-# look_convergence at and above which a rig with spread axes looks in at its scene (an orbit, a
-# hemisphere, rings: 1.00 on every generated 360-degree rig) rather than out from within it (an
-# inside-out capture: 0.10 on the generator's room, whose cameras face every way from its middle)
+# look_convergence at and above which a rig with spread axes looks in at one place (an orbit, a
+# hemisphere, rings: 1.00 on every generated 360-degree rig); below it the axes do not meet (0.10
+# on the generator's room, whose cameras look out every way from its middle)
 CONVERGING_COSINE = 0.5
 
 
@@ -75,7 +78,8 @@ class InitRegion:
     """A region to draw random initial points from.
 
     kind "cube": uniform in center ± half. kind "frusta": a training camera at random, a pixel
-    uniform in its image, a depth uniform in disparity between near and far.
+    uniform in its image, a depth uniform in disparity between near and far. kind
+    "cube+frusta": half of the points from each (for photo-consistency to choose between).
     """
 
     kind: str
@@ -87,7 +91,11 @@ class InitRegion:
     cameras: tuple = ()
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        """[n, 3] float64 points, drawn with ``generator``."""
+        """[n, 3] float64 points, drawn with ``generator`` (kind "cube+frusta": the first n // 2
+        from the cube, the rest from the frusta)."""
+        if self.kind == "cube+frusta":
+            cube = dataclasses.replace(self, kind="cube").sample(n // 2, generator)
+            return torch.cat([cube, dataclasses.replace(self, kind="frusta").sample(n - n // 2, generator)])
         if self.kind == "cube":
             u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
             return torch.as_tensor(self.center, dtype=torch.float64) + (2.0 * u - 1.0) * self.half
@@ -218,9 +226,11 @@ def axis_spread(cameras: Sequence[Camera]) -> float:
 def look_convergence(cameras: Sequence[Camera]) -> float:
     """How much a rig looks at one place: the mean, over the cameras, of the cosine between a
     camera's optical axis and the direction from its centre to the point nearest all the axes
-    (least squares over the lines; the pseudo-inverse when the axes are parallel). 1 for cameras
-    that all look at one point; about 0 or below for cameras that stand together and look out in
-    every direction; a camera at that point counts 0."""
+    (least squares over the lines). 1 for cameras that all look at one point; about 0 or below
+    for cameras that stand together and look out in every direction; a camera at that point
+    counts 0. Meaningful for axes that spread (axis_spread >= CONVERGING_SPREAD, as its callers
+    check first): nearly parallel axes have no nearest point, and the pseudo-inverse's choice
+    then depends on where the world origin is."""
     if not cameras:
         raise ValueError("look_convergence needs at least one camera")
     d = camera_axes(cameras)
@@ -263,21 +273,26 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
     spread = axis_spread(cameras)
     centers = torch.stack([c.center for c in cameras])
     radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
-    convergence = look_convergence(cameras) if spread >= CONVERGING_SPREAD else 1.0
-    if convergence < CONVERGING_COSINE:
-        if not radius > 0:
-            return cube(f"the cameras look outwards (look convergence {convergence:.2f} < {CONVERGING_COSINE}) "
-                        "from one centre: no depth cue")
-        near = radius
-        return InitRegion(
-            "frusta", f"random init: the {len(cameras)} training frusta between depth {near:.4g} and "
-                      f"{FAR_OVER_NEAR * near:.4g}, uniform in disparity (inside-out rig: look convergence "
-                      f"{convergence:.2f} < {CONVERGING_COSINE}, the cameras look outwards from among themselves; "
-                      "near = the radius of their centres, the free space they stand in)",
-            near=near, far=FAR_OVER_NEAR * near, cameras=tuple(cameras))
+    shared = float(torch.linalg.norm(d.mean(0))) >= 0.5  # the axes share a direction
+    if spread >= CONVERGING_SPREAD and not shared:
+        convergence = look_convergence(cameras)
+        if convergence < CONVERGING_COSINE:
+            if not radius > 1e-6 * (1.0 + float(centers.mean(0).abs().max())):
+                return cube(f"the cameras look every way (look convergence {convergence:.2f} < {CONVERGING_COSINE}) "
+                            "from one centre: no depth cue")
+            near = radius
+            return InitRegion(
+                "cube+frusta",
+                f"random init: half in the 3DGS cube (centre {[round(float(v), 3) for v in center]} ± {extent:.4g}), half "
+                f"in the {len(cameras)} training frusta between depth {near:.4g} and {FAR_OVER_NEAR * near:.4g}, uniform in "
+                f"disparity (the axes spread every way but do not meet: look convergence {convergence:.2f} < "
+                f"{CONVERGING_COSINE}; the content may lie among the cameras, as along a walk, or around them, as in a "
+                "room shot from its middle, and photo-consistency chooses; near = the radius of the camera centres)",
+                center=torch.as_tensor(center, dtype=torch.float64), half=float(extent),
+                near=near, far=FAR_OVER_NEAR * near, cameras=tuple(cameras))
     if spread >= CONVERGING_SPREAD and kind is None:
         return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
-    if float(torch.linalg.norm(d.mean(0))) < 0.5:
+    if not shared:
         return cube(f"frusta asked for, but the optical axes share no direction (axis spread {spread:.3f})")
     if not radius > 0:
         return cube(f"nearly parallel axes (spread {spread:.3f}) but one camera centre: no depth cue")
@@ -301,7 +316,8 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
 
 
 def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, image,
-                     radius: float = SHELL_RADIUS) -> tuple[torch.Tensor, torch.Tensor, str]:
+                     radius: float = SHELL_RADIUS, points: Optional[torch.Tensor] = None,
+                     ) -> tuple[torch.Tensor, torch.Tensor, str]:
     """Initial points for what lies beyond a rig that surrounds its scene (sky, horizon, far walls).
 
     Points from a capture (SfM, a scene's point file, triangulation) stop where matching stops:
@@ -312,10 +328,11 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     radii about ``center`` (a Fibonacci lattice, so evenly spaced and the same for every run),
     keeps those that at least one training view sees (in front of it, inside its image), and gives
     each the mean colour it lands on in those views (:func:`view_colours` at ``PHOTO_WIDTH`` px). A forward-facing rig gets none (its frusta init already reaches
-    ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them),
-    nor does an inside-out one (:func:`look_convergence` below ``CONVERGING_COSINE``: cameras that
-    stand together and look outwards, as in a room shot from its middle). Its sphere would lie
-    in front of every camera, among the cameras, not behind what they see.
+    ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them).
+    Nor does a rig whose content lies beyond the sphere, as in a room shot from its middle, where
+    the sphere would stand in front of every view: with the scene's ``points`` [P, 3], when their
+    median distance from ``center`` exceeds the sphere's radius; without them, when the rig does
+    not look in at one place (:func:`look_convergence` below ``CONVERGING_COSINE``).
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
     """
@@ -332,16 +349,23 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     if spread < CONVERGING_SPREAD:
         return empty, empty.clone(), (f"no background shell: forward-facing rig (axis spread {spread:.3f} < "
                                       f"{CONVERGING_SPREAD})")
-    convergence = look_convergence(cameras)
-    if convergence < CONVERGING_COSINE:
-        return empty, empty.clone(), (f"no background shell: the cameras look outwards from among themselves, not in "
-                                      f"at a scene (look convergence {convergence:.2f} < {CONVERGING_COSINE}): "
-                                      "a sphere about them would stand in front of every view")
     center = torch.as_tensor(center, dtype=torch.float64)
     centers = torch.stack([c.center for c in cameras])
     rig = float(torch.linalg.norm(centers - center, dim=1).max())
     if not rig > 0:
         return empty, empty.clone(), "no background shell: all camera centres coincide (no rig radius)"
+    if points is not None and len(points):
+        median = float(torch.linalg.norm(torch.as_tensor(points, dtype=torch.float64) - center, dim=1).median())
+        if median > radius * rig:
+            return empty, empty.clone(), (
+                f"no background shell: the scene's points lie beyond its sphere (median distance {median:.4g} from the "
+                f"centre > {radius * rig:.4g}, {radius:g} rig radii), which would stand in front of them in every view")
+    elif points is None:
+        convergence = look_convergence(cameras)
+        if convergence < CONVERGING_COSINE:
+            return empty, empty.clone(), (
+                f"no background shell: the cameras do not look in at one place (look convergence {convergence:.2f} < "
+                f"{CONVERGING_COSINE}) and no points say where the scene lies")
     i = torch.arange(n, dtype=torch.float64) + 0.5
     polar = torch.acos(1.0 - 2.0 * i / n)
     azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i

@@ -33,8 +33,9 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     next run (None: a temporary folder; the scene folder is never written). ``threads``:
     pycolmap's threads (default: torch's). ``background_points``: that many more points on a
     shell beyond a rig that surrounds the scene, for its far background
-    (:func:`~mvgs_plugin.data.init.background_shell`; 0: none; a forward-facing rig, or a scene left
-    without points by ``init=None``, gets none). What was done is in ``scene.points_origin`` and
+    (:func:`~mvgs_plugin.data.init.background_shell`; 0: none; a forward-facing rig, a scene whose
+    points lie mostly beyond the shell (a room shot from its middle), or a scene left without points
+    by ``init=None``, gets none). What was done is in ``scene.points_origin`` and
     logged to the "mvgs_plugin" logger.
     """
     if isinstance(background_points, bool) or not isinstance(background_points, int) or background_points < 0:
@@ -60,7 +61,8 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         from .init import background_shell
         from .scene import PointCloud
 
-        xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image)
+        xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
+                                          points=scene.points.xyz)
         if xyz.shape[0]:
             pts = scene.points  # float32 (PointCloud's dtype)
             scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),
