@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -216,3 +217,20 @@ def test_the_generators_room_rig_looks_out_from_inside_its_room_and_its_360_rigs
     for p in ms.room_prims():
         assert max(abs(p.centre[0]), abs(p.centre[1])) + p.footprint < ms.ROOM_HALF
         assert p.centre[2] - (p.size if p.kind != "cylinder" else 0.0) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_generators_room_walk_does_not_meet_and_walks_its_loop():
+    from mvgs_plugin.camera import Camera
+    ms = load_make_scene()
+    views = ms.make_views("room-walk", 48, 12, 64)
+    cams = [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
+                   width=v.width, height=v.height) for i, v in enumerate(views)]
+    assert look_convergence(cams) < CONVERGING_COSINE
+    for v in views:
+        c = v.c2w[:3, 3]
+        assert math.hypot(c[0], c[1]) == pytest.approx(ms.ROOM_WALK_RADIUS)
+        # looking ahead along the loop: the axis' horizontal part is within 30 degrees of the tangent
+        axis = v.c2w[:3, 2]
+        tangent = np.array([-c[1], c[0], 0.0]) / math.hypot(c[0], c[1])
+        horizontal = np.array([axis[0], axis[1], 0.0]) / math.hypot(axis[0], axis[1])
+        assert float(horizontal @ tangent) >= math.cos(math.radians(30.0)) - 1e-9

@@ -58,6 +58,10 @@ Variants (``--variant``):
   within 0.35 of the room's centre at 0.95-1.25 high and look outwards, their azimuths spread
   round the full circle, slightly downwards. The cameras surround nothing: what they see lies
   around them, 1-3.5 away, the rig kind no other variant has.
+* ``room-walk``: the same room seen by cameras that walk a loop of radius ROOM_WALK_RADIUS about
+  its middle, each looking ahead along the loop (yaw jittered by up to 30 degrees either way):
+  the axes spread every way and meet nowhere, as for the room, but the objects near the walls
+  stand as close to the cameras as the middle of the room does.
 
 Examples::
 
@@ -80,7 +84,7 @@ from dataclasses import dataclass
 import numpy as np
 
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
-            "room")
+            "room", "room-walk")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
@@ -112,6 +116,7 @@ CORRIDOR_SUN = (math.radians(-60.0), math.radians(62.0))
 ROOM_HALF, ROOM_HEIGHT = 2.5, 2.4
 ROOM_LAMP_HALF, ROOM_LAMP_RADIANCE = 0.8, (9.0, 8.4, 7.6)
 ROOM_EYE_RADIUS, ROOM_EYE_Z = 0.35, (0.95, 1.25)
+ROOM_WALK_RADIUS = 1.2
 
 # clutter: primitive layout seed and the sun (azimuth, elevation) in radians
 CLUTTER_SEED = 2024
@@ -299,6 +304,24 @@ def rig_room(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return rig
 
 
+def rig_room_walk(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, look-at) pairs on a walk round the room: centres on a circle of ROOM_WALK_RADIUS
+    about its axis at heights ROOM_EYE_Z, in order round it, each looking along the direction
+    of travel (counter-clockwise) turned by a yaw jitter of up to 30 degrees, 5-19 degrees below
+    the horizon."""
+    rng = np.random.default_rng(RIG_SEED + 4)
+    rig = []
+    for k in range(n_total):
+        a = 2 * math.pi * k / n_total
+        z = ROOM_EYE_Z[0] + (ROOM_EYE_Z[1] - ROOM_EYE_Z[0]) * rng.random()
+        centre = np.array([ROOM_WALK_RADIUS * math.cos(a), ROOM_WALK_RADIUS * math.sin(a), z])
+        heading = a + math.pi / 2 + math.radians(rng.uniform(-30.0, 30.0))
+        elev = math.radians(-12.0 + 14.0 * (radical_inverse(k, 3) - 0.5))
+        rig.append((centre, centre + np.array([math.cos(elev) * math.cos(heading),
+                                               math.cos(elev) * math.sin(heading), math.sin(elev)])))
+    return rig
+
+
 def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
     K = intrinsics(size)
     views: list[View] = []
@@ -320,6 +343,8 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
         rig = rig_rings(n_total)
     elif variant == "room":
         rig = rig_room(n_total)
+    elif variant == "room-walk":
+        rig = rig_room_walk(n_total)
     else:
         rig = [(c, TARGET) for c in rig_dense(n_total)]
     for k, (c, look) in enumerate(rig):
@@ -635,7 +660,7 @@ class SceneBuilder:
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
         self._cache: dict[float, object] = {}
-        if variant in ("clutter", "forward-clutter", "corridor", "room"):
+        if variant in ("clutter", "forward-clutter", "corridor", "room", "room-walk"):
             # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
             self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
             self.clutter_tex = {
@@ -646,7 +671,7 @@ class SceneBuilder:
             }
         else:
             self.sky = mi.Bitmap(sky_texture())
-        if variant in ("forward", "corridor", "room"):
+        if variant in ("forward", "corridor", "room", "room-walk"):
             self.wall_tex = mi.Bitmap(wall_texture())
 
     def ground_mesh(self, bsdf):
@@ -817,7 +842,7 @@ class SceneBuilder:
             return self.clutter_dict()
         if self.variant == "corridor":
             return self.corridor_dict()
-        if self.variant == "room":
+        if self.variant in ("room", "room-walk"):
             return self.room_dict()
         mi = self.mi
         T = mi.ScalarTransform4f
@@ -999,7 +1024,7 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
         return sample_clutter(n, rng)
     if variant == "corridor":
         return sample_corridor(n, rng)
-    if variant == "room":
+    if variant in ("room", "room-walk"):
         return sample_room(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
     n = n - n_wall
