@@ -189,20 +189,24 @@ def load_make_scene():
     return module
 
 
-def test_the_generators_room_rig_looks_out_from_inside_its_room_and_its_360_rigs_look_in():
+def cameras_of(views):
+    """mvgs_plugin Cameras of the generator's Views (both OpenCV world-to-camera and pinhole K)."""
     from mvgs_plugin.camera import Camera
+    return [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
+                   width=v.width, height=v.height) for i, v in enumerate(views)]
+
+
+def test_the_generators_room_rig_looks_out_from_inside_its_room_and_its_360_rigs_look_in():
     from mvgs_plugin.data.init import CONVERGING_SPREAD, axis_spread
     ms = load_make_scene()
     views = ms.make_views("room", 48, 12, 64)
     assert sum(v.split == "train" for v in views) == 48 and sum(v.split == "test" for v in views) == 12
-    cams = [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
-                   width=v.width, height=v.height) for i, v in enumerate(views)]
+    cams = cameras_of(views)
     assert axis_spread(cams) >= CONVERGING_SPREAD  # spread like an orbit's ...
     assert look_convergence(cams) < CONVERGING_COSINE  # ... but looking out
     for variant in ("default", "sparse", "clutter", "moving"):  # the generator's rigs that look in
         vs = ms.make_views(variant, 48 if variant != "sparse" else 10, 12, 64)
-        ring = [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
-                       width=v.width, height=v.height) for i, v in enumerate(vs)]
+        ring = cameras_of(vs)
         assert look_convergence(ring) > 0.99, variant
     for v in views:
         c = v.c2w[:3, 3]
@@ -220,11 +224,9 @@ def test_the_generators_room_rig_looks_out_from_inside_its_room_and_its_360_rigs
 
 
 def test_the_generators_room_walk_does_not_meet_and_walks_its_loop():
-    from mvgs_plugin.camera import Camera
     ms = load_make_scene()
     views = ms.make_views("room-walk", 48, 12, 64)
-    cams = [Camera(uid=i, name=v.name, K=torch.tensor(v.K), world_to_camera=torch.tensor(v.w2c),
-                   width=v.width, height=v.height) for i, v in enumerate(views)]
+    cams = cameras_of(views)
     assert look_convergence(cams) < CONVERGING_COSINE
     for v in views:
         c = v.c2w[:3, 3]

@@ -86,6 +86,7 @@ import numpy as np
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
             "room", "room-walk")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
+ROOM_VARIANTS = ("room", "room-walk")
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
 FOV_X_DEG = 45.0
@@ -660,7 +661,7 @@ class SceneBuilder:
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
         self._cache: dict[float, object] = {}
-        if variant in ("clutter", "forward-clutter", "corridor", "room", "room-walk"):
+        if variant in ("clutter", "forward-clutter", "corridor") + ROOM_VARIANTS:
             # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
             self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
             self.clutter_tex = {
@@ -671,7 +672,7 @@ class SceneBuilder:
             }
         else:
             self.sky = mi.Bitmap(sky_texture())
-        if variant in ("forward", "corridor", "room", "room-walk"):
+        if variant in ("forward", "corridor") + ROOM_VARIANTS:
             self.wall_tex = mi.Bitmap(wall_texture())
 
     def ground_mesh(self, bsdf):
@@ -741,6 +742,11 @@ class SceneBuilder:
             "glass": {"type": "dielectric", "int_ior": 1.5},
         }
 
+    def tiled(self, bitmap, repeat_u: float, repeat_v: float) -> dict:
+        """A diffuse BSDF of ``bitmap`` repeated repeat_u x repeat_v times over a shape's uv."""
+        return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap,
+                                                   "to_uv": self.mi.ScalarTransform4f().scale([repeat_u, repeat_v, 1.0])}}
+
     def corridor_dict(self) -> dict:
         """The corridor: floor, side and end walls, sky, a sun from CORRIDOR_SUN, primitives."""
         T = self.mi.ScalarTransform4f
@@ -749,10 +755,7 @@ class SceneBuilder:
         sun_dir = -np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         length = CORRIDOR_END - CORRIDOR_START
 
-        def tex(bitmap, repeat_u, repeat_v):
-            return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap,
-                                                       "to_uv": T().scale([repeat_u, repeat_v, 1.0])}}
-
+        tex = self.tiled
         skins = {"floor": tex(self.ground_tex, 1.0, length / 4.0),
                  "left": tex(self.wall_tex, length / 4.0, 1.0), "right": tex(self.wall_tex, length / 4.0, 1.0),
                  "end": mat["marble"]}
@@ -771,12 +774,8 @@ class SceneBuilder:
         mat = self.clutter_materials()
         span = 2 * ROOM_HALF
 
-        def tex(bitmap, repeat_u, repeat_v):
-            return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap,
-                                                       "to_uv": T().scale([repeat_u, repeat_v, 1.0])}}
-
-        brick = tex(self.wall_tex, span / 4.0, ROOM_HEIGHT / 2.0)
-        skins = {"floor": tex(self.ground_tex, 1.0, 1.0), "ceiling": mat["ivory"], "west": brick,
+        brick = self.tiled(self.wall_tex, span / 4.0, ROOM_HEIGHT / 2.0)
+        skins = {"floor": self.tiled(self.ground_tex, 1.0, 1.0), "ceiling": mat["ivory"], "west": brick,
                  "east": brick, "south": mat["spots"], "north": mat["marble"]}
         out = {"type": "scene", "integrator": {"type": "path", "max_depth": 6}}
         for name, M in room_rects().items():
@@ -842,7 +841,7 @@ class SceneBuilder:
             return self.clutter_dict()
         if self.variant == "corridor":
             return self.corridor_dict()
-        if self.variant in ("room", "room-walk"):
+        if self.variant in ROOM_VARIANTS:
             return self.room_dict()
         mi = self.mi
         T = mi.ScalarTransform4f
@@ -1024,7 +1023,7 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
         return sample_clutter(n, rng)
     if variant == "corridor":
         return sample_corridor(n, rng)
-    if variant in ("room", "room-walk"):
+    if variant in ROOM_VARIANTS:
         return sample_room(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
     n = n - n_wall

@@ -331,8 +331,8 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     ``FAR_OVER_NEAR`` x its near depth, and a sphere about its few centres is not behind them).
     Nor does a rig whose content lies beyond the sphere, as in a room shot from its middle, where
     the sphere would stand in front of every view: with the scene's ``points`` [P, 3], when their
-    median distance from ``center`` exceeds the sphere's radius; without them, when the rig does
-    not look in at one place (:func:`look_convergence` below ``CONVERGING_COSINE``).
+    median distance from ``center`` exceeds the sphere's radius; without them (None or empty),
+    when the rig does not look in at one place (:func:`look_convergence` below ``CONVERGING_COSINE``).
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
     """
@@ -360,7 +360,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
             return empty, empty.clone(), (
                 f"no background shell: the scene's points lie beyond its sphere (median distance {median:.4g} from the "
                 f"centre > {radius * rig:.4g}, {radius:g} rig radii), which would stand in front of them in every view")
-    elif points is None:
+    else:
         convergence = look_convergence(cameras)
         if convergence < CONVERGING_COSINE:
             return empty, empty.clone(), (
