@@ -296,12 +296,15 @@ class MVGSStrategy(DefaultStrategy):
     # ---- gsplat's Strategy interface ----------------------------------------------------
     def check_sanity(self, params, optimizers) -> None:
         """The wrapped strategy's check; with config.max_gaussians, a model above the budget is
-        cut to it here (gsplat's trainers call this once, before the first render): its lowest
-        keep scores go (see keep_scores)."""
+        cut to it here (gsplat's trainers call this once, before the first render; before the
+        first step, to config.initial_cap()): its lowest keep scores go (see keep_scores)."""
         self.strategy.check_sanity(params, optimizers)
-        budget = self.config.max_gaussians
+        first = self.schedule.step_count == 0
+        budget = self.config.initial_cap() if first else self.config.max_gaussians
         if budget is not None and len(params["means"]) > budget:
             self._shed(params, optimizers, {}, budget)
+            if first:  # the budget's growth schedule starts from the count after the cut
+                self.schedule.primitive_count = len(params["means"])
 
     @staticmethod
     def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:

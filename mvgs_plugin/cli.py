@@ -325,6 +325,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--budget-swap", type=float_above(0, inclusive=True, high=0.999999), default=None, metavar="S",
                     help="share of the budget a densification call may swap while it binds: the lowest keep scores "
                          "make way for the best growth candidates (MVGSConfig.budget_swap) (default: 0, off)")
+    ap.add_argument("--budget-initial-share", type=float_above(0, high=1.0), default=None, metavar="S",
+                    help="with a budget, cut a larger initial model to this share of it before the first step, so "
+                         "the rest is grown where the views ask (MVGSConfig.budget_initial_share) (default: 1)")
     ap.add_argument("--budget-size-pruning", action="store_true", default=None,
                     help="with a budget, still prune Gaussians by size after the first opacity reset, as 3DGS "
                          "(MVGSConfig.budget_size_pruning; default: off with a budget, on without)")
@@ -378,7 +381,8 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     if getattr(args, "stages", None):
         preset_overrides = {**preset_overrides, "stages": args.stages}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
-                 "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning"):
+                 "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning",
+                 "budget_initial_share"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     if getattr(args, "view_cost", None) is not None:

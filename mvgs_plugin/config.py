@@ -294,6 +294,11 @@ class MVGSConfig:
         (docs/equal_compute.md): +0.72 dB on the forward rig, -3.69 on forward-clutter, -0.04 to
         -3.60 on the 360-degree scenes (those with size pruning on). GS3DAdapter, GS4DAdapter and
         MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
+    budget_initial_share: the share of max_gaussians the initial model may hold: a model that
+        starts above floor(share x N) is cut to it before the first step (lowest keep scores,
+        a seeded random subset before any view), so that the rest of the budget is grown by the
+        densify score, where the views' gradients ask for it. 1 (the default): the initial
+        model may fill the budget, and a model that starts at or above it never grows.
     budget_size_pruning: whether a run with a budget (max_gaussians) still prunes by size
         (3DGS's rule after the first opacity reset: world size above max_world_size x the scene
         extent, screen radius above max_screen_size). Off by default: the budget bounds the
@@ -343,6 +348,7 @@ class MVGSConfig:
     densify_rank: str = "consistency"
     budget_swap: float = 0.0
     budget_size_pruning: bool = False
+    budget_initial_share: float = 1.0
     forward_rig_budget: bool = True
     divergence_factor: Optional[float] = 100.0
     clock_unit: str = "steps"
@@ -387,6 +393,10 @@ class MVGSConfig:
         if isinstance(self.budget_swap, bool) or not isinstance(self.budget_swap, (int, float)) or not (
                 0.0 <= self.budget_swap < 1.0):
             raise ValueError(f"budget_swap must be a share of the cap in [0, 1), got {self.budget_swap!r}")
+        if isinstance(self.budget_initial_share, bool) or not isinstance(self.budget_initial_share, (int, float)) or not (
+                0.0 < self.budget_initial_share <= 1.0):
+            raise ValueError(f"budget_initial_share must be a share of max_gaussians in (0, 1], "
+                             f"got {self.budget_initial_share!r}")
         if self.max_views_fraction is not None and self.max_views_fraction > 1:
             raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
         _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
@@ -449,6 +459,13 @@ class MVGSConfig:
         return self.stages[-1].steps if self.restart_per_stage else self.total_steps
 
     # ---- presets --------------------------------------------------------------------------
+    def initial_cap(self) -> Optional[int]:
+        """The count the model may start with under max_gaussians: floor(budget_initial_share x
+        max_gaussians), at least 1 (None without a budget)."""
+        if self.max_gaussians is None:
+            return None
+        return max(1, int(math.floor(self.budget_initial_share * self.max_gaussians)))
+
     @classmethod
     def baseline(cls, **overrides) -> "MVGSConfig":
         """Plain 3DGS: one view per step, full resolution, 30k steps."""

@@ -183,6 +183,8 @@ class MVGS:
         """Runs the next training step and returns what it did."""
         t_step = time.perf_counter()
         budget = self.config.max_gaussians
+        if budget is not None and self.schedule.step_count == 0:
+            budget = self.config.initial_cap()
         if budget is not None and self.adapter.num_primitives() > budget:
             self._shrink_to(budget)
         self.schedule.primitive_count = self.adapter.num_primitives()

@@ -699,6 +699,27 @@ def test_keep_scores_and_the_cut_at_check_sanity(forward):
     assert all(len(opt.param_groups[0]["params"][0]) == n // 2 for opt in optimizers.values())
 
 
+def test_the_cut_at_check_sanity_keeps_the_initial_share(forward):
+    """budget_initial_share 0.5: check_sanity cuts to floor(0.5 N), the same top keep scores, and
+    the budget's growth schedule starts from that count (its first cap is not N)."""
+    cfg, splats, optimizers = fresh_model(forward)
+    n = len(splats["means"])
+    budget = n // 2
+    draw = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
+    want = torch.sigmoid(splats["opacities"].detach()) * draw
+    kept = set(torch.argsort(want, descending=True)[:budget // 2].tolist())
+    ref = {tuple(splats["means"][i].tolist()) for i in kept}
+    mvgs = MVGSConfig.default(max_gaussians=budget, budget_initial_share=0.5)
+    strategy = MVGSStrategy(small_clock(), forward, mvgs, steps=12)
+    strategy.check_sanity(splats, optimizers)
+    assert {tuple(m) for m in splats["means"].detach().tolist()} == ref
+    sched = strategy.schedule
+    sched.next()
+    assert sched.initial_count == budget // 2
+    assert sched.budget_cap(sched.config.densify_from) == budget // 2
+    assert sched.budget_cap(sched.config.densify_until) == budget
+
+
 def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward):
     """MVGSStrategy._swap_out on a hand-made window: candidates (mean grad2d > threshold) beyond
     the room make up to floor(share x cap) rows go, the lowest opacity x coverage among the

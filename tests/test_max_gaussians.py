@@ -57,6 +57,14 @@ def watch_renders(trainer):
     return counts
 
 
+def resumed_copy(trainer, scene, cfg, tmp_path):
+    """A second trainer resumed from a checkpoint of `trainer` now, with its renders watched."""
+    trainer.save_checkpoint(str(tmp_path / "half.pt"))
+    resumed = MVGS(make(scene), scene, cfg)
+    resumed.load_checkpoint(str(tmp_path / "half.pt"))
+    return resumed, watch_renders(resumed)
+
+
 def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
     budget = 50
     trainer = MVGS(make(scene), scene, config(budget))
@@ -94,10 +102,7 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
             assert info.num_primitives <= cap
             seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
             seen["swapped"] += info.densify.extra["swapped"]
-    trainer.save_checkpoint(str(tmp_path / "half.pt"))
-    resumed = MVGS(make(scene), scene, cfg)
-    resumed.load_checkpoint(str(tmp_path / "half.pt"))
-    resumed_counts = watch_renders(resumed)
+    resumed, resumed_counts = resumed_copy(trainer, scene, cfg, tmp_path)
     for run in (trainer, resumed):
         while run.step_count < run.total_steps:
             info = run.step()
@@ -116,6 +121,46 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
     # without the budget the same run holds more than it
     free = MVGS(make(scene), scene, config(None)).fit(progress=False)
     assert free.adapter.num_primitives() > budget
+
+
+def test_an_initial_share_leaves_room_that_growth_fills_by_the_schedule(scene, tmp_path):
+    """budget_initial_share s: a model above floor(s N) is cut to it before the first render (the
+    same seeded random subset as a cut to N would rank), the schedule starts from that count and
+    reaches N, growth fills the room, and a resumed run is not cut again (it is the same run)."""
+    budget, share = 60, 0.5
+    start = math.floor(share * budget)
+    cfg = config(budget, budget_initial_share=share)
+    assert cfg.initial_cap() == start == 30
+    trainer = MVGS(make(scene), scene, cfg)
+    assert trainer.adapter.num_primitives() == 80 > budget
+    draw = torch.rand(80, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
+    want = sorted(torch.argsort(trainer.adapter.get_opacities().detach() * draw, descending=True)[:start].tolist())
+    means0 = trainer.adapter.params["means"].detach().clone()
+    counts = watch_renders(trainer)
+    caps = []
+    for _ in range(STEPS // 2):
+        info = trainer.step()
+        if info.step == 1:  # the rows kept by the cut: the top `start` of the draw
+            kept = trainer.adapter.params["means"].detach()
+            assert sorted(torch.cdist(kept.double(), means0.double()).argmin(1).tolist()) == want
+        if info.densify is not None:
+            clock = trainer.schedule.plan.locate(info.step).clock
+            caps.append(info.densify.extra["cap"])
+            assert info.densify.extra["cap"] == schedule_cap(trainer.config, start, budget, clock)
+    assert counts[0] == start
+    at_checkpoint = trainer.adapter.num_primitives()
+    resumed, resumed_counts = resumed_copy(trainer, scene, cfg, tmp_path)
+    for run in (trainer, resumed):
+        while run.step_count < run.total_steps:
+            info = run.step()
+            if info.densify is not None and run is trainer:
+                caps.append(info.densify.extra["cap"])
+    assert resumed_counts[0] == at_checkpoint  # a resumed run is not cut to the share again
+    assert max(counts + resumed_counts) <= budget
+    assert caps[0] < budget and caps[-1] == budget  # the cap climbs from the cut to N
+    assert max(counts) > start  # and growth used the room the cut left
+    for name, p in trainer.adapter.params.items():
+        torch.testing.assert_close(resumed.adapter.params[name], p, rtol=0, atol=0)
 
 
 def test_scaffold_anchors_keep_the_budget(scene):
@@ -152,6 +197,9 @@ def test_bad_budgets_are_refused():
     for bad in (-0.1, 1.0, True, "0.1", math.nan):
         with pytest.raises(ValueError, match="budget_swap"):
             MVGSConfig(budget_swap=bad)
+    for bad in (0, -0.5, 1.5, True, "0.5", math.nan, math.inf):
+        with pytest.raises(ValueError, match=r"budget_initial_share must be a share of max_gaussians in \(0, 1\]"):
+            MVGSConfig(budget_initial_share=bad)
 
 
 def test_pixels_per_gaussian_sets_the_budget_from_the_training_views(scene):
@@ -203,6 +251,12 @@ def test_budget_swap_reaches_the_config_from_the_command_line(scene, capsys):
         with pytest.raises(SystemExit):
             ap.parse_args(["--budget-swap", bad])
         assert "--budget-swap" in capsys.readouterr().err
+    args = ap.parse_args(["--preset", "baseline", "--max-gaussians", "50", "--budget-initial-share", "0.25"])
+    assert cli.config_from_args(args, scene).initial_cap() == 12
+    for bad in ("0", "1.5", "nan"):
+        with pytest.raises(SystemExit):
+            ap.parse_args(["--budget-initial-share", bad])
+        assert "--budget-initial-share" in capsys.readouterr().err
 
 
 def test_a_budget_turns_size_pruning_off_unless_asked(scene):
