@@ -85,6 +85,39 @@ def test_surrounding_rigs_keep_the_3dgs_cube_and_degenerate_rigs_fall_back_to_it
     assert init_region(apart, torch.zeros(3, dtype=torch.float64), 1.0).kind == "cube"
 
 
+@pytest.mark.parametrize("heading", ["random", "inwards"])
+def test_cameras_over_a_ground_tilted_every_way_get_the_frusta_not_the_cube_about_them(heading):
+    """An aerial grid: 5 x 4 cameras 6 above a ground, each looking at its own ground point 15 to
+    35 degrees off the vertical, in a random direction (the axes meet nowhere in front) or towards
+    the middle (they meet near the ground): the axes spread past the forward threshold and share
+    a direction. The cube about the camera centres (half = 1.1 x their radius) holds the air they
+    stand in and does not reach the ground, so the region is the frusta, whose samples reach the
+    ground; a hemisphere looking at one point (whose axes share a direction too, and meet inside
+    the cube) keeps the cube."""
+    g = torch.Generator().manual_seed(0)
+    cams = []
+    for i, (x, y) in enumerate((x, y) for x in (-2.0, -1.0, 0.0, 1.0, 2.0) for y in (-1.5, -0.5, 0.5, 1.5)):
+        tilt = math.radians(15.0 + 20.0 * float(torch.rand(1, generator=g)))
+        toward = 2 * math.pi * float(torch.rand(1, generator=g)) if heading == "random" else math.atan2(-y, -x)
+        ground = (x + 6.0 * math.tan(tilt) * math.cos(toward), y + 6.0 * math.tan(tilt) * math.sin(toward), 0.0)
+        cams.append(look((x, y, 6.0), ground, f=40.0, uid=i))
+    centers = torch.stack([c.center for c in cams])
+    centre = centers.mean(0)
+    extent = 1.1 * float(torch.linalg.norm(centers - centre, dim=1).max())
+    assert float(centre[2]) - extent > 2.0  # the 3DGS cube stays 2 or more above the ground
+    region = init_region(cams, centre, extent)
+    why = "meet nowhere in front" if heading == "random" else "outside the 3DGS cube"
+    assert region.kind == "frusta" and why in region.description, region.description
+    pts = region.sample(4000, torch.Generator().manual_seed(1))
+    assert float((pts[:, 2].abs() < 0.5).double().mean()) > 0.01  # samples at the ground (the cube has none)
+    hemisphere = [look((4 * math.cos(a) * math.cos(e), 4 * math.sin(a) * math.cos(e), 4 * math.sin(e)), (0.0, 0.0, 0.0), uid=i)
+                  for i, (a, e) in enumerate((a, e) for a in torch.linspace(0, 6.0, 8).tolist() for e in (0.4, 0.8, 1.2))]
+    h_centers = torch.stack([c.center for c in hemisphere])
+    h_centre = h_centers.mean(0)
+    assert float(torch.linalg.norm(torch.stack([c.world_to_camera[2, :3] for c in hemisphere]).mean(0))) >= 0.5
+    assert init_region(hemisphere, h_centre, 1.1 * float(torch.linalg.norm(h_centers - h_centre, dim=1).max())).kind == "cube"
+
+
 def test_the_bundled_orbit_keeps_its_cube_and_the_forward_scene_gets_the_frusta():
     orbit = load_nerf_synthetic(BUNDLED)
     assert init_region(orbit.train_cameras, orbit.center, orbit.extent).kind == "cube"

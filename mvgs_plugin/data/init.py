@@ -10,9 +10,13 @@ run from it trains to nothing (12 dB where points give 34 dB).
 
 * ``cube``: the axes spread (the smallest eigenvalue of mean(I - d dᵀ) over the unit viewing
   directions d is at least ``CONVERGING_SPREAD``: a full orbit gives about 0.65) and look in
-  at one place (:func:`look_convergence` at least ``CONVERGING_COSINE``) or share a direction:
+  at one place (:func:`look_convergence` at least ``CONVERGING_COSINE``); when they share a
+  direction (a hemisphere), that place (:func:`axes_meeting_point`) must lie inside the cube:
   the 3DGS cube, unchanged.
-* ``frusta``: nearly parallel axes (a forward-facing rig gives about 0.01): points in the union
+* ``frusta``: nearly parallel axes (a forward-facing rig gives about 0.01), or axes that spread
+  and share a direction but meet outside the cube or nowhere in front (cameras over a ground
+  tilted every way, a fan of views), where the cube about the cameras holds the air they stand
+  in (an aerial town: 15.6 dB from it, 19.0 from the frusta, docs/data.md): points in the union
   of the training views' frusta, uniform in disparity (1/depth) between ``near`` and ``far``,
   as NeRF samples LLFF scenes. ``near`` is the first depth along the mean viewing axis that at
   least half of the cameras see (nearer content is in too few views to be reconstructed);
@@ -45,7 +49,7 @@ from ..camera import Camera
 from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
-           "is_forward_facing", "look_convergence", "background_shell", "view_colours", "CONVERGING_SPREAD",
+           "is_forward_facing", "look_convergence", "axes_meeting_point", "background_shell", "view_colours", "CONVERGING_SPREAD",
            "CONVERGING_COSINE", "FAR_OVER_NEAR", "SHELL_RADIUS"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
@@ -223,6 +227,18 @@ def axis_spread(cameras: Sequence[Camera]) -> float:
     return float(torch.linalg.eigvalsh(torch.eye(3, dtype=torch.float64) - d.T @ d / len(cameras))[0])
 
 
+def axes_meeting_point(cameras: Sequence[Camera]) -> torch.Tensor:
+    """[3] float64: the point nearest all the optical axes (least squares over the lines, the
+    pseudo-inverse's choice when they are parallel)."""
+    if not cameras:
+        raise ValueError("axes_meeting_point needs at least one camera")
+    d = camera_axes(cameras).to(torch.float64)
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    centers = torch.stack([c.center for c in cameras]).to(d)
+    across = torch.eye(3, dtype=d.dtype) - d[:, :, None] * d[:, None, :]  # projects out each axis
+    return torch.linalg.pinv(across.sum(0)) @ (across @ centers[:, :, None]).sum(0)[:, 0]
+
+
 def look_convergence(cameras: Sequence[Camera]) -> float:
     """How much a rig looks at one place: the mean, over the cameras, of the cosine between a
     camera's optical axis and the direction from its centre to the point nearest all the axes
@@ -236,8 +252,7 @@ def look_convergence(cameras: Sequence[Camera]) -> float:
     d = camera_axes(cameras)
     d = d / torch.linalg.norm(d, dim=1, keepdim=True)
     centers = torch.stack([c.center for c in cameras]).to(d)
-    across = torch.eye(3, dtype=d.dtype) - d[:, :, None] * d[:, None, :]  # projects out each axis
-    point = torch.linalg.pinv(across.sum(0)) @ (across @ centers[:, :, None]).sum(0)[:, 0]
+    point = axes_meeting_point(cameras)
     to_point = point - centers
     length = torch.linalg.norm(to_point, dim=1)
     at_point = length <= 1e-9 * (1.0 + float(centers.abs().max()))  # rounding leaves ~1e-16, not 0
@@ -290,8 +305,26 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
                 "room shot from its middle, and photo-consistency chooses; near = the radius of the camera centres)",
                 center=torch.as_tensor(center, dtype=torch.float64), half=float(extent),
                 near=near, far=FAR_OVER_NEAR * near, cameras=tuple(cameras))
+    one_sided = None
     if spread >= CONVERGING_SPREAD and kind is None:
-        return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
+        # the axes spread: the cameras surround what they look at when they look in at one place
+        # inside the cube about their centres (a rig without a shared direction that converges
+        # always does: the convex hull of the centres lies in the cube). A rig that shares a
+        # direction and meets outside the cube, or nowhere in front, stands on one side of what it
+        # sees, as cameras over a ground: the cube would hold the air they stand in.
+        if not shared:
+            return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
+        meet = axes_meeting_point(cameras)
+        convergence = look_convergence(cameras)
+        inside = bool(((meet - torch.as_tensor(center, dtype=torch.float64)).abs() <= extent).all())
+        if convergence >= CONVERGING_COSINE and inside:
+            return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}, the axes "
+                        "meet inside the cube")
+        one_sided = (f"the axes spread ({spread:.3f}) and share a direction but "
+                     + (f"meet at {[round(float(v), 3) for v in meet]}, outside the 3DGS cube about the camera centres "
+                        f"(± {extent:.4g})" if convergence >= CONVERGING_COSINE else
+                        f"meet nowhere in front (look convergence {convergence:.2f} < {CONVERGING_COSINE})")
+                     + ": the cameras stand on one side of what they see, as over a ground")
     if not shared:
         return cube(f"frusta asked for, but the optical axes share no direction (axis spread {spread:.3f})")
     if not radius > 0:
@@ -309,7 +342,7 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
         "frusta", f"random init: the {len(cameras)} training frusta between depth {near:.4g} and {far:.4g}, "
                   f"uniform in disparity ("
                   + (f"forward-facing rig: axis spread {spread:.3f} < {CONVERGING_SPREAD}" if spread < CONVERGING_SPREAD
-                     else f"asked for; axis spread {spread:.3f}")
+                     else one_sided if one_sided else f"asked for; axis spread {spread:.3f}")
                   + "; near = the first depth half of the cameras see)",
         near=near, far=far, cameras=tuple(cameras))
 
