@@ -5,6 +5,7 @@ step."""
 
 from __future__ import annotations
 
+import hashlib
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -344,11 +345,52 @@ class ViewSchedule:
 
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
-                "stage_start_count": self.stage_start_count, "initial_count": self.initial_count}
+                "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
+                "views": views_fingerprint(self.scene.train_cameras)}
 
     def load_state_dict(self, state: Dict) -> None:
+        """Restore a state_dict(). A state saved on other training views (names, sizes,
+        intrinsics, poses, times) is refused with a ValueError naming the first view that
+        differs, before anything is changed; states saved before views were recorded load
+        without that check."""
+        saved = state.get("views")
+        if saved is not None:
+            check_same_views(saved, views_fingerprint(self.scene.train_cameras))
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])
         self.stage_start_count = state.get("stage_start_count")  # absent in checkpoints before stage_growth
         self.initial_count = state.get("initial_count")  # absent in checkpoints before max_gaussians
+
+
+def views_fingerprint(cameras: Sequence[Camera]) -> List[List]:
+    """One entry per training view, in order: [name, width, height, digest of its intrinsics,
+    pose and time] (the digest hashes them cast to float32, so it says "the same camera"
+    across processes, not across rounding of the source files)."""
+    out = []
+    for cam in cameras:
+        h = hashlib.sha256()
+        h.update(cam.K.to(torch.float32).numpy().tobytes())
+        h.update(cam.world_to_camera.to(torch.float32).numpy().tobytes())
+        h.update(repr(None if cam.time is None else float(torch.tensor(cam.time, dtype=torch.float32))).encode())
+        out.append([cam.name, int(cam.width), int(cam.height), h.hexdigest()[:16]])
+    return out
+
+
+def check_same_views(saved: Sequence[Sequence], current: Sequence[Sequence]) -> None:
+    """ValueError unless two views_fingerprint() lists agree, naming the first difference."""
+    if len(saved) != len(current):
+        raise ValueError(f"the checkpoint was made on {len(saved)} training views, this run has {len(current)}: "
+                         "resume on the scene (and --resolution-scale) it was written with")
+    for i, (a, b) in enumerate(zip(saved, current)):
+        a, b = list(a), list(b)
+        if a == b:
+            continue
+        if a[0] != b[0]:
+            what = f"its image is {a[0]!r} in the checkpoint and {b[0]!r} here"
+        elif a[1:3] != b[1:3]:
+            what = f"its size is {a[1]}x{a[2]} px in the checkpoint and {b[1]}x{b[2]} here"
+        else:
+            what = "its intrinsics, pose or time differ"
+        raise ValueError(f"the checkpoint was made on other training views: view {i} ({b[0]!r}): {what}; resume on "
+                         "the scene (and --resolution-scale) it was written with")
