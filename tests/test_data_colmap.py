@@ -164,6 +164,52 @@ def test_legacy_model_without_rigs_and_frames(tmp_path):
     assert np.allclose(cam.center.numpy(), info["positions"]["views/r_005.png"], atol=1e-9)
 
 
+@pytest.mark.parametrize("fmt", ["bin", "txt"])
+def test_a_model_without_its_points_file_loads_without_points(tmp_path, fmt):
+    """Points are optional: a model with cameras and images but no points3D file loads with the
+    same cameras as the full model and no points; the model folder is left as it was."""
+    info = write_model(tmp_path, fmt=fmt)
+    full = load_colmap(tmp_path)
+    (info["model_dir"] / f"points3D.{fmt}").unlink()
+    files = sorted(f.name for f in info["model_dir"].iterdir())
+    scene = load_colmap(tmp_path)
+    assert scene.points is None or len(scene.points) == 0
+    assert [c.name for c in scene.cameras] == [c.name for c in full.cameras]
+    for a, b in zip(scene.cameras, full.cameras):
+        assert torch.equal(a.world_to_camera, b.world_to_camera) and torch.equal(a.K, b.K)
+    assert sorted(f.name for f in info["model_dir"].iterdir()) == files
+    (info["model_dir"] / f"images.{fmt}").unlink()
+    with pytest.raises(FileNotFoundError, match=f"needs cameras and images files of one format.*found cameras.{fmt}"):
+        load_colmap(tmp_path)
+
+
+def test_quaternions_rounded_in_images_txt_are_normalised_as_colmap_does(tmp_path):
+    """images.txt (without frames.txt) with its quaternions rounded to 3 decimals (norm off by ~1e-3): the pose is the
+    rotation of the normalised quaternion (computed here from its definition), not refused."""
+    info = write_model(tmp_path, fmt="txt")
+    for f in ("rigs.txt", "frames.txt"):  # a model of COLMAP < 3.12: the poses are in images.txt
+        (info["model_dir"] / f).unlink()
+    path = info["model_dir"] / "images.txt"
+    lines, rounded = path.read_text().splitlines(), {}
+    for i, line in enumerate(lines):
+        parts = line.split()
+        if line.startswith("#") or len(parts) < 10 or not parts[-1].endswith(".png"):
+            continue
+        q = [round(float(v), 3) for v in parts[1:5]]
+        rounded[parts[-1]] = (np.array(q), np.array([float(v) for v in parts[5:8]]))
+        lines[i] = " ".join([parts[0]] + [f"{v:.3f}" for v in q] + parts[5:])
+    path.write_text("\n".join(lines) + "\n")
+    assert len(rounded) == 10 and any(abs(np.linalg.norm(q) - 1) > 1e-4 for q, _ in rounded.values())
+    scene = load_colmap(tmp_path)
+    for name, (q, t) in rounded.items():
+        w, x, y, z = q / np.linalg.norm(q)
+        R = np.array([[w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z]])
+        w2c = scene.camera(name).world_to_camera.numpy()
+        assert np.allclose(w2c[:3, :3], R, atol=1e-12) and np.allclose(w2c[:3, 3], t, atol=1e-12)
+
+
 def test_images_dir_and_model_folder_given_directly(scene_dir):
     root, info = scene_dir
     scene = load_colmap(info["model_dir"], images_dir=root / "images")

@@ -226,6 +226,10 @@ def test_missing_image(tmp_path):
     (tmp_path / "train" / "r_003.png").unlink()
     with pytest.raises(FileNotFoundError, match="r_003.png"):
         load_nerf_synthetic(tmp_path)
+    # a .jpg named without its extension: the error says '.png' was added to the file_path
+    (tmp_path / "train" / "r_002.png").rename(tmp_path / "train" / "r_002.jpg")
+    with pytest.raises(FileNotFoundError, match=r"r_002.png.*'./train/r_002' has no extension, so '.png' was added"):
+        load_nerf_synthetic(tmp_path)
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its plugins

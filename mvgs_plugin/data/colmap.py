@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import posixpath
+import shutil
+import tempfile
 import struct
 import warnings
 from pathlib import Path
@@ -126,6 +129,34 @@ def check_binary_counts(model_dir: Path) -> None:
             r.done()
 
 
+def _read_model(pycolmap, model_dir: Path):
+    """pycolmap.Reconstruction of model_dir. The points file is optional (the loader then has no
+    points, and the examples triangulate or draw them), but pycolmap needs all three files of
+    one format: a model without one is read from a copy with an empty points file. A model
+    without its cameras or images file in either format is refused naming what is missing."""
+    have = {stem: [ext for ext in ("bin", "txt") if (model_dir / f"{stem}.{ext}").is_file()]
+            for stem in ("cameras", "images", "points3D")}
+    fmt = next((ext for ext in ("bin", "txt") if ext in have["cameras"] and ext in have["images"]), None)
+    if fmt is None:
+        raise FileNotFoundError(
+            f"{model_dir}: a COLMAP model needs cameras and images files of one format (cameras.bin + images.bin, "
+            f"or cameras.txt + images.txt); found " + (", ".join(f"{k}.{e}" for k, v in have.items() for e in v) or "none"))
+    try:
+        if fmt in have["points3D"]:
+            return pycolmap.Reconstruction(str(model_dir))
+        with tempfile.TemporaryDirectory(prefix="mvgs_colmap_") as tmp:
+            for f in model_dir.iterdir():
+                if f.is_file() and f.suffix == f".{fmt}":
+                    shutil.copyfile(f, Path(tmp) / f.name)
+            if fmt == "bin":
+                (Path(tmp) / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+            else:
+                (Path(tmp) / "points3D.txt").write_text("")
+            return pycolmap.Reconstruction(tmp)
+    except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
+        raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+
+
 def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
     """K [3,3] of a PINHOLE or SIMPLE_PINHOLE pycolmap camera; other models are refused."""
     model = getattr(cam, "model_name", None) or cam.model.name
@@ -138,8 +169,7 @@ def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
     else:
         # Splatting renders an ideal pinhole; distorted images would be fit with wrong rays.
         raise ValueError(
-            f"{model_dir}: image {image_name!r} uses camera model {model}; only PINHOLE and "
-            "SIMPLE_PINHOLE are supported. Undistort the images first: colmap image_undistorter "
+            f"camera model {model}: only PINHOLE and SIMPLE_PINHOLE are supported. Undistort the images first: colmap image_undistorter "
             "--image_path <images> --input_path <sparse/0> --output_path <out> "
             "(then load <out>, which has images/ and sparse/)")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -151,6 +181,16 @@ def _world_to_camera(image) -> np.ndarray:
         rigid = rigid()
     T = np.eye(4)
     T[:3, :] = np.asarray(rigid.matrix(), dtype=np.float64)
+    # COLMAP normalises the quaternions it reads; pycolmap keeps them as written, so one rounded
+    # to a few decimals in images.txt gives a rotation block that is not orthonormal
+    x, y, z, w = np.asarray(rigid.rotation.quat, dtype=np.float64)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (math.isfinite(norm) and norm > 1e-6):
+        raise ValueError(f"its quaternion (qw, qx, qy, qz) = ({w}, {x}, {y}, {z}) has no direction (norm {norm:.3g})")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
     return T
 
 
@@ -214,10 +254,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     import pycolmap
 
     check_binary_counts(model_dir)
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
-        raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+    rec = _read_model(pycolmap, model_dir)
 
     records = []
     for image_id, image in rec.images.items():
@@ -249,6 +286,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     for c in records:
         if not files[c.uid].is_file():
             raise FileNotFoundError(f"image {c.name!r} of {model_dir} not found at {files[c.uid]} "
-                                    "(set images_dir to the folder the model's names are relative to)")
+                                    "(the model's image names are read relative to the scene's images/ folder, or to the scene "
+                                    "folder when it has none; from Python, load_colmap(images_dir=...) names another)")
     return Scene(train_cams, test_cams, files, points=_points(rec, model_dir), background=background,
                  source=path)

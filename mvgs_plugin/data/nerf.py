@@ -138,7 +138,13 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool,
     name = check_inside(normalize_name(rel), root, where)
     file = root / name
     where = f"{where} ({name})"
-    width, height = image_size(file)  # FileNotFoundError names the file
+    try:
+        width, height = image_size(file)  # FileNotFoundError names the file
+    except FileNotFoundError as err:
+        if rel == fp:
+            raise
+        raise FileNotFoundError(f"{err} ({where}: its file_path {fp!r} has no extension, so '.png' was added, as "
+                                "Blender scenes omit it; write the extension in file_path)") from None
     for key, actual in (("w", width), ("h", height)):
         declared = _number(frame, key, where)
         if declared is not None and declared != actual:
