@@ -482,7 +482,17 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
             trainer.save_checkpoint(path)
 
     t0, c0 = time.perf_counter(), time.process_time()
-    trainer.fit(callback=periodic if every else None, progress=not args.no_progress)
+    try:
+        trainer.fit(callback=periodic if every else None, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        if dist is not None:
+            raise
+        saved = (f"the checkpoint {path} (written every {every} steps) resumes it: the same command with --resume {path}"
+                 if every and os.path.isfile(path) else
+                 "nothing was saved (--checkpoint-every N writes a checkpoint every N steps)")
+        print(f"{Path(sys.argv[0]).name}: interrupted at step {trainer.step_count} of {trainer.total_steps}; {saved}",
+              file=sys.stderr)
+        raise SystemExit(130) from None
     seconds = time.perf_counter() - t0
     trainer.cpu_seconds = time.process_time() - c0  # user + sys of this process, all its threads
     if getattr(args, "checkpoint", False) or every:

@@ -447,7 +447,12 @@ class MVGS:
         densification sums them once."""
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
-            raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages}")
+            def plan(stages):
+                return ", ".join(f"{st.steps} steps of {st.views} view(s) at 1/{st.factor:g}" for st in stages)
+            raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages} "
+                             f"(the checkpoint's plan: {plan(saved.stages)}; this run's: {plan(self.config.stages)}). "
+                             "The plan follows the preset and the run's length (--steps / --budget): resume with "
+                             "the ones the checkpoint was written with")
         differ = config_differences(saved, self.config)
         if differ:
             said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in differ)

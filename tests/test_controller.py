@@ -439,6 +439,19 @@ def test_a_checkpoint_of_other_training_views_is_refused_and_nothing_changes(sce
             assert torch.equal(fresh.adapter.params[k], v), k
 
 
+def test_a_checkpoint_of_another_length_is_refused_naming_both_plans(scene, tmp_path):
+    trainer = MVGS(make(scene), scene, MVGSConfig.default().with_total_steps(30))
+    trainer.step()
+    trainer.save_checkpoint(str(tmp_path / "a.pt"))
+    longer = MVGS(make(scene), scene, MVGSConfig.default().with_total_steps(60))
+    saved, here = trainer.config.stages, longer.config.stages
+    plan = lambda stages: ", ".join(f"{st.steps} steps of {st.views} view(s) at 1/{st.factor}" for st in stages)  # noqa: E731
+    with pytest.raises(ValueError) as err:
+        longer.load_checkpoint(str(tmp_path / "a.pt"))
+    assert f"the checkpoint's plan: {plan(saved)}; this run's: {plan(here)}" in str(err.value)
+    assert "(--steps / --budget)" in str(err.value) and longer.step_count == 0
+
+
 def test_a_flipped_bit_in_a_checkpoint_is_refused(scene, tmp_path):
     trainer = MVGS(make(scene), scene, MVGSConfig.baseline().with_total_steps(10))
     trainer.step()

@@ -104,3 +104,29 @@ def test_resume_needs_an_existing_file(tmp_path):
     example = _example("train_3dgs.py")
     with pytest.raises(SystemExit):
         example.parse_args(["--resume", str(tmp_path / "missing.pt")])
+
+
+def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypatch, capsys):
+    """A KeyboardInterrupt inside a step ends the example with exit code 130 and one line naming
+    the step and the checkpoint to resume from (or that nothing was saved), not a traceback."""
+    example = _example("train_3dgs.py")
+    step = controller.MVGS.step
+
+    def interrupted(self):
+        if self.step_count == 7:
+            raise KeyboardInterrupt
+        return step(self)
+
+    monkeypatch.setattr(controller.MVGS, "step", interrupted)
+    base = ["--steps", "20", "--threads", "1", "--no-progress", "--resolution-scale", "8"]
+    with pytest.raises(SystemExit) as err:
+        example.main(base + ["--out", str(tmp_path / "a"), "--checkpoint-every", "5"])
+    checkpoint = tmp_path / "a" / "checkpoint.pt"
+    assert err.value.code == 130 and checkpoint.exists()
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said.endswith(f"interrupted at step 7 of 20; the checkpoint {checkpoint} (written every 5 steps) resumes "
+                         f"it: the same command with --resume {checkpoint}")
+    with pytest.raises(SystemExit) as err:
+        example.main(base + ["--out", str(tmp_path / "b")])
+    assert err.value.code == 130
+    assert "interrupted at step 7 of 20; nothing was saved (--checkpoint-every N" in capsys.readouterr().err
