@@ -75,7 +75,8 @@ class GS3DConfig:
         init_opacity: opacity of every initial Gaussian.
         random_init: number of points drawn when the scene has no point cloud, where the
             cameras look (mvgs_plugin.data.init.init_region: the cube scene.center ± extent for
-            rigs around the scene, the training frusta for forward-facing rigs; logged to the
+            rigs around the scene, the training frusta for forward-facing and one-sided rigs,
+            half of each for rigs that look outwards; logged to the
             "mvgs_plugin" logger), colours uniform in [0, 1]. The original 3DGS draws 100k
             points in [-1.3, 1.3]^3 for NeRF-synthetic (with near-grey colours); 10k suits the
             CPU renderer.

@@ -299,12 +299,16 @@ class MVGSStrategy(DefaultStrategy):
         cut to it here (gsplat's trainers call this once, before the first render; before the
         first step, to config.initial_cap()): its lowest keep scores go (see keep_scores)."""
         self.strategy.check_sanity(params, optimizers)
-        first = self.schedule.step_count == 0
+        sched = self.schedule
+        # before the run's first step (plans a DataLoader drew ahead have not started)
+        first = self.plan is None and (self._queue[0][1]["step"] if self._queue else sched.step_count) == 0
         budget = self.config.initial_cap() if first else self.config.max_gaussians
         if budget is not None and len(params["means"]) > budget:
             self._shed(params, optimizers, {}, budget)
-            if first:  # the budget's growth schedule starts from the count after the cut
-                self.schedule.primitive_count = len(params["means"])
+        if first:  # the budget's growth schedule starts from the count the run starts with
+            sched.primitive_count = len(params["means"])
+            if sched.initial_count is not None:  # taken by a plan drawn ahead, before the cut
+                sched.initial_count = sched.primitive_count
 
     @staticmethod
     def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:

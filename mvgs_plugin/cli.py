@@ -477,9 +477,12 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
             raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
+    written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)
+
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
         if every and trainer.step_count % every == 0 and trainer.step_count < trainer.total_steps:
             trainer.save_checkpoint(path)
+            written.append(trainer.step_count)
 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
@@ -487,9 +490,11 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     except KeyboardInterrupt:
         if dist is not None:
             raise
-        saved = (f"the checkpoint {path} (written every {every} steps) resumes it: the same command with --resume {path}"
-                 if every and os.path.isfile(path) else
-                 "nothing was saved (--checkpoint-every N writes a checkpoint every N steps)")
+        resumed_from = getattr(args, "resume", None) is not None and os.path.abspath(args.resume) == os.path.abspath(path)
+        how = f"written at step {written[-1]}" if written else "the one this run resumed from"
+        saved = (f"the checkpoint {path} ({how}) resumes it: the same command with --resume {path}"
+                 if written or resumed_from else
+                 "no checkpoint of this run was written (--checkpoint-every N writes one every N steps)")
         print(f"{Path(sys.argv[0]).name}: interrupted at step {trainer.step_count} of {trainer.total_steps}; {saved}",
               file=sys.stderr)
         raise SystemExit(130) from None

@@ -451,8 +451,9 @@ class MVGS:
                 return ", ".join(f"{st.steps} steps of {st.views} view(s) at 1/{st.factor:g}" for st in stages)
             raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages} "
                              f"(the checkpoint's plan: {plan(saved.stages)}; this run's: {plan(self.config.stages)}). "
-                             "The plan follows the preset and the run's length (--steps / --budget): resume with "
-                             "the ones the checkpoint was written with")
+                             "The plan follows the preset and the run's length (--steps / --budget), and the "
+                             "flags that change its levels or views (--resolution-scale, --views, --stages, "
+                             "--late-views): resume with the ones the checkpoint was written with")
         differ = config_differences(saved, self.config)
         if differ:
             said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in differ)

@@ -5,7 +5,6 @@ step."""
 
 from __future__ import annotations
 
-import hashlib
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -166,6 +165,7 @@ class ViewSchedule:
         self._warned_no_maps = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
+        self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
 
     @property
     def total_steps(self) -> int:
@@ -346,7 +346,7 @@ class ViewSchedule:
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
                 "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
-                "views": views_fingerprint(self.scene.train_cameras)}
+                "views": self._views}
 
     def load_state_dict(self, state: Dict) -> None:
         """Restore a state_dict(). A state saved on other training views (names, sizes,
@@ -355,7 +355,7 @@ class ViewSchedule:
         without that check."""
         saved = state.get("views")
         if saved is not None:
-            check_same_views(saved, views_fingerprint(self.scene.train_cameras))
+            check_same_views(saved, self._views)
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])
@@ -364,33 +364,37 @@ class ViewSchedule:
 
 
 def views_fingerprint(cameras: Sequence[Camera]) -> List[List]:
-    """One entry per training view, in order: [name, width, height, digest of its intrinsics,
-    pose and time] (the digest hashes them cast to float32, so it says "the same camera"
-    across processes, not across rounding of the source files)."""
+    """One entry per training view, in order: [name, width, height, [its intrinsics (9), pose
+    (the 12 numbers of world_to_camera's top rows) and time, as floats]], what
+    check_same_views() compares."""
     out = []
     for cam in cameras:
-        h = hashlib.sha256()
-        h.update(cam.K.to(torch.float32).numpy().tobytes())
-        h.update(cam.world_to_camera.to(torch.float32).numpy().tobytes())
-        h.update(repr(None if cam.time is None else float(torch.tensor(cam.time, dtype=torch.float32))).encode())
-        out.append([cam.name, int(cam.width), int(cam.height), h.hexdigest()[:16]])
+        values = cam.K.reshape(-1).tolist() + cam.world_to_camera[:3].reshape(-1).tolist()
+        values.append(-1.0 if cam.time is None else float(cam.time))
+        out.append([cam.name, int(cam.width), int(cam.height), values])
     return out
 
 
+# relative tolerance of check_same_views on a view's numbers: the same files loaded on another
+# machine may differ in the last bits of a matrix inverse; another camera differs by far more
+VIEWS_TOLERANCE = 1e-6
+
+
 def check_same_views(saved: Sequence[Sequence], current: Sequence[Sequence]) -> None:
-    """ValueError unless two views_fingerprint() lists agree, naming the first difference."""
+    """ValueError unless two views_fingerprint() lists agree (names and sizes exactly, the
+    numbers to VIEWS_TOLERANCE relative to the view's largest), naming the first difference."""
+    hint = "resume on the scene the checkpoint was written with"
     if len(saved) != len(current):
-        raise ValueError(f"the checkpoint was made on {len(saved)} training views, this run has {len(current)}: "
-                         "resume on the scene (and --resolution-scale) it was written with")
+        raise ValueError(f"the checkpoint was made on {len(saved)} training views, this run has {len(current)}: {hint}")
     for i, (a, b) in enumerate(zip(saved, current)):
-        a, b = list(a), list(b)
-        if a == b:
-            continue
         if a[0] != b[0]:
             what = f"its image is {a[0]!r} in the checkpoint and {b[0]!r} here"
-        elif a[1:3] != b[1:3]:
+        elif list(a[1:3]) != list(b[1:3]):
             what = f"its size is {a[1]}x{a[2]} px in the checkpoint and {b[1]}x{b[2]} here"
         else:
+            x, y = torch.tensor(a[3], dtype=torch.float64), torch.tensor(b[3], dtype=torch.float64)
+            if x.shape == y.shape and float((x - y).abs().max()) <= VIEWS_TOLERANCE * (
+                    1.0 + float(torch.maximum(x.abs(), y.abs()).max())):
+                continue
             what = "its intrinsics, pose or time differ"
-        raise ValueError(f"the checkpoint was made on other training views: view {i} ({b[0]!r}): {what}; resume on "
-                         "the scene (and --resolution-scale) it was written with")
+        raise ValueError(f"the checkpoint was made on other training views: view {i} ({b[0]!r}): {what}; {hint}")

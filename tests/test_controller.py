@@ -444,11 +444,13 @@ def test_a_checkpoint_of_another_length_is_refused_naming_both_plans(scene, tmp_
     trainer.step()
     trainer.save_checkpoint(str(tmp_path / "a.pt"))
     longer = MVGS(make(scene), scene, MVGSConfig.default().with_total_steps(60))
-    saved, here = trainer.config.stages, longer.config.stages
-    plan = lambda stages: ", ".join(f"{st.steps} steps of {st.views} view(s) at 1/{st.factor}" for st in stages)  # noqa: E731
+    assert [(st.factor, st.views) for st in trainer.config.stages] == [(4, 1), (2, 1), (1, 1)]
+    saved = [st.steps for st in trainer.config.stages]
+    here = [st.steps for st in longer.config.stages]
     with pytest.raises(ValueError) as err:
         longer.load_checkpoint(str(tmp_path / "a.pt"))
-    assert f"the checkpoint's plan: {plan(saved)}; this run's: {plan(here)}" in str(err.value)
+    assert (f"the checkpoint's plan: {saved[0]} steps of 1 view(s) at 1/4, {saved[1]} steps of 1 view(s) at 1/2, "
+            f"{saved[2]} steps of 1 view(s) at 1/1; this run's: {here[0]} steps of 1 view(s) at 1/4, ") in str(err.value)
     assert "(--steps / --budget)" in str(err.value) and longer.step_count == 0
 
 

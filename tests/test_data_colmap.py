@@ -178,6 +178,11 @@ def test_a_model_without_its_points_file_loads_without_points(tmp_path, fmt):
     for a, b in zip(scene.cameras, full.cameras):
         assert torch.equal(a.world_to_camera, b.world_to_camera) and torch.equal(a.K, b.K)
     assert sorted(f.name for f in info["model_dir"].iterdir()) == files
+    other = "txt" if fmt == "bin" else "bin"
+    (info["model_dir"] / f"points3D.{other}").write_bytes(bytes(8) if other == "bin" else b"")  # of the other format, 0 points
+    with pytest.raises(ValueError, match=f"points3D.{other} beside cameras.{fmt} and images.{fmt}: pycolmap reads one"):
+        load_colmap(tmp_path)
+    (info["model_dir"] / f"points3D.{other}").unlink()
     (info["model_dir"] / f"images.{fmt}").unlink()
     with pytest.raises(FileNotFoundError, match=f"needs cameras and images files of one format.*found cameras.{fmt}"):
         load_colmap(tmp_path)

@@ -124,9 +124,11 @@ def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypat
     checkpoint = tmp_path / "a" / "checkpoint.pt"
     assert err.value.code == 130 and checkpoint.exists()
     said = capsys.readouterr().err.strip().splitlines()[-1]
-    assert said.endswith(f"interrupted at step 7 of 20; the checkpoint {checkpoint} (written every 5 steps) resumes "
+    assert said.endswith(f"interrupted at step 7 of 20; the checkpoint {checkpoint} (written at step 5) resumes "
                          f"it: the same command with --resume {checkpoint}")
-    with pytest.raises(SystemExit) as err:
-        example.main(base + ["--out", str(tmp_path / "b")])
-    assert err.value.code == 130
-    assert "interrupted at step 7 of 20; nothing was saved (--checkpoint-every N" in capsys.readouterr().err
+    for out in ("b", "a"):  # no checkpoint; a checkpoint.pt of an earlier run in --out is not this run's
+        with pytest.raises(SystemExit) as err:
+            example.main(base + ["--out", str(tmp_path / out)])
+        assert err.value.code == 130
+        assert "interrupted at step 7 of 20; no checkpoint of this run was written (--checkpoint-every N" in \
+            capsys.readouterr().err

@@ -720,6 +720,31 @@ def test_the_cut_at_check_sanity_keeps_the_initial_share(forward):
     assert sched.budget_cap(sched.config.densify_until) == budget
 
 
+def test_the_first_cut_holds_with_plans_drawn_ahead_and_a_model_below_the_share(forward):
+    """check_sanity after a DataLoader drew plans (none started) still cuts to the initial share
+    and the schedule grows from the cut count; a model already below the share is not cut, and
+    the schedule grows from the model's own count (not from the views' point count)."""
+    cfg, splats, optimizers = fresh_model(forward)
+    n = len(splats["means"])
+    mvgs = MVGSConfig.default(max_gaussians=n // 2, budget_initial_share=0.5)
+    strategy = MVGSStrategy(small_clock(), forward, mvgs, steps=12)
+    ahead = iter(strategy.batch_sampler())
+    next(ahead), next(ahead)  # two plans drawn by a prefetching loader, not started
+    strategy.check_sanity(splats, optimizers)
+    assert len(splats["means"]) == (n // 2) // 2
+    sched = strategy.schedule
+    assert sched.initial_count == (n // 2) // 2 and sched.budget_cap(sched.config.densify_from) == (n // 2) // 2
+    cfg, splats, optimizers = fresh_model(forward)
+    keep = {k: v.detach().clone() for k, v in splats.items()}
+    mvgs = MVGSConfig.default(max_gaussians=4 * n, budget_initial_share=0.5)
+    strategy = MVGSStrategy(small_clock(), forward, mvgs, steps=12)
+    strategy.check_sanity(splats, optimizers)
+    assert all(torch.equal(splats[k], v) for k, v in keep.items())
+    strategy.schedule.next()
+    assert strategy.schedule.initial_count == n
+    assert strategy.schedule.budget_cap(strategy.schedule.config.densify_from) == n
+
+
 def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward):
     """MVGSStrategy._swap_out on a hand-made window: candidates (mean grad2d > threshold) beyond
     the room make up to floor(share x cap) rows go, the lowest opacity x coverage among the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import posixpath
 import shutil
 import tempfile
@@ -141,13 +142,20 @@ def _read_model(pycolmap, model_dir: Path):
         raise FileNotFoundError(
             f"{model_dir}: a COLMAP model needs cameras and images files of one format (cameras.bin + images.bin, "
             f"or cameras.txt + images.txt); found " + (", ".join(f"{k}.{e}" for k, v in have.items() for e in v) or "none"))
+    if have["points3D"] and fmt not in have["points3D"]:
+        raise ValueError(f"{model_dir}: points3D.{have['points3D'][0]} beside cameras.{fmt} and images.{fmt}: pycolmap reads "
+                         f"one format; convert it (colmap model_converter --output_type {fmt.upper()}), or remove it "
+                         "to load the model without points")
     try:
         if fmt in have["points3D"]:
             return pycolmap.Reconstruction(str(model_dir))
         with tempfile.TemporaryDirectory(prefix="mvgs_colmap_") as tmp:
             for f in model_dir.iterdir():
                 if f.is_file() and f.suffix == f".{fmt}":
-                    shutil.copyfile(f, Path(tmp) / f.name)
+                    try:  # the model's files as they are (images.bin may be large)
+                        os.symlink(f.resolve(), Path(tmp) / f.name)
+                    except OSError:  # no symlinks here (some Windows setups)
+                        shutil.copyfile(f, Path(tmp) / f.name)
             if fmt == "bin":
                 (Path(tmp) / "points3D.bin").write_bytes(struct.pack("<Q", 0))
             else:
@@ -157,7 +165,7 @@ def _read_model(pycolmap, model_dir: Path):
         raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
 
 
-def _intrinsics(cam, image_name: str, model_dir: Path) -> np.ndarray:
+def _intrinsics(cam) -> np.ndarray:
     """K [3,3] of a PINHOLE or SIMPLE_PINHOLE pycolmap camera; other models are refused."""
     model = getattr(cam, "model_name", None) or cam.model.name
     p = [float(v) for v in cam.params]
@@ -264,7 +272,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         name = check_inside(normalize_name(image.name), images_dir, f"{model_dir}: image {image_id}")
         cam = rec.cameras[image.camera_id]
         try:
-            camera = Camera(uid=int(image_id), name=name, K=_intrinsics(cam, name, model_dir),
+            camera = Camera(uid=int(image_id), name=name, K=_intrinsics(cam),
                             world_to_camera=_world_to_camera(image), width=int(cam.width),
                             height=int(cam.height))
         except ValueError as err:
