@@ -29,7 +29,7 @@ from .distributed import Collective, require_support
 from .io import load_checked, save_checked
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
-from .protocol import Adapter, DensifyContext, DensifyReport
+from .protocol import Adapter, DensifyReport
 from .schedule import ViewSchedule
 
 # MVGSConfig fields a resumed run may change (speed, memory and guards, not what it trains)
@@ -183,9 +183,10 @@ class MVGS:
         """Runs the next training step and returns what it did."""
         t_step = time.perf_counter()
         budget = self.config.max_gaussians
-        if budget is not None and self.schedule.step_count == 0:
-            budget = self.config.initial_cap()
-        if budget is not None and self.adapter.num_primitives() > budget:
+        cut = self.schedule.initial_cut(self.adapter.num_primitives())
+        if cut is not None:  # the run's first step: a larger model is cut to its initial share of the budget
+            self._shrink_to(cut.max_primitives)
+        elif budget is not None and self.adapter.num_primitives() > budget:
             self._shrink_to(budget)
         self.schedule.primitive_count = self.adapter.num_primitives()
         plan = self.schedule.next()
@@ -244,15 +245,10 @@ class MVGS:
         )
 
     def _shrink_to(self, budget: int) -> None:
-        """Cut a model above config.max_gaussians to it before a step renders: a densification
-        call that grows nothing (threshold +inf) with the budget as its cap, so the adapter drops
-        its lowest-ranked rows (GS3DAdapter.keep_scores)."""
-        ctx = DensifyContext(step=self.schedule.step_count, grad_threshold=math.inf,
-                             scene_extent=float(self.scene.extent), scene_center=self.scene.center,
-                             max_primitives=budget,
-                             rank_by=self.config.densify_rank)
+        """Cut a model above config.max_gaussians to it before a step renders (its lowest-ranked
+        rows go: GS3DAdapter.keep_scores)."""
         with torch.no_grad():
-            self.adapter.densify(ctx)
+            self.adapter.densify(self.schedule.cut_context(budget))
         self._check_cap(budget)
 
     def _check_cap(self, cap: Optional[int]) -> None:

@@ -163,6 +163,7 @@ class ViewSchedule:
         self.stage_start_count: Optional[int] = None  # primitive_count when the current stage began
         self.initial_count: Optional[int] = None  # primitive_count when the first step began
         self._warned_no_maps = False
+        self._warned_no_count = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
@@ -226,8 +227,8 @@ class ViewSchedule:
         return resolution_threshold(cfg.grad_threshold, width, cfg.grad_threshold_width)
 
     def densify_context(self, plan: StepPlan, loss_maps: Optional[Sequence[Tensor]] = None,
-                        primitive_count: int = 0, bounds: Optional[Tensor] = None,
-                        stage_start_count: Optional[int] = None) -> DensifyContext:
+                        primitive_count: Optional[int] = None, bounds: Optional[Tensor] = None,
+                        stage_start_count: Optional[int] = None, adapter=None) -> DensifyContext:
         """The densification context of a step: the threshold (scaled to the step's image width
         when config.grad_threshold_width is set, halved by MVAD when the step's cameras are far
         apart), the scene scale, size pruning, and the cross-ray boxes (CRD)
@@ -235,8 +236,18 @@ class ViewSchedule:
         loss_maps, the maps a loop recorded with plan.record() are used; with neither, CRD is
         skipped for the step (boxes None) and a warning says so once per schedule.
         stage_start_count: the primitive count when the step's stage began, for the cap of
-        config.stage_growth (None: the count primitive_count had when next() began the stage)."""
+        config.stage_growth (None: the count primitive_count had when next() began the stage).
+        primitive_count (the model's size, for CRD's max_new cap) and bounds (its positions' [2, 3]
+        min and max, for CRD's clip) come from `adapter` when given (anything with
+        num_primitives() and positions(), as a hand-written loop's model); without either, the
+        count the schedule was last told (self.primitive_count) is used, with a warning once when
+        the cap needs it."""
         cfg = self.config
+        if adapter is not None:
+            primitive_count = adapter.num_primitives() if primitive_count is None else primitive_count
+            if bounds is None:
+                positions = adapter.positions().detach()
+                bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
         threshold = self.base_threshold(plan)
         if cfg.mvad.enabled:
             mvad = cfg.mvad
@@ -271,6 +282,14 @@ class ViewSchedule:
                 max_miss=None if crd.max_miss is None else crd.max_miss * float(self.scene.extent),
                 min_angle_deg=crd.min_angle_deg, bounds=bounds if crd.clip else None, pad_by_miss=crd.pad_by_miss)
             if crd.max_new is not None:
+                if primitive_count is None:
+                    primitive_count = self.primitive_count
+                    if not self._warned_no_count:
+                        self._warned_no_count = True
+                        warnings.warn(f"step {plan.step}: cross-ray densification caps its clones at {crd.max_new} x the "
+                                      f"model's size, which densify_context was not given; the schedule's last count "
+                                      f"({primitive_count}) is used. Pass densify_context(plan, adapter=model) or "
+                                      "primitive_count=. Said once per schedule.", stacklevel=2)
                 cap = int(math.ceil(crd.max_new * primitive_count))
         return DensifyContext(
             step=plan.clock,
@@ -308,6 +327,26 @@ class ViewSchedule:
         lo, hi = self.config.densify_from, self.config.densify_until - self.config.densify_every
         x = 1.0 if hi <= lo else min(1.0, max(0.0, (float(clock) - lo) / (hi - lo)))
         return int(math.floor(n0 + (n - n0) * (1.0 - (1.0 - x) ** 2)))
+
+    def initial_cut(self, count: int) -> Optional[DensifyContext]:
+        """For a loop that drives its own model: before the first step, the densification
+        context that cuts a model of `count` primitives to config.initial_cap() (a call that
+        grows nothing and keeps the highest keep scores, as MVGS.step() does), or None when
+        there is no budget, the model fits, or the run has begun. The schedule's growth then
+        starts from the count after the cut."""
+        cap = self.config.initial_cap()
+        if cap is None or self.step_count > 0:
+            return None
+        self.primitive_count = min(int(count), cap)
+        if int(count) <= cap:
+            return None
+        return self.cut_context(cap)
+
+    def cut_context(self, cap: int) -> DensifyContext:
+        """A densification call that grows nothing (threshold +inf) with `cap` as its bound, so
+        the adapter drops its lowest keep scores down to it."""
+        return DensifyContext(step=self.step_count, grad_threshold=math.inf, scene_extent=float(self.scene.extent),
+                              scene_center=self.scene.center, max_primitives=cap, rank_by=self.config.densify_rank)
 
     def chunk_size(self, m: int, height: int, width: int) -> int:
         """Views per renderer call for a step of m views of height x width: config.chunk_size,

@@ -162,26 +162,80 @@ def test_three_line_wrap(scene):
     assert not torch.equal(mvgs.positions()[: single.num_primitives()], single.positions()[: mvgs.num_primitives()])
 
 
-@pytest.mark.parametrize("preset", ["baseline", "paper", "default", "multiview"])
-def test_three_line_wrap_trains_through_densification_and_resets_with_every_preset(scene, preset):
+@pytest.mark.parametrize("preset, config", [("baseline", {}), ("paper", {}), ("default", {}), ("multiview", {}),
+                                            ("paper", {"max_gaussians": 60, "budget_initial_share": 0.5})])
+def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset, config):
     """The hand-written loop of examples/three_line_wrap/mvgs.py, 300 steps: the schedule (built
-    here independently with the same config) asks for several densifications and an opacity
-    reset, and the loop runs them all, cross-ray densification included (no warning: the loop
-    records its loss maps), and the model grows."""
+    here independently with the same config) asks for densifications, an opacity reset and
+    pyramid hand-offs (with paper's opacity reset at each), and the loop ends with the model the
+    controller trains from the same start: same count, same positions. So it runs every phase as
+    the controller does, cross-ray densification included (its clones counted here; no warning:
+    the loop records its loss maps and passes its model), and a budget's first cut."""
     import warnings
 
     steps = 300
-    config = MVGSConfig.from_preset(preset, seed=0).with_total_steps(steps)
-    plans = list(ViewSchedule(scene, config))
+    cfg = MVGSConfig.from_preset(preset, seed=0, **config).with_total_steps(steps)
+    plans = list(ViewSchedule(scene, cfg))
     assert sum(p.densify for p in plans) >= 3 and sum(p.reset_opacity for p in plans) >= 1, preset
     if preset != "baseline":
         assert len({p.stage for p in plans}) >= 2  # a pyramid hand-off too
+    if preset == "paper":
+        assert sum(p.handoff_reset for p in plans) >= 1
+    boxes = []
+    real_densify = GS3DAdapter.densify
+
+    def counting(self, ctx):
+        report = real_densify(self, ctx)
+        boxes.append(report.from_boxes)
+        return report
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        model = _load_example("mvgs").train(scene, steps, preset=preset)
+        GS3DAdapter.densify = counting
+        try:
+            model = _load_example("mvgs").train(scene, steps, preset=preset, **config)
+        finally:
+            GS3DAdapter.densify = real_densify
     assert not [w for w in caught if "cross-ray" in str(w.message)], [str(w.message) for w in caught]
-    assert model.num_primitives() != len(scene.points)
-    assert bool(torch.isfinite(model.positions()).all())
+    if preset == "paper":
+        assert sum(boxes) > 0  # cross-ray densification cloned
+    trainer = MVGS(make(scene), scene, cfg)
+    counts = watch_counts(trainer)
+    trainer.fit(progress=False)
+    if "max_gaussians" in config:
+        assert counts[0] == 30 and max(counts) <= 60
+    assert model.num_primitives() == trainer.adapter.num_primitives() != len(scene.points)
+    torch.testing.assert_close(model.positions(), trainer.adapter.positions(), rtol=0, atol=1e-5)
+
+
+def test_densify_context_takes_the_models_size_from_the_model_or_says_it_guessed(scene):
+    """CRD's clone cap is max_new x the model's size: from adapter= (and the clip bounds from its
+    positions), from primitive_count=, or, given neither, the schedule's last count with one
+    warning (a cap of 0, which a hand-written loop used to get, cloned nothing)."""
+    import warnings
+
+    cfg = MVGSConfig.multiview(seed=0, crd=CRDConfig(enabled=True)).with_total_steps(300)
+    assert cfg.crd.max_new is not None  # CRDConfig's default cap (paper() has none)
+    schedule = ViewSchedule(scene, cfg)
+    plan = next(p for p in schedule if p.densify)
+    maps = [torch.rand(c.height, c.width) for c in plan.cameras]
+    model = make(scene)
+    ctx = schedule.densify_context(plan, maps, adapter=model)
+    assert ctx.max_new_from_boxes == math.ceil(cfg.crd.max_new * model.num_primitives()) > 0
+    assert schedule.densify_context(plan, maps, primitive_count=7).max_new_from_boxes == math.ceil(cfg.crd.max_new * 7)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        guessed = [schedule.densify_context(plan, maps).max_new_from_boxes for _ in range(2)]
+    assert guessed == [math.ceil(cfg.crd.max_new * len(scene.points))] * 2
+    said = [str(w.message) for w in caught if "model's size" in str(w.message)]
+    assert len(said) == 1 and "densify_context(plan, adapter=model)" in said[0]
+
+
+def watch_counts(trainer):
+    """The primitive count at every render call of `trainer`."""
+    counts, original = [], trainer.adapter.render
+    trainer.adapter.render = lambda cams, bgs: (counts.append(trainer.adapter.num_primitives()), original(cams, bgs))[1]
+    return counts
 
 
 def test_a_loop_that_does_not_record_loss_maps_skips_cross_ray_densification_with_one_warning(scene):

@@ -21,12 +21,17 @@ from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, load_scene, scene_folder  # noqa: E402
 
 
-def train(scene, steps: int, seed: int = 0, preset: str = "default") -> GS3DAdapter:
+def train(scene, steps: int, seed: int = 0, preset: str = "default", **config) -> GS3DAdapter:
     torch.manual_seed(seed)
     model = GS3DAdapter.from_scene(scene)
-    schedule = ViewSchedule(scene, MVGSConfig.from_preset(preset, seed=seed).with_total_steps(steps))
+    schedule = ViewSchedule(scene, MVGSConfig.from_preset(preset, seed=seed, **config).with_total_steps(steps))
+    cut = schedule.initial_cut(model.num_primitives())  # with a budget (max_gaussians): a larger model is cut first
+    if cut is not None:
+        model.densify(cut)
     for plan in schedule:
         model.set_step(plan.clock)
+        if plan.handoff_reset:  # a preset that resets opacities when a pyramid stage hands over (paper)
+            model.reset_opacity()
         for cams, targets, backgrounds, collect_stats in plan:
             out = model.render(cams, backgrounds)
             loss = plan.weight * sum(photometric_loss(img, gt) for img, gt in zip(out.images, targets))
@@ -36,7 +41,7 @@ def train(scene, steps: int, seed: int = 0, preset: str = "default") -> GS3DAdap
                 model.accumulate_stats(out)
         with torch.no_grad():
             if plan.densify:
-                model.densify(schedule.densify_context(plan))
+                model.densify(schedule.densify_context(plan, adapter=model))  # the model's size and bounds: CRD's cap and clip
             if plan.reset_opacity:
                 model.reset_opacity()
         model.optimizer_step()
