@@ -15,6 +15,7 @@ function of its own, so a test suite can run them one by one.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from typing import Callable, Dict, List, Optional
 
@@ -122,6 +123,18 @@ def _loss(adapter: Adapter, scene: Scene, cams: List[Camera]) -> torch.Tensor:
     return sum(photometric_loss(result.images[i], gts[i].to(result.images)) for i in range(len(cams))), result
 
 
+def _with_stats(make_adapter: MakeAdapter, scene: Scene, cams: List[Camera]) -> Adapter:
+    """A fresh adapter at step 1 that rendered `cams` one at a time, backpropagated each and
+    folded in their statistics."""
+    adapter = make_adapter(scene)
+    adapter.set_step(1)
+    for cam in cams:
+        loss, result = _loss(adapter, scene, [cam])
+        loss.backward()
+        adapter.accumulate_stats(result)
+    return adapter
+
+
 def check_render(make_adapter: MakeAdapter, scene: Scene) -> None:
     """Render shapes, dtype and ranges; a chunk of views of one size renders as a batch."""
     adapter = make_adapter(scene)
@@ -161,6 +174,27 @@ def check_gradients_reach_every_group(make_adapter: MakeAdapter, scene: Scene) -
         assert torch.isfinite(g).all(), f"group {name!r} has non-finite gradients"
         assert g.abs().sum() > 0, f"group {name!r} has an all-zero gradient"
     adapter.zero_grad()
+    for name, g in adapter.named_gradients().items():
+        assert g is None or not bool(g.abs().sum() > 0), f"zero_grad() left a gradient in group {name!r}"
+
+
+def check_optimizer_descends(make_adapter: MakeAdapter, scene: Scene, steps: int = 10) -> None:
+    """A few optimizer steps on the same views lower their loss (an update of the wrong sign, or
+    one that misses the parameters the renderer reads, does not)."""
+    adapter = make_adapter(scene)
+    adapter.set_step(1)
+    cams = scene.train_cameras[:3]
+    with torch.no_grad():
+        before = float(_loss(adapter, scene, cams)[0])
+    for _ in range(steps):
+        loss, _ = _loss(adapter, scene, cams)
+        loss.backward()
+        adapter.optimizer_step()
+        adapter.zero_grad()
+    with torch.no_grad():
+        after = float(_loss(adapter, scene, cams)[0])
+    assert after < before, (f"{steps} optimizer steps on the same 3 views did not lower their loss "
+                            f"({before:.6g} -> {after:.6g}): the update goes the wrong way or misses what render() reads")
 
 
 def check_summed_equals_accumulated(make_adapter: MakeAdapter, scene: Scene, rtol: float = 1e-5) -> None:
@@ -188,13 +222,8 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
     """Statistics accumulate (a zero threshold grows the model, an infinite one does not) and
     densification keeps parameters and optimizer state aligned (a step after it works)."""
     for threshold, grows in ((math.inf, False), (0.0, True)):
-        adapter = make_adapter(scene)
-        adapter.set_step(1)
+        adapter = _with_stats(make_adapter, scene, scene.train_cameras[:3])
         n0 = adapter.num_primitives()
-        for cam in scene.train_cameras[:3]:
-            loss, result = _loss(adapter, scene, [cam])
-            loss.backward()
-            adapter.accumulate_stats(result)
         ctx = DensifyContext(step=1, grad_threshold=threshold, scene_extent=float(scene.extent),
                              cameras=tuple(scene.train_cameras[:3]))
         with torch.no_grad():
@@ -206,23 +235,60 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
         else:
             assert n1 <= n0, f"an infinite threshold must not grow the model, got {n0} -> {n1}"
         assert adapter.positions().shape == (n1, 3), f"positions() must be [{n1},3], got {list(adapter.positions().shape)}"
+        with torch.no_grad():  # the call reset the statistics: nothing is left to grow from
+            again = adapter.densify(dataclasses.replace(ctx, grad_threshold=1e-12))
+        assert again.after <= again.before, (f"a second densify right after the first (no view rendered in between, "
+                                             f"threshold 1e-12) grew {again.before} -> {again.after}: densify must "
+                                             "reset the statistics it used")
         adapter.optimizer_step()
         adapter.zero_grad()
-        loss, _ = _loss(adapter, scene, scene.train_cameras[:1])
+        loss, result = _loss(adapter, scene, scene.train_cameras[:1])
         loss.backward()
         adapter.optimizer_step()  # shapes of optimizer state and parameters must agree
         adapter.zero_grad()
+        with torch.no_grad():
+            after = adapter.render(scene.train_cameras[:1], torch.zeros(1, 3)).images
+        assert not torch.equal(after, result.images.detach()), (
+            "after densify, an optimizer step with gradients changed nothing the view renders: the optimizer "
+            "still holds the tensors from before densify (its state must follow the new parameters)")
+
+
+def check_the_cap_holds(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """DensifyContext.max_primitives bounds the count after a densify call, whether the call
+    would grow past it (threshold 0) or the model is already above it (it must shrink)."""
+    for share in (1.0, 0.5):
+        adapter = _with_stats(make_adapter, scene, scene.train_cameras[:3])
+        n0 = adapter.num_primitives()
+        cap = max(1, int(share * n0))
+        ctx = DensifyContext(step=1, grad_threshold=0.0, scene_extent=float(scene.extent),
+                             cameras=tuple(scene.train_cameras[:3]), max_primitives=cap)
+        with torch.no_grad():
+            report = adapter.densify(ctx)
+        n1 = adapter.num_primitives()
+        assert n1 <= cap, f"densify with max_primitives={cap} (the model had {n0}) left {n1}"
+        assert report.after == n1, f"DensifyReport says {report.after} after, the model has {n1}"
+        adapter.zero_grad()
+
+
+def check_background(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """A view with nothing in it shows each view's own background colour."""
+    base = scene.train_cameras[0]
+    away = Camera(904, "away", base.K, look_at((300.0, 0.0, 0.0), (600.0, 0.0, 0.0)), base.width, base.height, base.time)
+    adapter = make_adapter(scene)
+    adapter.set_step(1)
+    colours = torch.tensor([[0.2, 0.5, 0.9], [0.9, 0.1, 0.3]])
+    with torch.no_grad():
+        images = adapter.render([away, away], colours).images
+    for i in range(2):
+        err = float((images[i] - colours[i].to(images)).abs().max())
+        assert err <= 1e-3, (f"an empty view rendered with background {colours[i].tolist()} is off it by {err:.3g}: "
+                             "render() must composite over the backgrounds it is given")
 
 
 def check_state_dict_round_trip(make_adapter: MakeAdapter, scene: Scene) -> None:
     """state_dict -> load_state_dict into a fresh adapter (even of another size) renders the same
     and continues training identically."""
-    a = make_adapter(scene)
-    a.set_step(1)
-    for cam in scene.train_cameras[:2]:
-        loss, result = _loss(a, scene, [cam])
-        loss.backward()
-        a.accumulate_stats(result)
+    a = _with_stats(make_adapter, scene, scene.train_cameras[:2])
     with torch.no_grad():
         a.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=float(scene.extent)))
     loss, _ = _loss(a, scene, scene.train_cameras[:1])
@@ -277,17 +343,7 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
     "max"), equal those of one adapter that rendered all of them; load_statistics() restores
     them."""
     cams = scene.train_cameras[:3]
-
-    def accumulate(views):
-        adapter = make_adapter(scene)
-        adapter.set_step(1)
-        for cam in views:
-            loss, result = _loss(adapter, scene, [cam])
-            loss.backward()
-            adapter.accumulate_stats(result)
-        return adapter
-
-    whole, first, rest = accumulate(cams), accumulate(cams[:1]), accumulate(cams[1:])
+    whole, first, rest = (_with_stats(make_adapter, scene, views) for views in (cams, cams[:1], cams[1:]))
     params, grads = whole.gradient_parameters(), whole.named_gradients()
     assert set(params) == set(grads), \
         f"gradient_parameters() names {sorted(params)} but named_gradients() names {sorted(grads)}"
@@ -312,29 +368,32 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
 
 CHECKS = [
     check_render,
+    check_background,
     check_gradients_reach_every_group,
+    check_optimizer_descends,
     check_summed_equals_accumulated,
     check_stats_and_densify,
+    check_the_cap_holds,
     check_state_dict_round_trip,
     check_hard_cameras,
 ]
 
 
 def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> Dict[str, str]:
-    """Runs every conformance check; raises AssertionError naming the first that fails.
+    """Runs every conformance check; raises AssertionError naming the first that fails (an
+    error the adapter raised inside a check is reported the same way, with its type).
     Returns {check name: "ok"}."""
     scene = synthetic_scene() if scene is None else scene
+    checks = list(CHECKS)
+    if isinstance(make_adapter(scene), DistributedAdapter):  # optional: only adapters that support it
+        checks.append(check_distributed_support)
     done = {}
-    for check in CHECKS:
+    for check in checks:
         try:
             check(make_adapter, scene)
         except AssertionError as exc:
             raise AssertionError(f"{check.__name__}: {exc}") from exc
+        except Exception as exc:
+            raise AssertionError(f"{check.__name__}: the adapter raised {type(exc).__name__}: {exc}") from exc
         done[check.__name__] = "ok"
-    if isinstance(make_adapter(scene), DistributedAdapter):  # optional: only adapters that support it
-        try:
-            check_distributed_support(make_adapter, scene)
-        except AssertionError as exc:
-            raise AssertionError(f"check_distributed_support: {exc}") from exc
-        done["check_distributed_support"] = "ok"
     return done

@@ -1,6 +1,7 @@
 """The MVGS controller driving the 3DGS adapter: summed-gradient step, statistics, stages,
 checkpoints, guards, the three-line wrap and the conformance suite."""
 
+import dataclasses
 import difflib
 import importlib.util
 import math
@@ -358,6 +359,76 @@ def test_conformance_suite_catches_a_broken_adapter(scene):
 
     with pytest.raises(AssertionError, match="check_gradients_reach_every_group: group 'bogus' received no gradient"):
         check_adapter(lambda s: Misaligned.from_scene(s, GS3DConfig()), scene)
+
+
+class Ascent(GS3DAdapter):
+    def optimizer_step(self):  # climbs the gradient
+        for p in self.params.values():
+            if p.grad is not None:
+                p.grad.neg_()
+        super().optimizer_step()
+
+
+class IgnoresCap(GS3DAdapter):
+    def densify(self, ctx):
+        return super().densify(dataclasses.replace(ctx, max_primitives=None))
+
+
+class KeepsStats(GS3DAdapter):
+    def densify(self, ctx):  # the statistics survive the call (rows added get zeros)
+        old = {k: v.clone() for k, v in self.stats.items()}
+        report = super().densify(ctx)
+        n = min(len(old["denom"]), self.num_primitives())
+        for k, v in old.items():
+            self.stats[k][:n] = v[:n]
+        return report
+
+
+class NoBackground(GS3DAdapter):
+    def render(self, cameras, backgrounds):
+        return super().render(cameras, torch.zeros_like(backgrounds))
+
+
+class StaleOptimizer(GS3DAdapter):
+    def densify(self, ctx):  # the model's new tensors, but the optimizer left on others (as on those of before)
+        report = super().densify(ctx)
+        for group in self.optimizer.param_groups:
+            group["params"] = [torch.nn.Parameter(p.detach().clone()) for p in group["params"]]
+        return report
+
+
+class NoZeroGrad(GS3DAdapter):
+    def zero_grad(self):
+        pass
+
+
+class Raises(GS3DAdapter):
+    def reset_opacity(self):
+        raise NotImplementedError("never written")
+
+    def state_dict(self):
+        raise RuntimeError("cannot save")
+
+
+@pytest.mark.parametrize("kind, message", [
+    (Ascent, "check_optimizer_descends: 10 optimizer steps on the same 3 views did not lower their loss"),
+    (IgnoresCap, r"check_the_cap_holds: densify with max_primitives=\d+ \(the model had \d+\) left \d+"),
+    (KeepsStats, "check_stats_and_densify: a second densify right after the first .* must reset the statistics"),
+    (NoBackground, r"check_background: an empty view rendered with background \[0.2"),
+    (StaleOptimizer, "check_stats_and_densify: after densify, an optimizer step with gradients changed nothing"),
+    (NoZeroGrad, "check_gradients_reach_every_group: zero_grad\\(\\) left a gradient in group"),
+    (Raises, "check_state_dict_round_trip: the adapter raised RuntimeError: cannot save"),
+])
+def test_the_conformance_suite_names_what_a_broken_adapter_breaks(scene, kind, message):
+    """One deliberate fault per adapter (as an outside integrator's adapters had them); the
+    suite fails on it with the check's name and what is wrong."""
+    with pytest.raises(AssertionError, match=message):
+        check_adapter(lambda s: make_kind(kind, s), scene)
+
+
+def make_kind(kind, scene):
+    torch.manual_seed(0)
+    return kind.from_scene(scene, GS3DConfig())
 
 
 @pytest.mark.parametrize("preset", ["multiview", "paper"])
