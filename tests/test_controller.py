@@ -209,6 +209,21 @@ def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset,
     torch.testing.assert_close(model.positions(), trainer.adapter.positions(), rtol=0, atol=1e-5)
 
 
+def test_the_wrap_runs_the_steps_it_is_asked_for_on_a_forward_facing_rig(monkeypatch):
+    """On a forward-facing rig for_scene() drops the pyramid; resolved before with_total_steps
+    (as the examples do), a run asked for 40 steps runs 40, where resolving after would keep the
+    recipe's work and run fewer."""
+    from mvgs_plugin.data import load_nerf_synthetic
+
+    forward = load_nerf_synthetic(EXAMPLES.parent / "tests" / "data" / "forward64")
+    late = MVGSConfig.default().with_total_steps(40).for_scene(forward)
+    assert len(late.stages) == 1 and late.stages[0].steps < 40  # the trap
+    steps = []
+    monkeypatch.setattr(GS3DAdapter, "set_step", lambda self, step: steps.append(step))
+    _load_example("mvgs").train(forward, 40)
+    assert len(steps) == 40
+
+
 def test_densify_context_takes_the_models_size_from_the_model_or_says_it_guessed(scene):
     """CRD's clone cap is max_new x the model's size: from adapter= (and the clip bounds from its
     positions), from primitive_count=, or, given neither, the schedule's last count with one

@@ -24,7 +24,7 @@ from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, load_scene, sc
 def train(scene, steps: int, seed: int = 0, **config) -> GS3DAdapter:
     torch.manual_seed(seed)
     model = GS3DAdapter.from_scene(scene)
-    schedule = ViewSchedule(scene, MVGSConfig.baseline(seed=seed, **config).with_total_steps(steps))
+    schedule = ViewSchedule(scene, MVGSConfig.baseline(seed=seed, **config).for_scene(scene).with_total_steps(steps))
     cut = schedule.initial_cut(model.num_primitives())  # with a budget (max_gaussians): a larger model is cut first
     if cut is not None:
         model.densify(cut)
