@@ -221,6 +221,28 @@ def test_image_size_disagrees_with_declared_size(tmp_path):
         load_nerf_synthetic(tmp_path)
 
 
+def test_a_test_split_that_repeats_the_training_frames_is_said(tmp_path):
+    import json
+    import warnings
+
+    write_blender(tmp_path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_nerf_synthetic(tmp_path)
+    assert not [w for w in caught if "training frame" in str(w.message)]
+    train = json.loads((tmp_path / "transforms_train.json").read_text())
+    (tmp_path / "transforms_test.json").write_text(json.dumps(train))  # the test json a copy of the train one
+    train["frames"].append(train["frames"][1])  # and one training frame twice
+    (tmp_path / "transforms_train.json").write_text(json.dumps(train))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load_nerf_synthetic(tmp_path)
+    said = [str(w.message) for w in caught]
+    assert len(scene.train_cameras) == 5
+    assert any("training frame 'train/r_001.png' appears more than once" in m for m in said), said
+    assert any("4 of the 4 test frames are also training frames" in m for m in said), said
+
+
 def test_missing_image(tmp_path):
     write_blender(tmp_path)
     (tmp_path / "train" / "r_003.png").unlink()

@@ -213,6 +213,7 @@ def _load_blender(path, background, with_time: bool) -> Scene:
             files[uid] = file
             uid += 1
         splits[split] = cams
+    _warn_repeated(splits, root)
     ply = root / "points3d.ply"
     points = read_points_ply(ply) if ply.is_file() else None
     if points is not None and len(points) == 0:
@@ -222,6 +223,25 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     # sizes were read from the headers above, so the Scene need not read them again
     return Scene(splits["train"], splits["test"], files, points=points, background=bg,
                  check_sizes=False, source=root)
+
+
+def _warn_repeated(splits: dict, root: Path) -> None:
+    """Warn when a frame repeats (the same image and camera twice in the training split), or a
+    test frame is a training frame: the test metrics then measure the fit, not new views."""
+    def key(cam: Camera) -> tuple:
+        return cam.name, tuple(cam.world_to_camera.reshape(-1).tolist()), cam.time
+
+    train = {}
+    for cam in splits["train"]:
+        if key(cam) in train:
+            warnings.warn(f"{root}: training frame {cam.name!r} appears more than once (same image and camera): it "
+                          "counts twice in the view sampling", stacklevel=4)
+        train[key(cam)] = cam
+    shared = [cam.name for cam in splits["test"] if key(cam) in train]
+    if shared:
+        warnings.warn(f"{root}: {len(shared)} of the {len(splits['test'])} test frames are also training frames "
+                      f"(same image and camera, e.g. {shared[0]!r}): the test metrics measure the fit to the "
+                      "training views, not new views", stacklevel=4)
 
 
 def is_dynamic(path) -> bool:
