@@ -38,6 +38,7 @@ size rule, "coarse-mv4" (4 views per step at 1/4, 2 at 1/2, no budget) and "coar
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import json
 import multiprocessing
 import resource
@@ -47,7 +48,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from mvgs_plugin.cli import int_at_least, repo_path  # noqa: E402
+from mvgs_plugin.cli import int_at_least, repo_path, scene_folder  # noqa: E402
 from mvgs_plugin.io import atomic_write_text  # noqa: E402
 
 COARSE_MV4 = ["--stages", "4:4:2308,2:2:5455,1:1:21000"]  # 4 views per step at 1/4, 2 at 1/2, one at full
@@ -133,6 +134,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     parser.add_argument("--data", type=ex.scene_folder, default=ex.BUNDLED)
     args = ex.common_args(parser, "out/bench").parse_args(argv)
     scene = ex.load_scene(args.data, background_points=args.background_points)  # the examples' init
+    ex.check_resolution(scene, args.resolution_scale)
     config = ex.config_from_args(args, scene)
     adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))
     trainer = MVGS(adapter, scene, config)
@@ -239,17 +241,17 @@ def summary(paths, reference: str = "baseline") -> str:
 
 def main(argv=None) -> list:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=None, help="scene folder (default: the bundled tabletop)")
+    ap.add_argument("--data", type=scene_folder, default=None, help="scene folder (default: the bundled tabletop)")
     ap.add_argument("--budgets", type=float, nargs="+", default=[1000, 3000])
     ap.add_argument("--runs", nargs="+", default=["baseline", "default"], choices=sorted(RUNS))
-    ap.add_argument("--views", type=int, default=4, help="M at full resolution for the multiview runs")
+    ap.add_argument("--views", type=int_at_least(1), default=4, help="M at full resolution for the multiview runs")
     ap.add_argument("--clock", choices=["budget", "steps"], default="budget",
                     help="budget: each run gets --budgets B of work (equal compute); steps: each run makes "
                          "B steps (equal steps, the recipes' work differs)")
-    ap.add_argument("--points", type=int, default=8, help="evaluations along each run")
-    ap.add_argument("--resolution-scale", type=int, default=1)
-    ap.add_argument("--processes", type=int, default=2, help="runs side by side (one thread each)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--points", type=int_at_least(1), default=8, help="evaluations along each run")
+    ap.add_argument("--resolution-scale", type=int_at_least(1), default=1)
+    ap.add_argument("--processes", type=int_at_least(1), default=2, help="runs side by side (one thread each)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0)
     ap.add_argument("--background-points", type=int_at_least(0), default=None, metavar="N",
                     help="initial points on the background shell (default: the examples' default; 0: 3DGS's init)")
     ap.add_argument("--max-gaussians", type=int_at_least(1), default=None, metavar="N",
@@ -276,9 +278,18 @@ def main(argv=None) -> list:
     jobs = [(args.data, kind, b, args.views, args.points, args.seed, args.resolution_scale, args.clock,
              args.background_points, args.max_gaussians)
             for b in args.budgets for kind in args.runs]
-    # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each.
-    with multiprocessing.get_context("spawn").Pool(args.processes, maxtasksperchild=1) as pool:
-        rows = pool.starmap(train, jobs)
+    # spawn: a fresh interpreter per run (its own peak memory, nothing shared); one task each. An
+    # executor, not a Pool: a worker that fails (a usage error found once the scene is read) or dies
+    # ends the benchmark with its error instead of leaving the Pool waiting for ever.
+    with concurrent.futures.ProcessPoolExecutor(args.processes, mp_context=multiprocessing.get_context("spawn"),
+                                                max_tasks_per_child=1) as pool:
+        futures = [pool.submit(train, *job) for job in jobs]
+        try:
+            rows = [f.result() for f in futures]
+        except (SystemExit, ValueError) as err:  # argparse's exit, UsageError: the user's to fix
+            for f in futures:
+                f.cancel()
+            ap.error(str(err) or "a run's arguments were refused (its message is above)")
     scene = repo_path(args.data) if args.data else "bundled tabletop"
     recorded = {k: repo_path(v) if isinstance(v, Path) else str(v) for k, v in vars(args).items()}  # no machine paths
     atomic_write_text(args.out / "runs.json", json.dumps({"args": recorded,

@@ -103,3 +103,18 @@ def test_capped_run_kinds_take_the_budget_and_their_stage_plan(tmp_path):
     with pytest.raises(SystemExit):  # a budget no run kind takes
         bench.main(["--runs", "default", "--max-gaussians", "10", "--out", str(tmp_path / "o")])
     assert not (tmp_path / "o").exists()
+
+
+def test_a_run_the_examples_refuse_ends_the_benchmark_with_its_error(tmp_path, capsys):
+    """--resolution-scale 9 on the bundled 128 px scene is refused once a worker reads the scene:
+    the benchmark ends with that message and exit code 2 (a multiprocessing Pool waited for ever
+    for a worker that exited); bad values of its own flags are refused before any worker starts."""
+    with pytest.raises(SystemExit) as err:
+        bench.main(["--budgets", "40", "--runs", "baseline", "--processes", "1", "--points", "1",
+                    "--resolution-scale", "9", "--out", str(tmp_path / "b")])
+    assert err.value.code == 2
+    assert "--resolution-scale 9 makes the 128x128 images 14x14" in capsys.readouterr().err
+    for flag, value in (("--processes", "0"), ("--points", "0"), ("--data", str(tmp_path / "missing"))):
+        with pytest.raises(SystemExit):
+            bench.main(["--budgets", "40", flag, value, "--out", str(tmp_path / "c")])
+        assert flag in capsys.readouterr().err
