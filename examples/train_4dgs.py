@@ -33,8 +33,9 @@ from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
     HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, metrics_record,
     model_config, rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
-    world_size_arg, late_views_arg, resolve_late_views,
+    world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
+from mvgs_plugin.data.nerf import is_dynamic
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
 # --late-views' default with the pyramid presets: the work the coarse steps save, spent as 2-view
@@ -88,15 +89,25 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
+    if args.init_box is not None and not all(lo < hi for lo, hi in zip(args.init_box[:3], args.init_box[3:])):
+        raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: expected X0 Y0 Z0 X1 Y1 Z1 with "
+                         "each minimum below its maximum")
+    try:  # a static NeRF-layout scene, before it is read (and its points triangulated)
+        static = (args.data / "transforms_train.json").is_file() and not is_dynamic(args.data)
+    except ValueError as err:  # a malformed transforms_train.json, named
+        raise UsageError(f"--data {args.data}: {err}") from err
+    if static:
+        raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene in the D-NeRF layout (transforms_train.json "
+                         "whose frames carry a 'time')")
     scene = scene_from_args(args)
     untimed = [c.name for c in scene.train_cameras + scene.test_cameras if c.time is None]
     if untimed:
-        raise ValueError(f"{args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
+        raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
     config = config_from_args(args, scene, time_spread=args.time_spread)
     adapter = build_adapter(args, scene, config)
-    model_cfg = adapter.gs4d_config
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
+    model_cfg = adapter.gs4d_config  # after a resume, the checkpoint's (the same as the command's: checked)
     if result is None:  # not rank 0
         return {}
 

@@ -452,13 +452,43 @@ def late_views_hint(args, scene, config: MVGSConfig) -> str:
     return ""
 
 
+def render_file_names(names) -> list:
+    """The file name of each view's test render: its image's stem ("r_000.png"), or, when two
+    views share a stem (cameras in sub-folders), its path without the extension and with "/" as
+    "_" ("camA_view.png"), so no render replaces another."""
+    stems = [Path(n).stem for n in names]
+    if len(set(stems)) == len(stems):
+        return [stem + ".png" for stem in stems]
+    return [str(Path(n).with_suffix("")).replace("/", "_").replace("\\", "_") + ".png" for n in names]
+
+
 def save_test_renders(out: Path, result) -> None:
-    """OUT/test/<view>.png for every evaluated view (atomic writes)."""
+    """OUT/test/<view>.png for every evaluated view (atomic writes; names: render_file_names)."""
     (out / "test").mkdir(parents=True, exist_ok=True)
     from mvgs_plugin.reference_renderer.demo import save_png
 
-    for row in result.per_view:
-        save_png(str(out / "test" / (Path(row["name"]).stem + ".png")), row["image"].numpy())
+    for row, name in zip(result.per_view, render_file_names([row["name"] for row in result.per_view])):
+        save_png(str(out / "test" / name), row["image"].numpy())
+
+
+def model_settings(adapter) -> dict:
+    """The model config values an adapter's checkpoint carries ({"field": value}, nested configs
+    as "canonical.field", 4DGS's own as "4dgs.field"), from its config attributes (config,
+    gs4d_config) with saved_values()."""
+    out = {}
+
+    def add(prefix: str, cfg) -> None:
+        for name, value in cfg.saved_values().items():
+            if hasattr(value, "saved_values"):
+                add(f"{prefix}{name}.", value)
+            else:
+                out[prefix + name] = value
+
+    for attr, prefix in (("config", ""), ("gs4d_config", "4dgs.")):
+        cfg = getattr(adapter, attr, None)
+        if hasattr(cfg, "saved_values"):
+            add(prefix, cfg)
+    return out
 
 
 def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
@@ -471,10 +501,16 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     model is the same on every rank."""
     trainer = MVGS(adapter, scene, config, distributed=dist)
     if getattr(args, "resume", None) is not None:
+        asked = model_settings(adapter)
         try:
             trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
             raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
+        saved = model_settings(adapter)  # an adapter's load_state_dict takes the checkpoint's model config
+        differ = [f"{k}: checkpoint {saved[k]!r}, this command {asked[k]!r}" for k in asked if k in saved and saved[k] != asked[k]]
+        if differ:
+            raise UsageError(f"--resume {args.resume}: the checkpoint was made with other model settings "
+                             f"({'; '.join(differ)}); resume with the flags it was written with")
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
     written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)

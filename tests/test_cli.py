@@ -116,3 +116,14 @@ def test_growth_cap_takes_the_lower_set_cap():
     assert growth_cap(7, None) == 7 and growth_cap(None, 3) == 3 and growth_cap(7, 3) == 3
     with pytest.raises(ValueError, match="max_primitives"):
         growth_cap(True, 3)
+
+
+def test_test_renders_of_views_that_share_a_stem_keep_their_folders_apart():
+    """OUT/test/<name>.png: the image's stem when the stems are unique (the bundled layout), else the
+    path with "/" as "_" (cameras in sub-folders), so no render replaces another."""
+    from mvgs_plugin.cli import render_file_names
+
+    assert render_file_names(["test/r_000.png", "test/r_001.png"]) == ["r_000.png", "r_001.png"]
+    names = render_file_names(["camA/view.png", "camB/view.png", "camA/view2.jpg", "camB/view2.jpg"])
+    assert names == ["camA_view.png", "camB_view.png", "camA_view2.png", "camB_view2.png"]
+    assert len(set(names)) == 4

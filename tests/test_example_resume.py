@@ -108,7 +108,8 @@ def test_resume_needs_an_existing_file(tmp_path):
 
 def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypatch, capsys):
     """A KeyboardInterrupt inside a step ends the example with exit code 130 and one line naming
-    the step and the checkpoint to resume from (or that nothing was saved), not a traceback."""
+    the step and the checkpoint to resume from (or that nothing was saved), not a traceback; the
+    checkpoint resumed with another model flag (--world-size-rule) is refused naming it."""
     example = _example("train_3dgs.py")
     step = controller.MVGS.step
 
@@ -126,6 +127,13 @@ def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypat
     said = capsys.readouterr().err.strip().splitlines()[-1]
     assert said.endswith(f"interrupted at step 7 of 20; the checkpoint {checkpoint} (written at step 5) resumes "
                          f"it: the same command with --resume {checkpoint}")
+    monkeypatch.setattr(controller.MVGS, "step", step)
+    with pytest.raises(SystemExit) as err:  # a model flag the checkpoint was not made with: refused, named
+        example.main(base + ["--out", str(tmp_path / "r"), "--resume", str(checkpoint), "--world-size-rule", "extent"])
+    assert err.value.code == 2
+    assert "other model settings (world_size_rule: checkpoint 'distance', this command 'extent')" in \
+        capsys.readouterr().err
+    monkeypatch.setattr(controller.MVGS, "step", interrupted)
     for out in ("b", "a"):  # no checkpoint; a checkpoint.pt of an earlier run in --out is not this run's
         with pytest.raises(SystemExit) as err:
             example.main(base + ["--out", str(tmp_path / out)])
