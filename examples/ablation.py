@@ -218,6 +218,11 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     if args.resolution_scale < 1:
         raise ValueError(f"--resolution-scale must be >= 1, got {args.resolution_scale}")
+    if args.only:
+        names = list(variants(args.steps, args.views, args.seed))
+        unknown = [n for n in args.only if n not in names]
+        if unknown:
+            ap.error(f"--only {' '.join(unknown)}: no such variant; the variants are {', '.join(repr(n) for n in names)}")
     args.out.mkdir(parents=True, exist_ok=True)
     load_scene(args.data)  # fail here, not in a worker, on a bad path
     rows, curves = {}, ("baseline", FULL)

@@ -89,6 +89,11 @@ def main(argv=None) -> dict:
 def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
+    names = [f"point_cloud_t{t:.3f}.ply" for t in args.export_times]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # a bake would replace another
+        raise UsageError(f"--export-times {' '.join(f'{t:g}' for t in args.export_times)}: times that round to the "
+                         f"same 3 decimals write one file ({', '.join(twice)}); give each time once")
     if args.init_box is not None and not all(lo < hi for lo, hi in zip(args.init_box[:3], args.init_box[3:])):
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: expected X0 Y0 Z0 X1 Y1 Z1 with "
                          "each minimum below its maximum")

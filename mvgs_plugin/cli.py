@@ -129,6 +129,8 @@ def scene_from_args(args):
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
                            background_points=args.background_points)
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
+        if args.init_cache is not None and str(args.init_cache) in str(err):
+            raise UsageError(f"--init-cache {args.init_cache}: {err}") from err
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
     return scene
@@ -409,6 +411,12 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
             raise UsageError(f"--budget {args.budget:g}: the {args.preset} preset restarts its schedules at every stage, "
                              "and a budget needs one continuous clock (use --steps)")
         config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
+        planned = sum(st.steps * config.step_work(st) * min(st.views, len(scene.train_cameras) if scene else st.views)
+                      / st.views for st in config.stages)
+        if planned > 1.5 * args.budget:  # every stage needs a step: a budget below that is overspent
+            raise UsageError(f"--budget {args.budget:g}: the stage plan's {len(config.stages)} stages need at least one "
+                             f"step each, so this budget would run {planned:.3g} full-resolution view renders; give a "
+                             f"budget of at least {planned:.3g}")
     else:
         if args.steps < len(config.stages):  # every stage needs a step
             added = (f" (--late-views {args.late_views} added a stage; --late-views 1 does not)"

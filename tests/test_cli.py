@@ -127,3 +127,19 @@ def test_test_renders_of_views_that_share_a_stem_keep_their_folders_apart():
     names = render_file_names(["camA/view.png", "camB/view.png", "camA/view2.jpg", "camB/view2.jpg"])
     assert names == ["camA_view.png", "camB_view.png", "camA_view2.png", "camB_view2.png"]
     assert len(set(names)) == 4
+
+
+def test_a_budget_below_one_step_per_stage_is_refused_not_overspent(tmp_path):
+    """multiview at --budget 1: each of its 4 stages needs a step, which is 32.6 views of work on
+    the bundled scene; the run is refused naming that, where it used to run 33x its budget."""
+    import argparse
+
+    from mvgs_plugin import cli
+
+    scene = cli.load_scene(cli.BUNDLED)
+    ap = cli.common_args(argparse.ArgumentParser(), "out")
+    with pytest.raises(cli.UsageError, match=r"--budget 1: the stage plan's 4 stages need at least one step each, so "
+                                             r"this budget would run 32.6 full-resolution view renders"):
+        cli.config_from_args(ap.parse_args(["--preset", "multiview", "--budget", "1"]), scene)
+    config = cli.config_from_args(ap.parse_args(["--preset", "multiview", "--budget", "40"]), scene)
+    assert config.total_work <= 1.5 * 40

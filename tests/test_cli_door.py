@@ -60,13 +60,17 @@ def test_a_folder_without_a_scene_is_one_line_and_exit_2(script, folders, tmp_pa
 
 def test_4dgs_refuses_a_static_scene_and_an_empty_init_box_in_one_line(tmp_path):
     """A static NeRF-layout scene (the bundled tabletop) is refused before it is read; an --init-box
-    whose minimum is not below its maximum, before anything runs."""
+    whose minimum is not below its maximum, and --export-times that would write one file twice,
+    before anything runs."""
     bundled = str(Path(__file__).resolve().parents[1] / "examples" / "scenes" / "tabletop")
     one_error_line(run("train_4dgs.py", "--data", bundled, "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py",
                    bundled, "4DGS needs a dynamic scene")
     one_error_line(run("train_4dgs.py", "--data", bundled, "--init-box", "1", "1", "1", "0", "0", "0",
                        "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py", "--init-box 1 1 1 0 0 0",
                    "each minimum below its maximum")
+    one_error_line(run("train_4dgs.py", "--data", bundled, "--export-times", "0.0001", "0.0004", "0.5",
+                       "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py", "point_cloud_t0.000.ply",
+                   "give each time once")
     assert not (tmp_path / "o").exists()
 
 

@@ -51,6 +51,17 @@ def test_bad_data_folder_is_named(tmp_path):
         example.main(["--data", str(tmp_path), "--steps", "2", "--out", str(tmp_path / "o"), "--no-progress", "--debug"])
 
 
+def test_ablation_refuses_an_unknown_variant_naming_them_all(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("ablation_only", EXAMPLE.parent / "ablation.py")
+    ablation = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ablation)
+    with pytest.raises(SystemExit) as err:
+        ablation.main(["--steps", "6", "--only", "+CIG", "baseline", "--out", str(tmp_path / "a")])
+    assert err.value.code == 2 and not (tmp_path / "a").exists()
+    said = capsys.readouterr().err
+    assert "--only +CIG: no such variant; the variants are 'baseline', '+MVRL'" in said and "'+CIG (= default)'" in said
+
+
 @pytest.mark.slow
 def test_ablation_smoke(tmp_path, monkeypatch):
     """examples/ablation.py runs every variant and writes its table and plots (a few steps)."""

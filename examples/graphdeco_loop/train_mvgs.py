@@ -146,9 +146,7 @@ if __name__ == "__main__":
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "
                     "the preset's)")
     args = ap.parse_args()
-    scene = load_scene(args.data)
-    if scene.points is None or not len(scene.points):
-        ap.error(f"--data {args.data}: this example starts from the scene's points, and the scene has none")
+    scene = load_scene(args.data)  # a scene without points gets them (triangulated, else drawn where the cameras look)
     model, log = training(scene, args.steps, args.preset, views=args.views)
     print(f"PSNR {evaluate(model, scene):.2f} dB, {model.get_xyz.shape[0]} Gaussians, densified at "
           f"{len(log['densify'])} steps, opacity resets at {log['reset']}, {log['from_boxes']} cloned from boxes")
