@@ -411,8 +411,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
             raise UsageError(f"--budget {args.budget:g}: the {args.preset} preset restarts its schedules at every stage, "
                              "and a budget needs one continuous clock (use --steps)")
         config = config.with_budget(args.budget)  # stage shares depend on M: after with_views
-        planned = sum(st.steps * config.step_work(st) * min(st.views, len(scene.train_cameras) if scene else st.views)
-                      / st.views for st in config.stages)
+        planned = config.total_work
         if planned > 1.5 * args.budget:  # every stage needs a step: a budget below that is overspent
             raise UsageError(f"--budget {args.budget:g}: the stage plan's {len(config.stages)} stages need at least one "
                              f"step each, so this budget would run {planned:.3g} full-resolution view renders; give a "

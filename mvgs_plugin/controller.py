@@ -215,9 +215,7 @@ class MVGS:
         report, ctx = None, None
         if plan.densify:
             with torch.no_grad():
-                positions = adapter.positions()
-                bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
-                ctx = self.schedule.densify_context(plan, maps, adapter.num_primitives(), bounds)
+                ctx = self.schedule.densify_context(plan, maps, adapter=adapter)
                 with timer("adapter"):
                     report = adapter.densify(ctx)
                 self._check_cap(ctx.max_primitives)

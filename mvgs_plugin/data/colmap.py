@@ -195,10 +195,9 @@ def _world_to_camera(image) -> np.ndarray:
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     if not (math.isfinite(norm) and norm > 1e-6):
         raise ValueError(f"its quaternion (qw, qx, qy, qz) = ({w}, {x}, {y}, {z}) has no direction (norm {norm:.3g})")
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
-    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    import pycolmap
+
+    T[:3, :3] = np.asarray(pycolmap.Rotation3d(np.array([x, y, z, w]) / norm).matrix(), dtype=np.float64)
     return T
 
 

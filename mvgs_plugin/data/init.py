@@ -239,21 +239,20 @@ def axes_meeting_point(cameras: Sequence[Camera]) -> torch.Tensor:
     return torch.linalg.pinv(across.sum(0)) @ (across @ centers[:, :, None]).sum(0)[:, 0]
 
 
-def look_convergence(cameras: Sequence[Camera]) -> float:
+def look_convergence(cameras: Sequence[Camera], point: Optional[torch.Tensor] = None) -> float:
     """How much a rig looks at one place: the mean, over the cameras, of the cosine between a
     camera's optical axis and the direction from its centre to the point nearest all the axes
-    (least squares over the lines). 1 for cameras that all look at one point; about 0 or below
-    for cameras that stand together and look out in every direction; a camera at that point
-    counts 0. Meaningful for axes that spread (axis_spread >= CONVERGING_SPREAD, as its callers
-    check first): nearly parallel axes have no nearest point, and the pseudo-inverse's choice
-    then depends on where the world origin is."""
+    (least squares over the lines; `point` when the caller has it). 1 for cameras that all look
+    at one point; about 0 or below for cameras that stand together and look out in every
+    direction; a camera at that point counts 0. Meaningful for axes that spread (axis_spread >=
+    CONVERGING_SPREAD, as its callers check first): nearly parallel axes have no nearest point,
+    and the pseudo-inverse's choice then depends on where the world origin is."""
     if not cameras:
         raise ValueError("look_convergence needs at least one camera")
     d = camera_axes(cameras)
     d = d / torch.linalg.norm(d, dim=1, keepdim=True)
     centers = torch.stack([c.center for c in cameras]).to(d)
-    point = axes_meeting_point(cameras)
-    to_point = point - centers
+    to_point = (axes_meeting_point(cameras) if point is None else point).to(d) - centers
     length = torch.linalg.norm(to_point, dim=1)
     at_point = length <= 1e-9 * (1.0 + float(centers.abs().max()))  # rounding leaves ~1e-16, not 0
     cos = torch.where(at_point, torch.zeros_like(length), (to_point * d).sum(1) / length.clamp_min(1e-300))
@@ -289,9 +288,11 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
     centers = torch.stack([c.center for c in cameras])
     radius = float(torch.linalg.norm(centers - centers.mean(0), dim=1).max())
     shared = float(torch.linalg.norm(d.mean(0))) >= 0.5  # the axes share a direction
-    if spread >= CONVERGING_SPREAD and not shared:
-        convergence = look_convergence(cameras)
-        if convergence < CONVERGING_COSINE:
+    one_sided = None
+    if spread >= CONVERGING_SPREAD:
+        meet = axes_meeting_point(cameras)
+        convergence = look_convergence(cameras, meet)
+        if not shared and convergence < CONVERGING_COSINE:
             if not radius > 1e-6 * (1.0 + float(centers.mean(0).abs().max())):
                 return cube(f"the cameras look every way (look convergence {convergence:.2f} < {CONVERGING_COSINE}) "
                             "from one centre: no depth cue")
@@ -305,26 +306,21 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
                 "room shot from its middle, and photo-consistency chooses; near = the radius of the camera centres)",
                 center=torch.as_tensor(center, dtype=torch.float64), half=float(extent),
                 near=near, far=FAR_OVER_NEAR * near, cameras=tuple(cameras))
-    one_sided = None
-    if spread >= CONVERGING_SPREAD and kind is None:
-        # the axes spread: the cameras surround what they look at when they look in at one place
-        # inside the cube about their centres (a rig without a shared direction that converges
-        # always does: the convex hull of the centres lies in the cube). A rig that shares a
-        # direction and meets outside the cube, or nowhere in front, stands on one side of what it
-        # sees, as cameras over a ground: the cube would hold the air they stand in.
-        if not shared:
-            return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}")
-        meet = axes_meeting_point(cameras)
-        convergence = look_convergence(cameras)
-        inside = bool(((meet - torch.as_tensor(center, dtype=torch.float64)).abs() <= extent).all())
-        if convergence >= CONVERGING_COSINE and inside:
-            return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}, the axes "
-                        "meet inside the cube")
-        one_sided = (f"the axes spread ({spread:.3f}) and share a direction but "
-                     + (f"meet at {[round(float(v), 3) for v in meet]}, outside the 3DGS cube about the camera centres "
-                        f"(± {extent:.4g})" if convergence >= CONVERGING_COSINE else
-                        f"meet nowhere in front (look convergence {convergence:.2f} < {CONVERGING_COSINE})")
-                     + ": the cameras stand on one side of what they see, as over a ground")
+        if kind is None:
+            # the cameras surround what they look at when they look in at one place inside the
+            # cube about their centres (a rig without a shared direction that converges always
+            # does: the convex hull of the centres lies in the cube). A rig that shares a direction
+            # and meets outside the cube, or nowhere in front, stands on one side of what it sees,
+            # as cameras over a ground: the cube would hold the air they stand in.
+            inside = bool(((meet - torch.as_tensor(center, dtype=torch.float64)).abs() <= extent).all())
+            if not shared or (convergence >= CONVERGING_COSINE and inside):
+                return cube(f"the cameras surround the scene: axis spread {spread:.3f} >= {CONVERGING_SPREAD}"
+                            + (", the axes meet inside the cube" if shared else ""))
+            one_sided = (f"the axes spread ({spread:.3f}) and share a direction but "
+                         + (f"meet at {[round(float(v), 3) for v in meet]}, outside the 3DGS cube about the camera "
+                            f"centres (± {extent:.4g})" if convergence >= CONVERGING_COSINE else
+                            f"meet nowhere in front (look convergence {convergence:.2f} < {CONVERGING_COSINE})")
+                         + ": the cameras stand on one side of what they see, as over a ground")
     if not shared:
         return cube(f"frusta asked for, but the optical axes share no direction (axis spread {spread:.3f})")
     if not radius > 0:
