@@ -254,6 +254,7 @@ def resolve_late_views(args, default_views: int) -> argparse.Namespace:
     """args with --late-views resolved: its value, else `default_views` for the pyramid presets
     when the user gave none of --stages, --views, --budget (at equal work the pyramid's saving
     already buys steps), else 1."""
+    args.late_views_given = args.late_views is not None  # config_from_args says when a given value adds nothing
     if args.late_views is None:
         plain = args.preset in ("default", "compact") and not args.stages and args.views is None and args.budget is None
         args.late_views = default_views if plain else 1
@@ -400,10 +401,16 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     late = getattr(args, "late_views", None) not in (None, 1)  # train_4dgs.py's --late-views, after for_scene:
     recipe_stages = len(config.stages)
     if late:
+        before = config.stages
         try:  # a forward-facing rig has no coarse stage left, so no saving to spend
             config = config.with_late_views(args.late_views)
         except ValueError as err:  # a preset whose plan has no room for it: the user's to fix
             raise UsageError(f"--late-views {args.late_views}: {err}") from err
+        if config.stages == before and getattr(args, "late_views_given", False):
+            why = ("the plan has no coarser stage" if len(before) == 1 else
+                   "its coarser stages save less than one step's work")
+            print(f"{Path(sys.argv[0]).name}: note: --late-views {args.late_views} changes nothing here: {why}, so there "
+                  f"is no saving to spend as {args.late_views}-view steps (stages {list(before)})", file=sys.stderr)
         if scene is not None:
             config = config.for_scene(scene)  # its view cap (--max-views-fraction) on the new stage
     if args.budget is not None:
@@ -451,7 +458,8 @@ def late_views_hint(args, scene, config: MVGSConfig) -> str:
         if m == late:
             continue
         try:
-            stages = config_from_args(argparse.Namespace(**{**vars(args), "late_views": m}), scene).stages
+            stages = config_from_args(argparse.Namespace(**{**vars(args), "late_views": m, "late_views_given": False}),
+                                      scene).stages
         except ValueError:
             continue
         if stages == saved:
@@ -470,12 +478,17 @@ def render_file_names(names) -> list:
 
 
 def save_test_renders(out: Path, result) -> None:
-    """OUT/test/<view>.png for every evaluated view (atomic writes; names: render_file_names)."""
+    """OUT/test/<view>.png for every evaluated view (atomic writes; names: render_file_names).
+    A PNG already in OUT/test that this run does not write (an earlier run's, in a reused --out)
+    is removed once the new ones are written, so the folder holds this run's renders only."""
     (out / "test").mkdir(parents=True, exist_ok=True)
     from mvgs_plugin.reference_renderer.demo import save_png
 
-    for row, name in zip(result.per_view, render_file_names([row["name"] for row in result.per_view])):
+    written = render_file_names([row["name"] for row in result.per_view])
+    for row, name in zip(result.per_view, written):
         save_png(str(out / "test" / name), row["image"].numpy())
+    for stale in sorted(set(p.name for p in (out / "test").glob("*.png")) - set(written)):
+        (out / "test" / stale).unlink()
 
 
 def model_settings(adapter) -> dict:

@@ -129,6 +129,28 @@ def test_test_renders_of_views_that_share_a_stem_keep_their_folders_apart():
     assert len(set(names)) == 4
 
 
+def test_a_reused_out_keeps_only_this_runs_test_renders(tmp_path):
+    """An earlier run's renders in OUT/test (another scene's view names) go once this run's are
+    written; this run's are the images it evaluated, and other files in OUT are left alone."""
+    import types
+
+    import numpy as np
+    import torch
+
+    from mvgs_plugin.cli import save_test_renders
+    from PIL import Image
+
+    def result(names, value):
+        return types.SimpleNamespace(per_view=[{"name": n, "image": torch.full((4, 5, 3), value)} for n in names])
+
+    save_test_renders(tmp_path, result(["a/r_000.png", "a/r_001.png", "a/r_002.png"], 0.25))
+    (tmp_path / "notes.txt").write_text("mine")
+    save_test_renders(tmp_path, result(["b/v_0.png", "b/r_001.png"], 0.75))
+    assert sorted(p.name for p in (tmp_path / "test").iterdir()) == ["r_001.png", "v_0.png"]
+    assert np.allclose(np.asarray(Image.open(tmp_path / "test" / "r_001.png"), dtype=float) / 255, 0.75, atol=1 / 255)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
 def test_a_budget_below_one_step_per_stage_is_refused_not_overspent(tmp_path):
     """multiview at --budget 1: each of its 4 stages needs a step, which is 32.6 views of work on
     the bundled scene; the run is refused naming that, where it used to run 33x its budget."""

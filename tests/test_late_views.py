@@ -215,3 +215,19 @@ def test_a_refused_resume_names_the_late_views_value_of_the_checkpoint(tmp_path)
     save_checked({"config": late.to_dict()}, str(tmp_path / "late.pt"))
     args = example.parse_args(data + ["--late-views", "1", "--resume", str(tmp_path / "late.pt")])
     assert "--late-views 2" in late_views_hint(args, None, config_from_args(args))
+
+
+def test_a_given_late_views_that_adds_nothing_says_so(tmp_path, capsys):
+    """--preset baseline --late-views 2 has no coarse stage whose saving it could spend: the run is
+    the baseline's, and a note on stderr says the flag changed nothing (it used to be silent). The
+    same plan reached by the example's own default (no --late-views given) prints nothing."""
+    example = _example("train_4dgs.py")
+    data = ["--data", str(tmp_path), "--steps", "600"]
+    given = config_from_args(example.parse_args(data + ["--preset", "baseline", "--late-views", "2"]))
+    assert given.stages == MVGSConfig.baseline().with_total_steps(600).stages
+    err = capsys.readouterr().err
+    assert "--late-views 2 changes nothing here: the plan has no coarser stage" in err
+    config_from_args(example.parse_args(data + ["--preset", "baseline"]))
+    assert "late-views" not in capsys.readouterr().err
+    spent = config_from_args(example.parse_args(data + ["--late-views", "2"]))
+    assert spent.stages[-1].views == 2 and "changes nothing" not in capsys.readouterr().err
