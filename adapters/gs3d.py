@@ -33,7 +33,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera, stack_cameras
 from mvgs_plugin.checks import check_float, check_int
-from mvgs_plugin.data.init import random_init_points
+from mvgs_plugin.data.init import is_forward_facing, random_init_points
 from mvgs_plugin.densify import boxes_contain, check_boxes, top_by_score
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from mvgs_plugin.reference_renderer import rasterization
@@ -63,6 +63,8 @@ LOG = logging.getLogger("mvgs_plugin")
 # cameras is below 1e-4 rad while float32 spacing there is ~1e-3 extent.
 MAX_LOG_SCALE = 80.0
 MAX_MEAN_EXTENTS = 1e4
+# GS3DConfig.means_lr_rule: how a mean's Adam step scales with its distance from the scene centre
+MEANS_LR_RULES = ("auto", "extent", "distance", "disparity")
 
 
 @dataclass
@@ -88,6 +90,20 @@ class GS3DConfig:
         lr_means_init, lr_means_final: times the scene extent; log-linear decay over
             position_lr_max_steps steps, then constant (the original's delay multiplier is
             inactive with its default lr_delay_steps = 0 and is not implemented).
+        means_lr_rule: how a mean's Adam step scales with its distance d from the scene centre
+            (the adapter's scene_center; Scene.center for from_scene), with f = max(extent, d) /
+            extent (1 within the extent). "extent" is 3DGS's rule: the same step everywhere.
+            "distance": the whole step times f, so a step turns a Gaussian by about the same
+            angle as seen from the rig wherever it lies. "disparity": across the line of sight
+            from the centre times f, along it times f^2, so steps are uniform in angle and in
+            1/d, as depth is known from a small baseline: a forward-facing capture's cameras
+            stand close together (3DGS's extent is their spread), its content lies 3.7x to 18x
+            that away on the generated rigs, and its depth errors grow as d^2. "auto" (default):
+            from_scene resolves it to "disparity" on a forward-facing rig
+            (mvgs_plugin.data.init.is_forward_facing) and to "extent" elsewhere (on a 360-degree
+            rig only the far background lies beyond the extent); without a scene it is
+            "extent", as is every rule without a scene_center. Measured in
+            docs/equal_compute.md ("A step size for far content").
         lr_sh0, lr_shN, lr_opacities, lr_scales, lr_quats: constant.
     Densification (original constants):
         percent_dense: clone if max scale <= percent_dense * extent, else split.
@@ -134,6 +150,7 @@ class GS3DConfig:
     min_opacity: float = 0.005
     max_world_size: float = 0.1
     world_size_rule: str = "distance"
+    means_lr_rule: str = "auto"
     max_screen_size: Optional[float] = None
     opacity_reset_value: float = 0.01
     max_gaussians: Optional[int] = None
@@ -162,6 +179,9 @@ class GS3DConfig:
                 check_float(name, getattr(self, name), positive=True)
         if self.world_size_rule not in ("extent", "distance"):
             raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {self.world_size_rule!r}")
+        if self.means_lr_rule not in MEANS_LR_RULES:
+            raise ValueError(f"means_lr_rule must be one of {', '.join(map(repr, MEANS_LR_RULES))}, "
+                             f"got {self.means_lr_rule!r}")
         if not callable(self.rasterize):
             raise ValueError(f"rasterize must be callable, got {self.rasterize!r}")
         if not isinstance(self.rasterize_kwargs, dict):
@@ -192,6 +212,16 @@ def keep_scores_of(opacity: Tensor, coverage: Tensor) -> Tensor:
     return opacity * draw.to(opacity)
 
 
+def _check_center(center) -> Optional[Tensor]:
+    """A scene centre as a [3] float64 tensor (None stays None), or ValueError naming it."""
+    if center is None:
+        return None
+    c = torch.as_tensor(center).detach().to(dtype=torch.float64, device="cpu").reshape(-1)
+    if c.numel() != 3 or not bool(torch.isfinite(c).all()):
+        raise ValueError(f"scene_center must be 3 finite numbers, got {center!r}")
+    return c.clone()
+
+
 def _n_rest(degree: int) -> int:
     return (degree + 1) ** 2 - 1
 
@@ -208,16 +238,19 @@ class GS3DAdapter:
         stats: the [N] densification statistics by name, STAT_NAMES (see accumulate_stats); each is
             also an attribute (``adapter.grad_accum``).
         scene_extent: the scene scale of the learning rate of the means.
+        scene_center: [3] float64 centre the means' step rule measures distances from
+            (config.means_lr_rule), or None (then every Gaussian gets the extent rule).
         active_sh_degree: SH degree rendered now.
     """
 
     def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
                  opacities: Tensor, scene_extent: float, config: Optional[GS3DConfig] = None,
-                 active_sh_degree: int = 0) -> None:
+                 active_sh_degree: int = 0, *, scene_center: Optional[Tensor] = None) -> None:
         self.config = GS3DConfig() if config is None else config
         if not isinstance(self.config, GS3DConfig):
             raise ValueError(f"config must be a GS3DConfig, got {type(self.config).__name__}")
         self.scene_extent = check_float("scene_extent", scene_extent, positive=True)
+        self.scene_center = _check_center(scene_center)
         raw = dict(means=means, sh0=sh0, shN=shN, scales=scales, quats=quats, opacities=opacities)
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
@@ -272,7 +305,7 @@ class GS3DAdapter:
     def from_tensors(cls, means: Tensor, *, scales: Tensor, opacities: Tensor, scene_extent: float,
                      rgb: Optional[Tensor] = None, sh: Optional[Tensor] = None,
                      quats: Optional[Tensor] = None, config: Optional[GS3DConfig] = None,
-                     dtype: Optional[torch.dtype] = None) -> "GS3DAdapter":
+                     dtype: Optional[torch.dtype] = None, scene_center: Optional[Tensor] = None) -> "GS3DAdapter":
         """Build from activated values (the docs/design.md conventions).
 
         Args:
@@ -281,6 +314,7 @@ class GS3DAdapter:
             sh: [N, (d+1)^2, 3] SH coefficients, d <= config.sh_degree (missing bands are 0).
             quats: [N, 4] w-x-y-z (default identity).
             dtype: of the parameters (default: that of means).
+            scene_center: [3], the centre config.means_lr_rule measures from (None: the extent rule).
         """
         config = GS3DConfig() if config is None else config
         means = torch.as_tensor(means).detach()
@@ -309,7 +343,7 @@ class GS3DAdapter:
             quats = torch.zeros(n, 4, dtype=dtype, device=means.device)
             quats[:, 0] = 1.0
         return cls(means, sh0, shN, torch.log(scales), t(quats), torch.logit(opacities),
-                   scene_extent, config)
+                   scene_extent, config, scene_center=scene_center)
 
     @staticmethod
     def _split_sh(sh: Tensor, n: int, degree: int) -> Tuple[Tensor, Tensor]:
@@ -330,6 +364,7 @@ class GS3DAdapter:
         """Initialise from ``scene.points`` (or ``points``, a PointCloud given in their place) as
         the original 3DGS, or randomly without points.
 
+        config.means_lr_rule "auto" is resolved here for the scene's rig (see GS3DConfig).
         SH DC from the point colours, higher bands 0; isotropic scales sqrt(mean squared distance
         to the 3 nearest other points), floored at 1e-7 before the square root; identity
         rotations; opacity config.init_opacity. Without points: config.random_init points where the
@@ -337,6 +372,9 @@ class GS3DAdapter:
         generator seeded with config.seed).
         """
         config = GS3DConfig() if config is None else config
+        if config.means_lr_rule == "auto":  # the rig decides (GS3DConfig.means_lr_rule)
+            forward = is_forward_facing(scene.train_cameras)
+            config = dataclasses.replace(config, means_lr_rule="disparity" if forward else "extent")
         points = getattr(scene, "points", None) if points is None else points
         if points is None or len(points) == 0:
             xyz, rgb = cls._random_points(scene, config)
@@ -353,7 +391,8 @@ class GS3DAdapter:
         opac = torch.full((n,), math.log(config.init_opacity / (1 - config.init_opacity)),
                           dtype=torch.float64, device=xyz.device)
         t = lambda x: x.to(dtype)  # noqa: E731
-        return cls(t(xyz), t(sh0), t(shN), t(log_scale), t(quats), t(opac), scene.extent, config)
+        return cls(t(xyz), t(sh0), t(shN), t(log_scale), t(quats), t(opac), scene.extent, config,
+                   scene_center=getattr(scene, "center", None))
 
     @staticmethod
     def _random_points(scene, config: GS3DConfig) -> Tuple[Tensor, Tensor]:
@@ -364,12 +403,12 @@ class GS3DAdapter:
 
     @classmethod
     def from_ply(cls, path, scene_extent: float, config: Optional[GS3DConfig] = None,
-                 dtype: torch.dtype = torch.float32, device: Optional[torch.device | str] = None
-                 ) -> "GS3DAdapter":
+                 dtype: torch.dtype = torch.float32, device: Optional[torch.device | str] = None,
+                 scene_center: Optional[Tensor] = None) -> "GS3DAdapter":
         """Load a 3DGS PLY (ours or another tool's). Without a config the file's SH degree is the
         maximum; a config with a higher degree gets zero higher bands, a lower one is an error.
         The active SH degree starts at the file's degree (the model is trained); set_step()
-        recomputes it from the step."""
+        recomputes it from the step. scene_center: as for from_tensors."""
         g = read_gaussian_ply(path)
         d = g.sh_degree
         config = GS3DConfig(sh_degree=d) if config is None else config
@@ -379,7 +418,7 @@ class GS3DAdapter:
         sh0, shN = cls._split_sh(torch.cat([g.sh0, g.shN], 1), g.means.shape[0], config.sh_degree)
         t = lambda x: x.to(device=device, dtype=dtype)  # noqa: E731
         return cls(t(g.means), t(sh0), t(shN), t(g.scales), t(g.quats), t(g.opacities), scene_extent,
-                   config, active_sh_degree=d)
+                   config, active_sh_degree=d, scene_center=scene_center)
 
     # ---- activated views -----------------------------------------------------------------
     def get_scales(self) -> Tensor:
@@ -785,11 +824,24 @@ class GS3DAdapter:
         return {name: p.grad for name, p in self.params.items()}
 
     def optimizer_step(self) -> None:
-        """Adam on every group, then a check of what the renderer will take: a scale whose
-        exp overflows (log-scale > MAX_LOG_SCALE) or a mean beyond MAX_MEAN_EXTENTS scene
-        extents raises FloatingPointError naming the group (a diverging learning rate)."""
+        """Adam on every group (with config.means_lr_rule "distance" and a scene_center, each
+        mean's step then times max(extent, d) / extent: means_step_scale), then a check of what
+        the renderer will take: a scale whose exp overflows (log-scale > MAX_LOG_SCALE) or a mean
+        beyond MAX_MEAN_EXTENTS scene extents raises FloatingPointError naming the group (a
+        diverging learning rate)."""
+        scale = self.means_step_scale()
+        before = None if scale is None else self.params["means"].detach().clone()
         self.optimizer.step()
         with torch.no_grad():
+            if scale is not None:  # Adam's step is per group; the rule's is per row: rescale the row's move
+                means = self.params["means"]
+                move = means - before
+                if self.config.means_lr_rule == "disparity":  # the radial part once more: uniform in 1/d
+                    out = before - self.scene_center.to(before)
+                    out = out / torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min(1e-30)
+                    radial = (move * out).sum(dim=1, keepdim=True)
+                    move = move + out * radial * (scale[:, None] - 1.0)
+                means.copy_(torch.addcmul(before, move, scale[:, None]))
             top = float(self.params["scales"].max()) if self.params["scales"].numel() else 0.0
             if top > MAX_LOG_SCALE:  # NaN passes here: the controller's finiteness check names it
                 raise FloatingPointError(f"group 'scales': a log-scale reached {top:.4g} (> {MAX_LOG_SCALE}, "
@@ -803,6 +855,17 @@ class GS3DAdapter:
                     raise FloatingPointError(
                         f"group 'means': a mean moved {far:.4g} from the model's median, beyond {MAX_MEAN_EXTENTS:g} "
                         f"scene extents ({self.scene_extent:.4g}); the learning rate diverges")
+
+    def means_step_scale(self) -> Optional[Tensor]:
+        """[N] the factor config.means_lr_rule puts on each mean's Adam step, f = max(extent, d) /
+        extent with d the distance from scene_center ("distance": the whole step; "disparity":
+        the step across the line of sight from the centre, and f^2 along it), or None (no factor:
+        the "extent" rule, or no scene_center)."""
+        if self.config.means_lr_rule in ("extent", "auto") or self.scene_center is None:
+            return None
+        means = self.params["means"].detach()
+        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
+        return d.clamp_min(self.scene_extent) / self.scene_extent
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
@@ -819,6 +882,7 @@ class GS3DAdapter:
             "step": self._step,
             "active_sh_degree": self.active_sh_degree,
             "scene_extent": self.scene_extent,
+            "scene_center": None if self.scene_center is None else self.scene_center.clone(),
             "config": self.config.saved_values(),
             "generator": self._generator.get_state(),
         }
@@ -837,7 +901,8 @@ class GS3DAdapter:
         if unknown:
             raise ValueError(f"state config has unknown fields {sorted(unknown)}")
         ref = self.params["means"]
-        config = dataclasses.replace(self.config, **state["config"])
+        saved = {"means_lr_rule": "extent", **state["config"]}  # an earlier release moved every mean by 3DGS's rule
+        config = dataclasses.replace(self.config, **saved)
         raw = {k: state["params"][k].to(device=ref.device, dtype=ref.dtype) for k in PARAM_NAMES}
         old_config, self.config = self.config, config
         try:
@@ -856,6 +921,8 @@ class GS3DAdapter:
                 self.config = old_config
                 raise ValueError(f"stats[{key!r}] must be [{n}], got {list(stats[key].shape)}")
         self.scene_extent = float(state["scene_extent"])
+        if "scene_center" in state:  # an earlier release's state has none: the current centre stays
+            self.scene_center = _check_center(state["scene_center"])
         self._step = int(state["step"])
         self._mean_reference = None
         self.active_sh_degree = int(state["active_sh_degree"])

@@ -335,14 +335,15 @@ class GS4DAdapter(GS3DAdapter):
         return self.gs4d_config
 
     def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
-                 opacities: Tensor, scene_extent: float, config=None, active_sh_degree: int = 0) -> None:
+                 opacities: Tensor, scene_extent: float, config=None, active_sh_degree: int = 0, *,
+                 scene_center: Optional[Tensor] = None) -> None:
         if config is None or isinstance(config, GS3DConfig):
             config = GS4DConfig() if config is None else GS4DConfig(canonical=config)
         if not isinstance(config, GS4DConfig):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
         self.gs4d_config = config
         super().__init__(means, sh0, shN, scales, quats, opacities, scene_extent, config.canonical,
-                         active_sh_degree)
+                         active_sh_degree, scene_center=scene_center)
         bounds = (torch.tensor(config.bounds, dtype=torch.float64) if config.bounds is not None
                   else bounds_from_points(self.params["means"], config.min_bounds_fraction))
         self._build_field(bounds)
@@ -366,7 +367,7 @@ class GS4DAdapter(GS3DAdapter):
         config = dataclasses.replace(config, canonical=canonical.config)
         p = {k: v.detach() for k, v in canonical.params.items()}
         return cls(p["means"], p["sh0"], p["shN"], p["scales"], p["quats"], p["opacities"],
-                   canonical.scene_extent, config, canonical.active_sh_degree)
+                   canonical.scene_extent, config, canonical.active_sh_degree, scene_center=canonical.scene_center)
 
     @classmethod
     def from_scene(cls, scene, config: Optional[GS4DConfig] = None, dtype: torch.dtype = torch.float32,

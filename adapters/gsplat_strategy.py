@@ -388,7 +388,17 @@ class MVGSStrategy(DefaultStrategy):
         """Indices into the training Dataset, one list per step (the step's M views), for
         ``DataLoader(trainset, batch_sampler=strategy.batch_sampler(), ...)``. Each batch it
         yields must go through :meth:`at_level` before rendering (in order: workers may load
-        ahead, the plans wait in a queue)."""
+        ahead, the plans wait in a queue). A DataLoader stacks a step's images into one tensor
+        and at_level takes one, so a plan with several views per step on a training set of
+        several image sizes is refused here, naming the sizes."""
+        multi = [s for s in self.config.stages if s.views > 1]
+        sizes = collections.Counter((c.width, c.height) for c in self.views.train_cameras)
+        if multi and len(sizes) > 1:
+            listed = ", ".join(f"{w}x{h} ({n} views)" for (w, h), n in sorted(sizes.items()))
+            raise ValueError(f"the plan draws up to {min(max(s.views for s in multi), len(self.views.train_cameras))} views per step, and a DataLoader stacks a "
+                             f"step's images into one tensor, but this training set has images of {len(sizes)} sizes: "
+                             f"{listed}; use a plan of one view per step (the default and baseline presets) or "
+                             "resize the images to one size")
         return MVGSBatchSampler(self)
 
     def loader(self, data, **dataloader_kwargs) -> "MVGSLoader":

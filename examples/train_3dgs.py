@@ -51,7 +51,8 @@ def build_adapter(args, scene, config: MVGSConfig) -> GS3DAdapter:
     """The 3DGS model this command line trains on `scene` under `config` (its schedules
     compressed with the run; also what benchmarks/bench_view_cost.py times)."""
     model = model_config(config, args.seed, rasterize=rasterize_function(args),
-                         world_size_rule=args.world_size_rule)
+                         world_size_rule=args.world_size_rule,
+                         means_lr_rule=args.means_lr_rule)
     return GS3DAdapter.from_scene(scene, model, device=args.device)
 
 

@@ -71,7 +71,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
     canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
-                             world_size_rule=args.world_size_rule)
+                             world_size_rule=args.world_size_rule,
+                             means_lr_rule=args.means_lr_rule)
     return GS4DConfig(canonical=canonical, coarse_steps=coarse,
                       fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
 

@@ -38,7 +38,11 @@ def parse_args(argv=None):
     ap.add_argument("--voxel-size", type=float_above(0), default=None,
                     help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    if args.budget_swap:  # the adapter would take it and do nothing
+        ap.error(f"--budget-swap {args.budget_swap:g}: Scaffold-GS anchors do not swap (the swap acts on 3DGS and 4DGS "
+                 "Gaussians and in the gsplat strategy); leave it out")
+    return args
 
 
 def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:

@@ -29,7 +29,7 @@ import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DConfig
 from mvgs_plugin.config import PRESETS, MVGSConfig, Stage
-from mvgs_plugin.controller import MVGS
+from mvgs_plugin.controller import MVGS, ConfigMismatch
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
@@ -137,16 +137,17 @@ def scene_from_args(args):
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
-                 world_size_rule=None) -> GS3DConfig:
+                 world_size_rule=None, means_lr_rule=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
     growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
-    world_size_rule: GS3DConfig.world_size_rule (None: its default)."""
+    world_size_rule, means_lr_rule: GS3DConfig's (None: its default)."""
     clock = config.clock_length
     extra = {} if rasterize is None else {"rasterize": rasterize}
-    if world_size_rule is not None:
-        extra["world_size_rule"] = world_size_rule
+    for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule)):
+        if value is not None:
+            extra[name] = value
     return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
                       sh_degree_interval=max(1, round(1000 * clock / 30_000)), **extra)
 
@@ -228,13 +229,20 @@ def check_out(out: Path) -> None:
 
 
 def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """--world-size-rule, for the examples whose model has 3DGS's size pruning (train_3dgs,
-    train_4dgs; Scaffold-GS prunes anchors by opacity only)."""
+    """--world-size-rule and --means-lr-rule, for the examples whose model is 3DGS's
+    (train_3dgs, train_4dgs; Scaffold-GS prunes anchors by opacity only and places its neural
+    Gaussians by offsets from fixed anchors)."""
     ap.add_argument("--world-size-rule", choices=("extent", "distance"), default=None,
                     help="size pruning (after the first opacity reset): distance prunes Gaussians larger than 0.1 x "
                          "the scene extent within the extent of the rig's centre and 0.1 x their distance from it "
                          "beyond, so the far background keeps its large Gaussians; extent is 3DGS's rule, 0.1 x the "
                          "extent everywhere (default: GS3DConfig's, distance)")
+    ap.add_argument("--means-lr-rule", choices=("auto", "extent", "distance", "disparity"), default=None,
+                    help="position steps: distance scales each Gaussian's step by f = max(extent, d) / extent, d its "
+                         "distance from the rig's centre, so far content moves by the same angle as near; disparity "
+                         "scales the part along the line of sight by f^2 (uniform in 1/d); extent is 3DGS's rule, "
+                         "the same step everywhere; auto is disparity on a forward-facing rig, extent elsewhere "
+                         "(default: GS3DConfig's, auto)")
     return ap
 
 
@@ -397,7 +405,12 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         s = args.resolution_scale
         config = dataclasses.replace(config, stages=tuple(Stage(st.factor * s, st.views, st.steps) for st in config.stages))
     if scene is not None:
-        config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
+        try:
+            config = config.for_scene(scene)  # on the recipe, so --steps N stays N steps
+        except ValueError as err:  # e.g. a --pixels-per-gaussian that leaves no Gaussian
+            ppg = getattr(args, "pixels_per_gaussian", None)
+            raise UsageError(f"--pixels-per-gaussian {ppg:g}: {err}" if ppg is not None and "pixels_per_gaussian" in str(err)
+                             else str(err)) from err
     late = getattr(args, "late_views", None) not in (None, 1)  # train_4dgs.py's --late-views, after for_scene:
     recipe_stages = len(config.stages)
     if late:
@@ -524,6 +537,10 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         asked = model_settings(adapter)
         try:
             trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
+        except ConfigMismatch as err:  # the Python advice (strict=False, from_dict) is not a command line's
+            said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in err.differences)
+            raise UsageError(f"--resume {args.resume}: the checkpoint was made with other settings ({said}); resume "
+                             "with the flags it was written with") from err
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
             raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
         saved = model_settings(adapter)  # an adapter's load_state_dict takes the checkpoint's model config

@@ -608,7 +608,7 @@ class MVGSConfig:
 
         * pixels_per_gaussian (when max_gaussians is None, and the rig is not forward-facing
           unless forward_rig_budget): max_gaussians = the training views' pixels at the finest
-          stage's resolution / pixels_per_gaussian, at least 1.
+          stage's resolution / pixels_per_gaussian, rounded (a ratio that rounds it to 0 is refused).
         * max_views_fraction: every stage's views are capped at that fraction of the training
           views (at least 1); a capped stage keeps its work when the clocks count work (a budget,
           or clock_unit="work"), so it gets more steps, and its steps when they count steps.
@@ -633,8 +633,11 @@ class MVGSConfig:
 
         if self.pixels_per_gaussian is not None and self.max_gaussians is None and (
                 self.forward_rig_budget or not forward_facing()):
-            out = dataclasses.replace(out, max_gaussians=max(1, round(
-                training_pixels(scene.train_cameras, min(s.factor for s in self.stages)) / self.pixels_per_gaussian)))
+            pixels = training_pixels(scene.train_cameras, min(s.factor for s in self.stages))
+            if round(pixels / self.pixels_per_gaussian) < 1:  # a budget of no Gaussian: the user's to fix, not ours to round up
+                raise ValueError(f"pixels_per_gaussian={self.pixels_per_gaussian:g} gives a budget of no Gaussian for "
+                                 f"the {pixels} training pixels; give at most {pixels} (a budget of one Gaussian)")
+            out = dataclasses.replace(out, max_gaussians=round(pixels / self.pixels_per_gaussian))
         if self.max_views_fraction is not None:
             cap = max(1, math.floor(self.max_views_fraction * len(scene.train_cameras)))
             if any(s.views > cap for s in out.stages):

@@ -73,6 +73,15 @@ _LEVEL_DECAY = 0.9
 _LEVEL_FLOOR = 0.01
 
 
+class ConfigMismatch(ValueError):
+    """load_checkpoint's refusal of a checkpoint made with another MVGSConfig: `differences`
+    lists (field, checkpoint value, this run's value), so a command line can word its advice."""
+
+    def __init__(self, message: str, differences):
+        super().__init__(message)
+        self.differences = list(differences)
+
+
 class PhaseTimer:
     """Wall seconds per phase of a step: ``with timer("render"): ...`` adds the block's time to
     ``timer.seconds["render"]`` (an exception inside a block still counts its time)."""
@@ -452,9 +461,9 @@ class MVGS:
         if differ:
             said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in differ)
             if strict:
-                raise ValueError(f"the checkpoint was made by another run's config ({said}); build the trainer with "
-                                 "the checkpoint's config (MVGSConfig.from_dict(state['config'])), or pass "
-                                 "strict=False to keep this run's values")
+                raise ConfigMismatch(f"the checkpoint was made by another run's config ({said}); build the trainer "
+                                     "with the checkpoint's config (MVGSConfig.from_dict(state['config'])), or pass "
+                                     "strict=False to keep this run's values", differ)
             warnings.warn(f"checkpoint config differs, this run's values are kept: {said}", stacklevel=2)
         # All or nothing: if any part fails to load, the trainer is put back as it was (a caller
         # who catches the error and trains on must not get a half-restored run).
@@ -503,5 +512,7 @@ class MVGS:
                              "by save_checkpoint)")
         try:
             self.load_state_dict(state, strict)
+        except ConfigMismatch as exc:
+            raise ConfigMismatch(f"cannot load checkpoint {path!r}: {exc}", exc.differences) from exc
         except ValueError as exc:
             raise ValueError(f"cannot load checkpoint {path!r}: {exc}") from exc

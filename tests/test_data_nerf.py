@@ -133,6 +133,28 @@ def test_rgb_images_and_dropped_alpha(tmp_path):
     assert np.allclose(img.numpy(), written["train/r_002.png"][1][..., :3] / 255.0, atol=1e-6)
 
 
+def test_a_cmyk_jpeg_reads_as_its_rgb_not_as_rgba(tmp_path):
+    """A CMYK JPEG decodes to four channels; taken as RGBA its K channel became alpha (an all-white
+    scene on a white background). It reads as the RGB Pillow converts it to, close to the smooth
+    image it was made from, and an RGBA PNG is still composited."""
+    from PIL import Image
+
+    from mvgs_plugin.data.images import read_rgb
+
+    yy, xx = np.mgrid[0:H, 0:W]
+    rgb = np.stack([xx / (W - 1), yy / (H - 1), 0.3 + 0.4 * (xx + yy) / (W + H)], -1)
+    pixels = np.round(rgb * 255).astype(np.uint8)
+    Image.fromarray(pixels).convert("CMYK").save(tmp_path / "c.jpg", quality=100, subsampling=0)
+    with Image.open(tmp_path / "c.jpg") as img:
+        assert img.mode == "CMYK"
+    got = read_rgb(tmp_path / "c.jpg", background=(1.0, 1.0, 1.0)).numpy()
+    assert got.shape == (H, W, 3) and np.abs(got - pixels / 255.0).max() < 8 / 255
+    rgba = np.concatenate([pixels, np.full((H, W, 1), 128, np.uint8)], -1)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
+    a = 128 / 255
+    assert np.allclose(read_rgb(tmp_path / "a.png", background=(0.0, 0.0, 0.0)).numpy(), pixels / 255.0 * a, atol=1e-6)
+
+
 def test_center_extent_and_optional_points(tmp_path):
     written = write_blender(tmp_path)
     scene = load_nerf_synthetic(tmp_path)

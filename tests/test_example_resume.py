@@ -133,6 +133,11 @@ def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypat
     assert err.value.code == 2
     assert "other model settings (world_size_rule: checkpoint 'distance', this command 'extent')" in \
         capsys.readouterr().err
+    with pytest.raises(SystemExit) as err:  # another run config: named, with a command line's advice
+        example.main(base + ["--out", str(tmp_path / "r"), "--resume", str(checkpoint), "--max-gaussians", "900"])
+    said = capsys.readouterr().err
+    assert err.value.code == 2 and "made with other settings (max_gaussians: checkpoint None, this run 900); resume " \
+        "with the flags it was written with" in said and "strict=False" not in said
     monkeypatch.setattr(controller.MVGS, "step", interrupted)
     for out in ("b", "a"):  # no checkpoint; a checkpoint.pt of an earlier run in --out is not this run's
         with pytest.raises(SystemExit) as err:

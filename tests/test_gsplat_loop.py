@@ -492,6 +492,38 @@ def test_views_of_reads_datasets_without_their_images(forward):
         MVGSStrategy(DefaultStrategy(), Items(), steps=10).batches()
 
 
+def test_a_multi_view_plan_on_images_of_several_sizes_is_refused_before_the_collate(forward):
+    """A DataLoader stacks a step's images (torch's default collate), so M > 1 views of two sizes
+    ended in torch's "stack expects each tensor to be equal size"; the sampler now refuses it,
+    naming the sizes, and a one-view plan on the same views trains (one image per batch)."""
+    cams = list(forward.train_cameras)
+    small = [c.scaled(0.5) for c in cams[:3]]  # a second camera of another size
+
+    class Items(torch.utils.data.Dataset):
+        def __init__(self, cams):
+            self.cams = cams
+
+        def __len__(self):
+            return len(self.cams)
+
+        def __getitem__(self, i):
+            c = self.cams[i]
+            return {"camtoworld": c.camera_to_world, "K": c.K, "image": torch.zeros(c.height, c.width, 3)}
+
+    mixed = Items(small + cams[3:])
+    w, h = cams[0].width, cams[0].height
+    strategy = MVGSStrategy(DefaultStrategy(), mixed, "multiview", steps=40)
+    (w1, h1), (w2, h2) = sorted([(small[0].width, small[0].height), (w, h)])
+    n1, n2 = (3, len(cams) - 3) if (w1, h1) == (small[0].width, small[0].height) else (len(cams) - 3, 3)
+    with pytest.raises(ValueError, match=rf"up to {len(cams)} views per step.* 2 sizes: {w1}x{h1} \({n1} views\), "
+                                         rf"{w2}x{h2} \({n2} views\)"):
+        strategy.loader(torch.utils.data.DataLoader(mixed))
+    one_view = MVGSStrategy(DefaultStrategy(), mixed, "default", steps=40)
+    batch = next(iter(one_view.loader(torch.utils.data.DataLoader(mixed))))
+    assert batch["image"].shape[0] == 1
+    MVGSStrategy(DefaultStrategy(), Items(cams), "multiview", steps=40).batch_sampler()  # one size: fine
+
+
 # ---- their mistakes -------------------------------------------------------------------------------------
 def run_loss(scene, loss_fn, steps):
     """The mistake warnings a multiview loop with `loss_fn` gets over `steps` steps."""
@@ -628,6 +660,28 @@ def test_example_cli_writes_metrics(tmp_path):
     assert (out / "metrics.json").exists()
     with pytest.raises(SystemExit):
         common.parse_config(["--device", "cuda"] if not torch.cuda.is_available() else ["--steps", "1"])
+
+
+def test_a_refused_resume_is_one_line_and_exit_2(tmp_path, capsys):
+    """A checkpoint of another budget (or a damaged file) ends the example with one line naming
+    --resume and exit code 2, as train_3dgs.py's refusals do, not a traceback."""
+    base = ["--data", str(FORWARD), "--steps", "30", "--threads", "1"]
+    cfg = common.parse_config(base + ["--out", str(tmp_path / "a"), "--max-gaussians", "400", "--save-steps", "10"])
+    common.run(simple_trainer_mvgs.Runner, cfg)
+    ckpt = tmp_path / "a" / "ckpt_10.pt"
+    capsys.readouterr()
+    cfg = common.parse_config(base + ["--out", str(tmp_path / "b"), "--max-gaussians", "300", "--resume", str(ckpt)])
+    with pytest.raises(SystemExit) as err:
+        common.run(simple_trainer_mvgs.Runner, cfg)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert err.value.code == 2 and len(lines) == 1
+    assert f"error: --resume {ckpt}: " in lines[0] and "max_gaussians" in lines[0]
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(ckpt.read_bytes()[:200])
+    cfg = common.parse_config(base + ["--out", str(tmp_path / "c"), "--max-gaussians", "400", "--resume", str(bad)])
+    with pytest.raises(SystemExit) as err:
+        common.run(simple_trainer_mvgs.Runner, cfg)
+    assert err.value.code == 2 and f"error: --resume {bad}: " in capsys.readouterr().err
 
 
 def test_the_example_cli_takes_a_budget_from_the_data(tmp_path, forward):

@@ -209,11 +209,15 @@ def test_pixels_per_gaussian_sets_the_budget_from_the_training_views(scene):
     # counted at the finest stage's resolution: factor 2 renders 8 x 8 px views, 512 pixels
     coarse = MVGSConfig.baseline(pixels_per_gaussian=64, stages=(Stage(4, 1, 10), Stage(2, 1, 10)))
     assert coarse.for_scene(scene).max_gaussians == 8
-    # an explicit budget wins; the rule is idempotent; at least one Gaussian
+    # an explicit budget wins; the rule is idempotent; one pixel count per Gaussian gives one
     assert MVGSConfig.baseline(pixels_per_gaussian=64, max_gaussians=7).for_scene(scene).max_gaussians == 7
     once = MVGSConfig.default(pixels_per_gaussian=64).for_scene(scene)
     assert once.for_scene(scene) == once
-    assert MVGSConfig.baseline(pixels_per_gaussian=1e9).for_scene(scene).max_gaussians == 1
+    assert MVGSConfig.baseline(pixels_per_gaussian=2048).for_scene(scene).max_gaussians == 1
+    # a ratio that leaves no Gaussian is refused, naming the pixels (it was rounded up to 1 in silence)
+    with pytest.raises(ValueError, match=r"pixels_per_gaussian=1e\+09 gives a budget of no Gaussian for the 2048 "
+                                         r"training pixels; give at most 2048"):
+        MVGSConfig.baseline(pixels_per_gaussian=1e9).for_scene(scene)
     # a run with it holds the same budget: the controller resolves the config for its scene
     trainer = MVGS(make(scene), scene, config(None, pixels_per_gaussian=64))
     counts = watch_renders(trainer)
@@ -235,6 +239,20 @@ def test_pixels_per_gaussian_reaches_the_config_from_the_command_line(scene):
     for bad in (0, -1.0, float("nan"), float("inf"), True, "64"):
         with pytest.raises(ValueError, match="pixels_per_gaussian"):
             MVGSConfig(pixels_per_gaussian=bad)
+    # a ratio that leaves no Gaussian on this scene: one line naming the flag, as argparse's errors
+    args = ap.parse_args(["--preset", "baseline", "--pixels-per-gaussian", "5000", "--steps", "100"])
+    with pytest.raises(cli.UsageError, match="--pixels-per-gaussian 5000: .* no Gaussian for the 2048 training pixels"):
+        cli.config_from_args(args, scene)
+
+
+def test_scaffold_refuses_a_swap_its_anchors_cannot_make(capsys):
+    from test_late_views import _example
+
+    example = _example("train_scaffold.py")
+    assert example.parse_args(["--max-gaussians", "50"]).budget_swap is None
+    with pytest.raises(SystemExit):
+        example.parse_args(["--max-gaussians", "50", "--budget-swap", "0.5"])
+    assert "--budget-swap 0.5: Scaffold-GS anchors do not swap" in capsys.readouterr().err
 
 
 def test_budget_swap_reaches_the_config_from_the_command_line(scene, capsys):

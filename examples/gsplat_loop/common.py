@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -234,9 +235,13 @@ class DataPosition:
         return {"generator": self.pass_start, "taken": self.taken}
 
     def resume(self, loader, state: Dict[str, Any], splats, optimizers, strategy_state):
-        """An iterator over `loader` positioned where `state` was taken."""
+        """An iterator over `loader` positioned where `state` was taken (ResumeRefused when the
+        strategy refuses the checkpoint's schedule)."""
         if isinstance(loader, MVGSLoader):
-            loader.strategy.load_state_dict(state["mvgs"], splats, optimizers, strategy_state)
+            try:
+                loader.strategy.load_state_dict(state["mvgs"], splats, optimizers, strategy_state)
+            except ValueError as err:  # another run's config or plan
+                raise ResumeRefused(str(err)) from err
             return self.iterate(loader)
         self.generator.set_state(state["generator"])
         it = self.iterate(loader)
@@ -270,12 +275,20 @@ def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strat
     }, str(path))
 
 
+class ResumeRefused(ValueError):
+    """A checkpoint this run cannot continue (another run's parameters or schedule): run() ends
+    the process with one line naming --resume and exit code 2, as argparse's errors."""
+
+
 def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) -> Tuple[int, Dict]:
     """Restore a save_checkpoint() file into the run's objects; returns the step to start at and
     the data position (for DataPosition.resume)."""
-    ckpt = load_checked(str(path))
+    try:
+        ckpt = load_checked(str(path))
+    except (ValueError, RuntimeError, OSError) as err:  # damaged, foreign or unsafe file
+        raise ResumeRefused(str(err).splitlines()[0] if str(err) else type(err).__name__) from err
     if set(ckpt["splats"]) != set(splats.keys()):
-        raise ValueError(f"{path}: parameters {sorted(ckpt['splats'])}, this run has {sorted(splats.keys())}")
+        raise ResumeRefused(f"parameters {sorted(ckpt['splats'])}, this run has {sorted(splats.keys())}")
     for name, value in ckpt["splats"].items():
         splats[name] = torch.nn.Parameter(value.to(splats[name].device))
         optimizers[name].param_groups[0]["params"] = [splats[name]]
@@ -368,7 +381,11 @@ def run(runner_class, cfg: Config) -> Dict:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t0, c0 = time.perf_counter(), time.process_time()
-    runner.train()
+    try:
+        runner.train()
+    except ResumeRefused as err:
+        print(f"{Path(sys.argv[0]).name}: error: --resume {cfg.resume}: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     if cuda:
         torch.cuda.synchronize()  # kernels still queued belong to the training time
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -390,4 +407,4 @@ def run(runner_class, cfg: Config) -> Dict:
 
 
 __all__ = ["Config", "Parser", "Dataset", "create_splats_with_optimizers", "rasterize_splats", "DataPosition",
-           "save_checkpoint", "load_checkpoint", "evaluate", "parse_config", "run"]
+           "save_checkpoint", "load_checkpoint", "ResumeRefused", "evaluate", "parse_config", "run"]

@@ -83,7 +83,27 @@ def _decode(path: Path) -> np.ndarray:
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (1, 2, 3, 4)):
         raise ValueError(f"image {path} has unsupported shape {list(arr.shape)} "
                          "(expected [H,W], [H,W,1..4])")
+    if arr.ndim == 3 and arr.shape[2] == 4:  # four channels are RGBA only if the file says so
+        arr = _four_channels_as_rgb(path, arr)
     return arr
+
+
+def _four_channels_as_rgb(path: Path, arr: np.ndarray) -> np.ndarray:
+    """`arr` as decoded when the file's colour mode has an alpha channel (RGBA), else the file
+    converted to RGB by Pillow: a CMYK JPEG (print and photo tools write them) decodes to four
+    channels too, and taken as RGBA its K channel would become alpha."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            if img.mode in ("RGBA", "RGBa", "LA", "La", "PA"):
+                return arr
+            if img.mode == "CMYK":
+                return np.asarray(img.convert("RGB"))
+            mode = img.mode
+    except Exception:  # Pillow cannot open what the other backend read: keep its RGBA reading
+        return arr
+    raise ValueError(f"image {path} has colour mode {mode!r} with four channels; expected RGB, RGBA or CMYK")
 
 
 def _to_unit_float(arr: np.ndarray, path: Path) -> np.ndarray:
