@@ -17,7 +17,9 @@ SH degree 3. Per N, medians over --repeats of:
              with a cap that binds (growth ranked by the consistency score into the room left),
              with the same cap and a swap of 2 % of it (MVGSConfig.budget_swap: the lowest keep
              scores make way for more candidates), and with a cap below the count (the lowest
-             keep scores are cut).
+             keep scores are cut);
+  optimizer  the adapter's optimizer step (Adam on every group) with GS3DConfig.means_lr_rule
+             "extent" (3DGS's), "distance" and "disparity" (a per-row factor on the means' step).
 Prints a markdown table; the "share of a step" column is the time of the call over one step's;
 a densification call runs once per densify_every steps (10-100), so its share of the run is
 that divided by densify_every.
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import math
 import statistics
 import time
@@ -125,6 +128,16 @@ def measure(n: int, repeats: int) -> dict:
     rows[f"densify, cap binds, swap 2 % ({max(1, free_growth // 2) + n // 50} new)"] = timed(
         densify(max_primitives=n + max(1, free_growth // 2), swap_share=0.02), repeats) - load
     rows[f"densify, cut to {n // 2}"] = timed(densify(max_primitives=n // 2), repeats) - load
+    # the means' step rule (GS3DConfig.means_lr_rule): Adam on every group, then per-row factors
+    adapter.load_state_dict(saved)
+    gen = torch.Generator().manual_seed(1)
+    for p in adapter.params.values():
+        p.grad = 1e-6 * torch.randn(p.shape, generator=gen, dtype=p.dtype)
+    kept = adapter.config
+    for rule in ("extent", "distance", "disparity"):
+        adapter.config = dataclasses.replace(kept, means_lr_rule=rule)
+        rows[f"optimizer step, means_lr_rule={rule}"] = timed(adapter.optimizer_step, repeats)
+    adapter.config = kept
     return rows
 
 
