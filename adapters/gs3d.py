@@ -97,7 +97,7 @@ class GS3DConfig:
             angle as seen from the rig wherever it lies. "disparity": across the line of sight
             from the centre times f, along it times f^2, so steps are uniform in angle and in
             1/d, as depth is known from a small baseline: a forward-facing capture's cameras
-            stand close together (3DGS's extent is their spread), its content lies 3.7x to 18x
+            stand close together (3DGS's extent is their spread), its content lies 4x to 18x
             that away on the generated rigs, and its depth errors grow as d^2. "auto" (default):
             from_scene resolves it to "disparity" on a forward-facing rig
             (mvgs_plugin.data.init.is_forward_facing) and to "extent" elsewhere (on a 360-degree
@@ -251,6 +251,11 @@ class GS3DAdapter:
             raise ValueError(f"config must be a GS3DConfig, got {type(self.config).__name__}")
         self.scene_extent = check_float("scene_extent", scene_extent, positive=True)
         self.scene_center = _check_center(scene_center)
+        # the initial model's farthest mean from the centre: the step rules' factor stops growing there
+        self.far_distance: Optional[float] = None
+        if self.scene_center is not None and means.shape[0]:
+            far = torch.linalg.vector_norm(means.detach().double().cpu() - self.scene_center, dim=1).max()
+            self.far_distance = float(far)
         raw = dict(means=means, sh0=sh0, shN=shN, scales=scales, quats=quats, opacities=opacities)
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
@@ -372,8 +377,8 @@ class GS3DAdapter:
         generator seeded with config.seed).
         """
         config = GS3DConfig() if config is None else config
-        if config.means_lr_rule == "auto":  # the rig decides (GS3DConfig.means_lr_rule)
-            forward = is_forward_facing(scene.train_cameras)
+        if config.means_lr_rule == "auto":  # the rig decides (GS3DConfig.means_lr_rule); no centre, no rule
+            forward = getattr(scene, "center", None) is not None and is_forward_facing(scene.train_cameras)
             config = dataclasses.replace(config, means_lr_rule="disparity" if forward else "extent")
         points = getattr(scene, "points", None) if points is None else points
         if points is None or len(points) == 0:
@@ -824,24 +829,27 @@ class GS3DAdapter:
         return {name: p.grad for name, p in self.params.items()}
 
     def optimizer_step(self) -> None:
-        """Adam on every group (with config.means_lr_rule "distance" and a scene_center, each
-        mean's step then times max(extent, d) / extent: means_step_scale), then a check of what
+        """Adam on every group (with config.means_lr_rule "distance" or "disparity" and a
+        scene_center, the means' Adam move is applied with the rule's per-row factors,
+        means_step_scale, in one addition, so a move far below float32's spacing at the mean is
+        not rounded away before it is scaled), then a check of what
         the renderer will take: a scale whose exp overflows (log-scale > MAX_LOG_SCALE) or a mean
         beyond MAX_MEAN_EXTENTS scene extents raises FloatingPointError naming the group (a
         diverging learning rate)."""
-        scale = self.means_step_scale()
-        before = None if scale is None else self.params["means"].detach().clone()
-        self.optimizer.step()
+        means = self.params["means"]
+        scale = self.means_step_scale() if means.grad is not None else None
+        if scale is None:
+            self.optimizer.step()
+        else:  # Adam's step is per group, the rule's per row: the moments move, the means by the rule
+            group = next(g for g in self.optimizer.param_groups if g["name"] == "means")
+            lr, group["lr"] = group["lr"], 0.0
+            try:
+                self.optimizer.step()  # every group; the means' moments and step count, not the means
+            finally:
+                group["lr"] = lr
+            with torch.no_grad():
+                means.add_(self._ruled_move(group, lr, scale))  # one rounding, however small the move
         with torch.no_grad():
-            if scale is not None:  # Adam's step is per group; the rule's is per row: rescale the row's move
-                means = self.params["means"]
-                move = means - before
-                if self.config.means_lr_rule == "disparity":  # the radial part once more: uniform in 1/d
-                    out = before - self.scene_center.to(before)
-                    out = out / torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min(1e-30)
-                    radial = (move * out).sum(dim=1, keepdim=True)
-                    move = move + out * radial * (scale[:, None] - 1.0)
-                means.copy_(torch.addcmul(before, move, scale[:, None]))
             top = float(self.params["scales"].max()) if self.params["scales"].numel() else 0.0
             if top > MAX_LOG_SCALE:  # NaN passes here: the controller's finiteness check names it
                 raise FloatingPointError(f"group 'scales': a log-scale reached {top:.4g} (> {MAX_LOG_SCALE}, "
@@ -856,16 +864,34 @@ class GS3DAdapter:
                         f"group 'means': a mean moved {far:.4g} from the model's median, beyond {MAX_MEAN_EXTENTS:g} "
                         f"scene extents ({self.scene_extent:.4g}); the learning rate diverges")
 
+    def _ruled_move(self, group, lr: float, scale: Tensor) -> Tensor:
+        """Adam's move of the means (torch's formula, from the moments this step left: lr / (1 -
+        b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps), negated) times the rule's factors."""
+        state = self.optimizer.state[self.params["means"]]
+        t = float(state["step"])
+        b1, b2 = group["betas"]
+        m, v = state["exp_avg"], state["exp_avg_sq"]
+        move = m / (v.sqrt() / math.sqrt(1.0 - b2 ** t) + group["eps"]) * (-lr / (1.0 - b1 ** t))
+        if self.config.means_lr_rule == "disparity":  # the part along the line of sight once more: uniform in 1/d
+            means = self.params["means"].detach()
+            out = means - self.scene_center.to(means)
+            out = out / torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min(1e-30)
+            move = move + out * ((move * out).sum(dim=1, keepdim=True) * (scale[:, None] - 1.0))
+        return move * scale[:, None]
+
     def means_step_scale(self) -> Optional[Tensor]:
         """[N] the factor config.means_lr_rule puts on each mean's Adam step, f = max(extent, d) /
         extent with d the distance from scene_center ("distance": the whole step; "disparity":
         the step across the line of sight from the centre, and f^2 along it), or None (no factor:
-        the "extent" rule, or no scene_center)."""
+        the "extent" rule, or no scene_center). d is clamped to the initial model's farthest
+        distance (far_distance): beyond the content it started with, no Gaussian speeds up, so a
+        Gaussian pushed outward keeps a bounded step instead of one that grows with its distance."""
         if self.config.means_lr_rule in ("extent", "auto") or self.scene_center is None:
             return None
         means = self.params["means"].detach()
         d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
-        return d.clamp_min(self.scene_extent) / self.scene_extent
+        far = max(self.scene_extent, self.far_distance if self.far_distance is not None else math.inf)
+        return d.clamp(self.scene_extent, far) / self.scene_extent
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
@@ -883,6 +909,7 @@ class GS3DAdapter:
             "active_sh_degree": self.active_sh_degree,
             "scene_extent": self.scene_extent,
             "scene_center": None if self.scene_center is None else self.scene_center.clone(),
+            "far_distance": self.far_distance,
             "config": self.config.saved_values(),
             "generator": self._generator.get_state(),
         }
@@ -923,6 +950,8 @@ class GS3DAdapter:
         self.scene_extent = float(state["scene_extent"])
         if "scene_center" in state:  # an earlier release's state has none: the current centre stays
             self.scene_center = _check_center(state["scene_center"])
+        if "far_distance" in state:
+            self.far_distance = None if state["far_distance"] is None else float(state["far_distance"])
         self._step = int(state["step"])
         self._mean_reference = None
         self.active_sh_degree = int(state["active_sh_degree"])

@@ -480,6 +480,9 @@ def late_views_hint(args, scene, config: MVGSConfig) -> str:
     return ""
 
 
+RENDERS_MANIFEST = "renders.json"  # OUT/test's list of the renders a run wrote (save_test_renders)
+
+
 def render_file_names(names) -> list:
     """The file name of each view's test render: its image's stem ("r_000.png"), or, when two
     views share a stem (cameras in sub-folders), its path without the extension and with "/" as
@@ -492,16 +495,25 @@ def render_file_names(names) -> list:
 
 def save_test_renders(out: Path, result) -> None:
     """OUT/test/<view>.png for every evaluated view (atomic writes; names: render_file_names).
-    A PNG already in OUT/test that this run does not write (an earlier run's, in a reused --out)
-    is removed once the new ones are written, so the folder holds this run's renders only."""
-    (out / "test").mkdir(parents=True, exist_ok=True)
+    OUT/test/renders.json lists them; a render an earlier run listed there (in a reused --out)
+    and this run does not write is removed, so the folder holds this run's renders. Nothing
+    else is removed: a PNG no run of ours listed (a dataset's, when --out is its folder) stays."""
+    folder = out / "test"
+    folder.mkdir(parents=True, exist_ok=True)
     from mvgs_plugin.reference_renderer.demo import save_png
 
     written = render_file_names([row["name"] for row in result.per_view])
     for row, name in zip(result.per_view, written):
-        save_png(str(out / "test" / name), row["image"].numpy())
-    for stale in sorted(set(p.name for p in (out / "test").glob("*.png")) - set(written)):
-        (out / "test" / stale).unlink()
+        save_png(str(folder / name), row["image"].numpy())
+    manifest = folder / RENDERS_MANIFEST
+    try:
+        earlier = json.loads(manifest.read_text()).get("renders", [])
+    except (OSError, ValueError, AttributeError):  # none yet, or not ours
+        earlier = []
+    for stale in sorted(set(n for n in earlier if isinstance(n, str)) - set(written)):
+        if Path(stale).name == stale and stale.endswith(".png") and (folder / stale).is_file():  # a plain name of ours
+            (folder / stale).unlink()
+    write_json(manifest, {"renders": written})
 
 
 def model_settings(adapter) -> dict:
@@ -544,7 +556,9 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
             raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
         saved = model_settings(adapter)  # an adapter's load_state_dict takes the checkpoint's model config
-        differ = [f"{k}: checkpoint {saved[k]!r}, this command {asked[k]!r}" for k in asked if k in saved and saved[k] != asked[k]]
+        rig_rule = getattr(args, "means_lr_rule", None) is None  # "auto" chose for the rig: the checkpoint's rule stays
+        differ = [f"{k}: checkpoint {saved[k]!r}, this command {asked[k]!r}" for k in asked if k in saved and
+                  saved[k] != asked[k] and not (rig_rule and k.endswith("means_lr_rule"))]
         if differ:
             raise UsageError(f"--resume {args.resume}: the checkpoint was made with other model settings "
                              f"({'; '.join(differ)}); resume with the flags it was written with")
@@ -606,6 +620,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "rasterizer": getattr(args, "rasterizer", "reference"),
         "world_size": 1 if trainer.distributed is None else trainer.distributed.world_size,
         "config": config.to_dict(),
+        "model": json.loads(json.dumps(model_settings(trainer.adapter), default=str)),  # as resolved (means_lr_rule)
         "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
     }
 

@@ -130,8 +130,9 @@ def test_test_renders_of_views_that_share_a_stem_keep_their_folders_apart():
 
 
 def test_a_reused_out_keeps_only_this_runs_test_renders(tmp_path):
-    """An earlier run's renders in OUT/test (another scene's view names) go once this run's are
-    written; this run's are the images it evaluated, and other files in OUT are left alone."""
+    """An earlier run's renders in OUT/test (another scene's view names, listed in its
+    renders.json) go once this run's are written; this run's are the images it evaluated; a PNG
+    no run listed (a dataset's, when --out is its folder) and other files in OUT are left alone."""
     import types
 
     import numpy as np
@@ -143,10 +144,13 @@ def test_a_reused_out_keeps_only_this_runs_test_renders(tmp_path):
     def result(names, value):
         return types.SimpleNamespace(per_view=[{"name": n, "image": torch.full((4, 5, 3), value)} for n in names])
 
+    (tmp_path / "test").mkdir()
+    Image.fromarray(np.zeros((2, 2, 3), np.uint8)).save(tmp_path / "test" / "r_0_depth.png")  # not ours: a dataset's
     save_test_renders(tmp_path, result(["a/r_000.png", "a/r_001.png", "a/r_002.png"], 0.25))
     (tmp_path / "notes.txt").write_text("mine")
     save_test_renders(tmp_path, result(["b/v_0.png", "b/r_001.png"], 0.75))
-    assert sorted(p.name for p in (tmp_path / "test").iterdir()) == ["r_001.png", "v_0.png"]
+    assert sorted(p.name for p in (tmp_path / "test").iterdir()) == ["r_001.png", "r_0_depth.png", "renders.json",
+                                                                      "v_0.png"]
     assert np.allclose(np.asarray(Image.open(tmp_path / "test" / "r_001.png"), dtype=float) / 255, 0.75, atol=1 / 255)
     assert (tmp_path / "notes.txt").read_text() == "mine"
 

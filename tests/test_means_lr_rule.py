@@ -171,3 +171,78 @@ def test_bad_values_are_refused_and_the_flag_reaches_the_model(capsys):
     with pytest.raises(SystemExit):
         ap.parse_args(["--means-lr-rule", "far"])
     assert "far" in capsys.readouterr().err
+
+
+def test_a_move_below_float32_spacing_is_scaled_before_it_is_rounded():
+    """A far float32 mean late in a run: Adam's move is a fraction of float32's spacing at the
+    mean, so position + move rounds back to the position, and scaling that rounded move gave 0.
+    The rule scales Adam's move first and adds it once: the mean moves by f x Adam's move to
+    within one spacing."""
+    spacing = float(torch.finfo(torch.float32).eps) * 16  # float32's spacing at 16..32
+    adam = 0.3 * spacing  # step 1 with a constant gradient: Adam moves each coordinate by lr against it
+    means = torch.tensor([[20.0, 20.0, 20.0], [-20.0, 18.0, 24.0]], dtype=torch.float32)
+    extent = 2.0
+    a = GS3DAdapter.from_tensors(means, rgb=torch.full((2, 3), 0.5), scales=torch.full((2, 3), 0.05),
+                                 opacities=torch.full((2,), 0.5), scene_extent=extent, scene_center=(0.0, 0.0, 0.0),
+                                 config=GS3DConfig(means_lr_rule="distance", lr_means_init=adam / extent,
+                                                   lr_means_final=adam / extent))
+    for p in a.params.values():
+        p.grad = torch.ones_like(p)
+    a.set_step(0)
+    before = a.params["means"].detach().double().clone()
+    assert a.learning_rates()["means"] == pytest.approx(adam)
+    f = before.norm(dim=1) / extent  # 17.3 and 18.0: the moves are 5-6 spacings
+    a.optimizer_step()
+    moved = a.params["means"].detach().double() - before
+    expected = -(f * adam)[:, None].expand(2, 3)
+    assert bool((moved != 0).all())
+    assert torch.allclose(moved, expected, atol=spacing, rtol=0)
+
+
+def test_the_factor_stops_growing_beyond_the_initial_models_farthest_mean():
+    a = model("distance")  # initial means up to 40 from the centre
+    assert a.far_distance == pytest.approx(40.0)
+    with torch.no_grad():
+        a.params["means"][-1] = torch.tensor(CENTER, dtype=torch.float64) + torch.tensor([400.0, 0.0, 0.0])
+    assert float(a.means_step_scale()[-1]) == pytest.approx(40.0 / EXTENT)
+    b = model("distance")
+    b.load_state_dict(a.state_dict())
+    assert b.far_distance == pytest.approx(40.0)
+
+
+def test_a_checkpoint_keeps_its_rule_unless_the_command_asks_for_another(tmp_path, capsys, monkeypatch):
+    """On a forward-facing rig "auto" is disparity; a checkpoint made with extent (an earlier
+    release, or --means-lr-rule extent) resumes under the command that made it, continuing with
+    extent, and a command that asks for another rule by name is refused naming the field."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("train_3dgs_rule", root / "examples" / "train_3dgs.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    base = ["--data", str(root / "tests" / "data" / "forward64"), "--steps", "40", "--threads", "1", "--no-progress"]
+    whole = example.main(base + ["--out", str(tmp_path / "w"), "--means-lr-rule", "extent"])
+    from mvgs_plugin import controller
+
+    step = controller.MVGS.step
+
+    def interrupted(self):  # stop after the checkpoint of step 20
+        if self.step_count == 25:
+            raise KeyboardInterrupt
+        return step(self)
+
+    monkeypatch.setattr(controller.MVGS, "step", interrupted)
+    with pytest.raises(SystemExit):
+        example.main(base + ["--out", str(tmp_path / "a"), "--means-lr-rule", "extent", "--checkpoint-every", "20"])
+    monkeypatch.setattr(controller.MVGS, "step", step)
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    resumed = example.main(base + ["--out", str(tmp_path / "b"), "--resume", str(ckpt)])  # no rule asked: auto
+    assert whole["model"]["means_lr_rule"] == "extent" and resumed["model"]["means_lr_rule"] == "extent"
+    assert resumed["num_gaussians"] == whole["num_gaussians"]
+    assert resumed["psnr"] == pytest.approx(whole["psnr"], abs=1e-6)  # the same run, continued with its rule
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as err:
+        example.main(base + ["--out", str(tmp_path / "c"), "--resume", str(ckpt), "--means-lr-rule", "disparity"])
+    assert err.value.code == 2
+    assert "means_lr_rule: checkpoint 'extent', this command 'disparity'" in capsys.readouterr().err
