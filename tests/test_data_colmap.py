@@ -253,8 +253,26 @@ def test_image_size_disagrees_with_camera(scene_dir):
 def test_unreadable_image(scene_dir):
     root, _ = scene_dir
     (root / "images" / "views" / "r_001.png").write_bytes(b"not an image at all")
-    with pytest.raises(ValueError, match="r_001.png"):
+    with pytest.raises(ValueError, match="r_001.png") as err:
         load_colmap(root)
+    assert "pip install" not in str(err.value)  # imageio's advice for video plugins does not apply
+
+
+def test_names_with_spaces_in_images_txt_are_named_with_the_cause(tmp_path):
+    """COLMAP's text format ends an image name at its first space, so "my cam/r_000.png" reads as
+    "my" for every image: the error names that name, its count and the cause, where it said only
+    "duplicate image names"."""
+    info = write_model(tmp_path, fmt="txt")
+    path = info["model_dir"] / "images.txt"
+    lines = path.read_text().splitlines()
+    for i, line in enumerate(lines):
+        parts = line.split()
+        if not line.startswith("#") and len(parts) >= 10 and parts[-1].endswith(".png"):
+            lines[i] = " ".join(parts[:-1] + ["my cam/" + parts[-1].split("/")[-1]])
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"duplicate image names in the model: 'my' appears 10 times \(COLMAP's text "
+                                         r"format ends a name at its first space"):
+        load_colmap(tmp_path)
 
 
 def test_nan_pose(tmp_path):
@@ -266,7 +284,8 @@ def test_nan_pose(tmp_path):
 
 def test_empty_train_split_and_unknown_test_name(scene_dir):
     root, _ = scene_dir
-    with pytest.raises(ValueError, match="train split is empty"):
+    with pytest.raises(ValueError, match=r"train split is empty: every one of its 10 image\(s\) is a test view \(one image "
+                                         r"in every 1 by name is held out.*test_every=None"):
         load_colmap(root, test_every=1)
     with pytest.raises(ValueError, match="nope.png"):
         load_colmap(root, test_names=["nope.png"])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+
 import math
 import os
 import posixpath
@@ -282,13 +284,21 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     records.sort(key=lambda c: c.name)
     names = [c.name for c in records]
     if len(set(names)) != len(names):
-        raise ValueError(f"{model_dir}: duplicate image names in the model")
+        counts = collections.Counter(names)
+        name, n = max(counts.items(), key=lambda kv: kv[1])
+        hint = (" (COLMAP's text format ends a name at its first space: images.txt cannot hold names with spaces; "
+                "write the model as binary)" if (Path(model_dir) / "images.txt").is_file() else "")
+        raise ValueError(f"{model_dir}: duplicate image names in the model: {name!r} appears {n} times{hint}")
 
     test = _split(names, test_every, test_names, model_dir)
     train_cams = [c for c in records if c.name not in test]
     test_cams = [c for c in records if c.name in test]
     if not train_cams:
-        raise ValueError(f"{model_dir}: the train split is empty ({len(records)} images, all test)")
+        rule = ("test_names lists them all" if test_names is not None else
+                f"one image in every {test_every} by name is held out, the first included; give more images, or from Python "
+                "load_colmap(..., test_every=None)")
+        raise ValueError(f"{model_dir}: the train split is empty: every one of its {len(records)} image(s) is a test "
+                         f"view ({rule})")
     files = {c.uid: images_dir / c.name for c in records}
     for c in records:
         if not files[c.uid].is_file():

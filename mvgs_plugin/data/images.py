@@ -79,7 +79,8 @@ def _decode(path: Path) -> np.ndarray:
     try:
         arr = skimage.io.imread(str(path))
     except Exception as err:  # the imaging backends raise many unrelated types
-        raise ValueError(f"cannot read image {path}: {err}") from None
+        said = str(err).split("Based on the extension")[0].strip()  # not imageio's advice to install video plugins
+        raise ValueError(f"cannot read image {path}: {said} (not an image file any installed reader decodes)") from None
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (1, 2, 3, 4)):
         raise ValueError(f"image {path} has unsupported shape {list(arr.shape)} "
                          "(expected [H,W], [H,W,1..4])")
