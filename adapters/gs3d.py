@@ -837,8 +837,8 @@ class GS3DAdapter:
         beyond MAX_MEAN_EXTENTS scene extents raises FloatingPointError naming the group (a
         diverging learning rate)."""
         means = self.params["means"]
-        scale = self.means_step_scale() if means.grad is not None else None
-        if scale is None:
+        rule = self._means_rule() if means.grad is not None else None
+        if rule is None:
             self.optimizer.step()
         else:  # Adam's step is per group, the rule's per row: the moments move, the means by the rule
             group = next(g for g in self.optimizer.param_groups if g["name"] == "means")
@@ -848,7 +848,7 @@ class GS3DAdapter:
             finally:
                 group["lr"] = lr
             with torch.no_grad():
-                means.add_(self._ruled_move(group, lr, scale))  # one rounding, however small the move
+                means.add_(self._ruled_move(group, lr, *rule))  # one rounding, however small the move
         with torch.no_grad():
             top = float(self.params["scales"].max()) if self.params["scales"].numel() else 0.0
             if top > MAX_LOG_SCALE:  # NaN passes here: the controller's finiteness check names it
@@ -864,20 +864,30 @@ class GS3DAdapter:
                         f"group 'means': a mean moved {far:.4g} from the model's median, beyond {MAX_MEAN_EXTENTS:g} "
                         f"scene extents ({self.scene_extent:.4g}); the learning rate diverges")
 
-    def _ruled_move(self, group, lr: float, scale: Tensor) -> Tensor:
+    def _ruled_move(self, group, lr: float, out: Tensor, scale: Tensor) -> Tensor:
         """Adam's move of the means (torch's formula, from the moments this step left: lr / (1 -
-        b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps), negated) times the rule's factors."""
+        b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps), negated) times the rule's factors (out, scale:
+        see _means_rule)."""
         state = self.optimizer.state[self.params["means"]]
         t = float(state["step"])
         b1, b2 = group["betas"]
         m, v = state["exp_avg"], state["exp_avg_sq"]
         move = m / (v.sqrt() / math.sqrt(1.0 - b2 ** t) + group["eps"]) * (-lr / (1.0 - b1 ** t))
         if self.config.means_lr_rule == "disparity":  # the part along the line of sight once more: uniform in 1/d
-            means = self.params["means"].detach()
-            out = means - self.scene_center.to(means)
-            out = out / torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min(1e-30)
             move = move + out * ((move * out).sum(dim=1, keepdim=True) * (scale[:, None] - 1.0))
         return move * scale[:, None]
+
+    def _means_rule(self) -> Optional[Tuple[Tensor, Tensor]]:
+        """None when config.means_lr_rule leaves Adam's step as it is ("extent", or no
+        scene_center), else ([N, 3] unit directions from scene_center, [N] factors f; see
+        means_step_scale), from one pass over the means."""
+        if self.config.means_lr_rule in ("extent", "auto") or self.scene_center is None:
+            return None
+        means = self.params["means"].detach()
+        offset = means - self.scene_center.to(means)
+        d = torch.linalg.vector_norm(offset, dim=1, keepdim=True)
+        far = max(self.scene_extent, self.far_distance if self.far_distance is not None else math.inf)
+        return offset / d.clamp_min(1e-30), d[:, 0].clamp(self.scene_extent, far) / self.scene_extent
 
     def means_step_scale(self) -> Optional[Tensor]:
         """[N] the factor config.means_lr_rule puts on each mean's Adam step, f = max(extent, d) /
@@ -886,12 +896,8 @@ class GS3DAdapter:
         the "extent" rule, or no scene_center). d is clamped to the initial model's farthest
         distance (far_distance): beyond the content it started with, no Gaussian speeds up, so a
         Gaussian pushed outward keeps a bounded step instead of one that grows with its distance."""
-        if self.config.means_lr_rule in ("extent", "auto") or self.scene_center is None:
-            return None
-        means = self.params["means"].detach()
-        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
-        far = max(self.scene_extent, self.far_distance if self.far_distance is not None else math.inf)
-        return d.clamp(self.scene_extent, far) / self.scene_extent
+        rule = self._means_rule()
+        return None if rule is None else rule[1]
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)

@@ -395,8 +395,9 @@ class MVGSStrategy(DefaultStrategy):
         sizes = collections.Counter((c.width, c.height) for c in self.views.train_cameras)
         if multi and len(sizes) > 1:
             listed = ", ".join(f"{w}x{h} ({n} views)" for (w, h), n in sorted(sizes.items()))
-            raise ValueError(f"the plan draws up to {min(max(s.views for s in multi), len(self.views.train_cameras))} views per step, and a DataLoader stacks a "
-                             f"step's images into one tensor, but this training set has images of {len(sizes)} sizes: "
+            most = min(max(s.views for s in multi), len(self.views.train_cameras))
+            raise ValueError(f"the plan draws up to {most} views per step, and a DataLoader stacks a step's images "
+                             f"into one tensor, but this training set has images of {len(sizes)} sizes: "
                              f"{listed}; use a plan of one view per step (the default and baseline presets) or "
                              "resize the images to one size")
         return MVGSBatchSampler(self)

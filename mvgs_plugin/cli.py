@@ -536,6 +536,14 @@ def model_settings(adapter) -> dict:
     return out
 
 
+def _other_settings(args, what: str, differences, this: str) -> UsageError:
+    """The refusal of a --resume whose checkpoint was made with other `what`: each (name,
+    checkpoint value, this run's value) named, and the command-line advice."""
+    said = "; ".join(f"{name}: checkpoint {a!r}, {this} {b!r}" for name, a, b in differences)
+    return UsageError(f"--resume {args.resume}: the checkpoint was made with other {what} ({said}); resume with the "
+                      "flags it was written with")
+
+
 def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     """Trains on every rank (each on its share of a step's views under torchrun; progress bar
     unless --no-progress), from args.resume when given; writes OUT/checkpoint.pt every
@@ -550,18 +558,15 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         try:
             trainer.load_checkpoint(str(args.resume))  # then fit() runs the remaining steps
         except ConfigMismatch as err:  # the Python advice (strict=False, from_dict) is not a command line's
-            said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in err.differences)
-            raise UsageError(f"--resume {args.resume}: the checkpoint was made with other settings ({said}); resume "
-                             "with the flags it was written with") from err
+            raise _other_settings(args, "settings", err.differences, "this run") from err
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
             raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
         saved = model_settings(adapter)  # an adapter's load_state_dict takes the checkpoint's model config
         rig_rule = getattr(args, "means_lr_rule", None) is None  # "auto" chose for the rig: the checkpoint's rule stays
-        differ = [f"{k}: checkpoint {saved[k]!r}, this command {asked[k]!r}" for k in asked if k in saved and
-                  saved[k] != asked[k] and not (rig_rule and k.endswith("means_lr_rule"))]
+        differ = [(k, saved[k], asked[k]) for k in asked if k in saved and saved[k] != asked[k]
+                  and not (rig_rule and k.endswith("means_lr_rule"))]
         if differ:
-            raise UsageError(f"--resume {args.resume}: the checkpoint was made with other model settings "
-                             f"({'; '.join(differ)}); resume with the flags it was written with")
+            raise _other_settings(args, "model settings", differ, "this command")
     path, every = str(args.out / "checkpoint.pt"), getattr(args, "checkpoint_every", None)
 
     written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)
