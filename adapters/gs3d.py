@@ -192,6 +192,16 @@ class GS3DConfig:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if f.name not in _RUNTIME_FIELDS}
 
+    @classmethod
+    def for_run(cls, run, **fields) -> "GS3DConfig":
+        """The config whose own schedules follow the run's clock, as the examples build it: the
+        means' learning-rate decay over run.clock_length (an MVGSConfig's: its steps, or its work
+        on a budget) instead of 30k steps, and the SH degree raised every 1000 / 30k of it.
+        fields: any other GS3DConfig field. Without it a 3000-step run of the controller keeps
+        the means' rate near its start and stays at SH degree 2."""
+        clock = int(run.clock_length)
+        return cls(position_lr_max_steps=clock, sh_degree_interval=max(1, round(1000 * clock / 30_000)), **fields)
+
 
 
 def consistency_of(grad_sum: Tensor, grad_sq_sum: Tensor, visits: Tensor) -> Tensor:

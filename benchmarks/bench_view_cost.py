@@ -66,7 +66,7 @@ def _measure(example, name: str, argv, rounds: int, warmup: int, out: str) -> li
     args = example.parse_args(list(argv) + own + ["--preset", "baseline", "--out", out])
     if args.threads:
         torch.set_num_threads(args.threads)
-    scene = scene_from_args(args)
+    scene = scene_from_args(args, dynamic_model=name == "train_4dgs.py")
     extra = {"time_spread": args.time_spread} if name == "train_4dgs.py" else {}
     base = config_from_args(args, scene, **extra)
     s = args.resolution_scale

@@ -24,9 +24,11 @@ steps does the baseline's N steps of work, and its last steps see two times of t
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
+from pathlib import Path
 
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
@@ -83,6 +85,19 @@ def build_adapter(args, scene, config: MVGSConfig) -> GS4DAdapter:
     return GS4DAdapter.from_scene(scene, gs4d_config(config, args), device=args.device)
 
 
+def remove_stale_bakes(out: Path, baked: list) -> None:
+    """In a reused --out, remove the baked PLYs an earlier run listed in its metrics.json
+    ("baked") that this run did not write, so the folder holds this run's times only. A PLY no
+    run of ours listed stays."""
+    try:
+        earlier = json.loads((out / "metrics.json").read_text()).get("baked", [])
+    except (OSError, ValueError, AttributeError):
+        return
+    for name in sorted(set(n for n in earlier if isinstance(n, str)) - set(baked)):
+        if Path(name).name == name and name.startswith("point_cloud_t") and name.endswith(".ply") and (out / name).is_file():
+            (out / name).unlink()
+
+
 def main(argv=None) -> dict:
     return launch(parse_args(argv), run)
 
@@ -98,6 +113,9 @@ def run(args, dist) -> dict:
     if args.init_box is not None and not all(lo < hi for lo, hi in zip(args.init_box[:3], args.init_box[3:])):
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: expected X0 Y0 Z0 X1 Y1 Z1 with "
                          "each minimum below its maximum")
+    if args.init_box is not None and args.init_random == 0:
+        raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: the box places the --init-random "
+                         "points, and --init-random is 0, so it would change nothing; give --init-random N too")
     try:  # a static NeRF-layout scene, before it is read (and its points triangulated)
         static = (args.data / "transforms_train.json").is_file() and not is_dynamic(args.data)
     except ValueError as err:  # a malformed transforms_train.json, named
@@ -105,7 +123,7 @@ def run(args, dist) -> dict:
     if static:
         raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene in the D-NeRF layout (transforms_train.json "
                          "whose frames carry a 'time')")
-    scene = scene_from_args(args)
+    scene = scene_from_args(args, dynamic_model=True)
     untimed = [c.name for c in scene.train_cameras + scene.test_cameras if c.time is None]
     if untimed:
         raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
@@ -120,8 +138,10 @@ def run(args, dist) -> dict:
     out = args.out
     adapter.export(str(out / "point_cloud.ply"))
     adapter.save_deformation(str(out / "deformation.pt"))
-    for t in args.export_times:
-        adapter.export_at_time(str(out / f"point_cloud_t{t:.3f}.ply"), t)
+    baked = [f"point_cloud_t{t:.3f}.ply" for t in args.export_times]
+    for t, name in zip(args.export_times, baked):
+        adapter.export_at_time(str(out / name), t)
+    remove_stale_bakes(out, baked)
     model_bytes = os.path.getsize(out / "point_cloud.ply") + os.path.getsize(out / "deformation.pt")
     metrics = metrics_record(
         args, config, trainer, result, train_seconds,
@@ -131,6 +151,7 @@ def run(args, dist) -> dict:
                       **{k: v for k, v in model_cfg.saved_values().items() if k not in ("coarse_steps", "fine_steps")},
                       "canonical": model_cfg.canonical.saved_values()},
     )
+    metrics["baked"] = baked
     write_json(out / "metrics.json", metrics)
     print(
         f"{args.preset}: test PSNR {result.psnr:.2f} dB, SSIM {result.ssim:.4f}, "

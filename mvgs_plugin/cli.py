@@ -121,9 +121,10 @@ def scene_folder(text: str) -> Path:
     return path
 
 
-def scene_from_args(args):
+def scene_from_args(args, dynamic_model: bool = False):
     """The scene of --data, with initial points by --init (cached in --init-cache, else OUT/init)
-    when it has no point file; the init's threads follow --threads."""
+    when it has no point file; the init's threads follow --threads. A scene whose frames carry
+    times given to a static model (dynamic_model False) is trained, with a note that says so."""
     cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
@@ -133,7 +134,34 @@ def scene_from_args(args):
             raise UsageError(f"--init-cache {args.init_cache}: {err}") from err
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
+    check_renders_spare_images(Path(args.out), scene)
+    timed = sum(c.time is not None for c in scene.train_cameras)
+    if timed and not dynamic_model:
+        print(f"{Path(sys.argv[0]).name}: note: {timed} of the {len(scene.train_cameras)} training frames of --data "
+              f"{args.data} carry a time (a dynamic scene); this script trains one static model for all of them: "
+              "examples/train_4dgs.py trains a deformation over time", file=sys.stderr)
     return scene
+
+
+def check_renders_spare_images(out: Path, scene) -> None:
+    """Refuse an --out whose test renders (OUT/test/<view>.png, render_file_names) would
+    replace one of the scene's images, before any work: --out set to a NeRF-layout scene's own
+    folder puts every render on its ground-truth test image, and the next run would score its
+    own renders."""
+    cams = list(scene.test_cameras)
+    if not cams:
+        return
+    images = {}
+    for cam in list(scene.train_cameras) + cams:
+        src = scene.image_file(cam)
+        if src is not None:
+            images[src.resolve()] = src
+    folder = (out / "test").resolve()
+    for name in render_file_names([c.name for c in cams]):
+        hit = images.get(folder / name)
+        if hit is not None:
+            raise UsageError(f"--out {out}: the test render {out / 'test' / name} would replace the scene's image "
+                             f"{hit} (--out is the scene's own folder?); choose an output folder outside the scene's")
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
@@ -143,13 +171,11 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=No
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
     growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
     world_size_rule, means_lr_rule: GS3DConfig's (None: its default)."""
-    clock = config.clock_length
     extra = {} if rasterize is None else {"rasterize": rasterize}
     for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule)):
         if value is not None:
             extra[name] = value
-    return GS3DConfig(max_gaussians=max_gaussians, seed=seed, position_lr_max_steps=clock,
-                      sh_degree_interval=max(1, round(1000 * clock / 30_000)), **extra)
+    return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -211,6 +237,9 @@ def rasterize_function(args):
     return rasterization
 
 
+OUTPUT_FILES = ("metrics.json", "checkpoint.pt", "point_cloud.ply", "deformation.pt", "anchors.pt")  # the examples' files in OUT
+
+
 def check_out(out: Path) -> None:
     """Refuse an output folder that cannot be one, before any work: an existing file, a path
     under a file, or a folder (or its nearest existing parent) this process cannot write."""
@@ -226,6 +255,12 @@ def check_out(out: Path) -> None:
         raise ValueError(f"--out {out}: {probe} is a file, so the folder cannot be created under it")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: {probe} is not writable by this user")
+    if out.is_dir():  # a reused folder: what a run writes there must be able to take its place
+        if (out / "test").exists() and not (out / "test").is_dir():
+            raise ValueError(f"--out {out}: {out / 'test'} is a file, where the test renders' folder goes")
+        for name in OUTPUT_FILES:
+            if (out / name).is_dir():
+                raise ValueError(f"--out {out}: {out / name} is a folder, where the run writes its {name}")
 
 
 def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:

@@ -163,6 +163,12 @@ class MVGS:
         self.scene = scene
         self.schedule = ViewSchedule(scene, config or MVGSConfig.default())
         self.config = self.schedule.config  # resolved for the scene (MVGSConfig.for_scene)
+        model_clock = getattr(getattr(adapter, "config", None), "position_lr_max_steps", None)
+        if isinstance(model_clock, int) and model_clock != self.config.clock_length:
+            warnings.warn(f"the adapter's own schedules run over {model_clock} steps (its config's "
+                          f"position_lr_max_steps) but this run's clock is {self.config.clock_length}: its means' "
+                          "learning rate will not decay as planned; build its config with "
+                          "GS3DConfig.for_run(config), as the examples do", stacklevel=2)
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")

@@ -167,6 +167,12 @@ class ViewSchedule:
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
+        n_views = len(scene.train_cameras)
+        over = [f"stage {k} ({st.views} views at 1/{st.factor:g})" for k, st in enumerate(config.stages) if st.views > n_views]
+        if over:
+            warnings.warn(f"{', '.join(over)} asks for more views per step than the scene's {n_views} training views: "
+                          f"each of its steps renders all {n_views} (the plan and its record keep the number asked)",
+                          stacklevel=2)
 
     @property
     def total_steps(self) -> int:

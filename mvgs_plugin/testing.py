@@ -135,6 +135,22 @@ def _with_stats(make_adapter: MakeAdapter, scene: Scene, cams: List[Camera]) -> 
     return adapter
 
 
+def check_make_adapter_is_deterministic(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """Two calls of make_adapter build the same model (the checks after this one compare
+    adapters built by separate calls, and a resume rebuilds the model before it loads)."""
+    renders = []
+    for _ in range(2):
+        adapter = make_adapter(scene)
+        adapter.set_step(1)
+        with torch.no_grad():
+            renders.append(adapter.render(scene.train_cameras[:1], torch.zeros(1, 3)).images)
+    assert adapter.positions().shape[0] == adapter.num_primitives()
+    assert torch.equal(renders[0], renders[1]), (
+        f"two calls of make_adapter built models that render differently (by up to "
+        f"{float((renders[0] - renders[1]).abs().max()):.3g}): make_adapter must build the same model every call "
+        "(seed its random initialisation, e.g. torch.manual_seed(0) inside it)")
+
+
 def check_render(make_adapter: MakeAdapter, scene: Scene) -> None:
     """Render shapes, dtype and ranges; a chunk of views of one size renders as a batch."""
     adapter = make_adapter(scene)
@@ -231,7 +247,10 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
         n1 = adapter.num_primitives()
         assert report.before == n0 and report.after == n1, f"DensifyReport says {report.before}->{report.after}, model has {n0}->{n1}"
         if grows:
-            assert n1 > n0, f"threshold 0 must densify the visible primitives, got {n0} -> {n1}"
+            assert n1 > n0, (f"threshold 0 must densify the visible primitives, got {n0} -> {n1} (a model that "
+                             "can only grow where its primitives left their initial cells, as Scaffold-GS's anchors, "
+                             "has nothing to grow when fresh: let make_adapter return one that can, e.g. "
+                             "ScaffoldConfig(offset_init_std=1.0) as tests/test_adapter_scaffold.py does)")
         else:
             assert n1 <= n0, f"an infinite threshold must not grow the model, got {n0} -> {n1}"
         assert adapter.positions().shape == (n1, 3), f"positions() must be [{n1},3], got {list(adapter.positions().shape)}"
@@ -311,6 +330,19 @@ def check_state_dict_round_trip(make_adapter: MakeAdapter, scene: Scene) -> None
         m.optimizer_step()
         m.zero_grad()
     assert torch.equal(a.positions(), b.positions()), "after one more step the two adapters must still agree"
+    # The statistics are part of "everything to resume": a state taken between densifications
+    # (views rendered, their statistics folded in) densifies in the loaded adapter as in the saved one.
+    a = _with_stats(make_adapter, scene, scene.train_cameras[:3])
+    b = make_adapter(scene)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    ctx = DensifyContext(step=1, grad_threshold=1e-12, scene_extent=float(scene.extent),
+                         cameras=tuple(scene.train_cameras[:3]))
+    with torch.no_grad():
+        ra, rb = a.densify(ctx), b.densify(ctx)
+    assert (ra.before, ra.after) == (rb.before, rb.after) and torch.equal(a.positions(), b.positions()), (
+        f"a densify right after load_state_dict went {rb.before} -> {rb.after} where the saved adapter went "
+        f"{ra.before} -> {ra.after}: state_dict must carry the densification statistics gathered since the last "
+        "densify (a resumed run would otherwise densify differently)")
 
 
 def check_hard_cameras(make_adapter: MakeAdapter, scene: Scene) -> None:
@@ -367,6 +399,7 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
 
 
 CHECKS = [
+    check_make_adapter_is_deterministic,
     check_render,
     check_background,
     check_gradients_reach_every_group,
@@ -382,7 +415,8 @@ CHECKS = [
 def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> Dict[str, str]:
     """Runs every conformance check; raises AssertionError naming the first that fails (an
     error the adapter raised inside a check is reported the same way, with its type).
-    Returns {check name: "ok"}."""
+    Returns {check name: "ok"}. scene: synthetic_scene() when None, whose cameras have no
+    time; a time-dependent model (4DGS) needs synthetic_scene(time=True)."""
     scene = synthetic_scene() if scene is None else scene
     checks = list(CHECKS)
     if isinstance(make_adapter(scene), DistributedAdapter):  # optional: only adapters that support it
@@ -394,6 +428,10 @@ def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> D
         except AssertionError as exc:
             raise AssertionError(f"{check.__name__}: {exc}") from exc
         except Exception as exc:
-            raise AssertionError(f"{check.__name__}: the adapter raised {type(exc).__name__}: {exc}") from exc
+            hint = ""
+            if "time" in str(exc) and all(c.time is None for c in scene.train_cameras):
+                hint = (" (the scene's cameras have no time; for a time-dependent model pass one that has: "
+                        "check_adapter(make_adapter, synthetic_scene(time=True)))")
+            raise AssertionError(f"{check.__name__}: the adapter raised {type(exc).__name__}: {exc}{hint}") from exc
         done[check.__name__] = "ok"
     return done

@@ -68,6 +68,9 @@ def test_4dgs_refuses_a_static_scene_and_an_empty_init_box_in_one_line(tmp_path)
     one_error_line(run("train_4dgs.py", "--data", bundled, "--init-box", "1", "1", "1", "0", "0", "0",
                        "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py", "--init-box 1 1 1 0 0 0",
                    "each minimum below its maximum")
+    one_error_line(run("train_4dgs.py", "--data", bundled, "--init-box", "0", "0", "0", "1", "1", "1",
+                       "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py", "--init-box 0 0 0 1 1 1",
+                   "--init-random is 0", "give --init-random N too")
     one_error_line(run("train_4dgs.py", "--data", bundled, "--export-times", "0.0001", "0.0004", "0.5",
                        "--out", str(tmp_path / "o"), *TINY), "train_4dgs.py", "point_cloud_t0.000.ply",
                    "give each time once")
@@ -152,3 +155,84 @@ def test_records_written_from_a_clone_anywhere_lose_its_path(monkeypatch):
     monkeypatch.setattr(cli, "ROOT", Path("/check/work/main"))
     text = "python b.py --data /check/work/main/examples/scenes/tabletop --out /check/work/main and /check/work/mainly/x"
     assert cli.without_machine_paths(text) == "python b.py --data examples/scenes/tabletop --out . and /check/work/mainly/x"
+
+
+@pytest.mark.parametrize("script", ["train_3dgs.py", "train_scaffold.py"])
+def test_an_out_folder_whose_renders_would_replace_the_scenes_images_is_refused(script, tmp_path):
+    # --out set to a NeRF-layout scene's own folder: OUT/test/r_000.png is the scene's test image.
+    # The refusal comes before any work, and every image of the scene keeps its bytes.
+    scene = tmp_path / "scene"
+    import shutil
+
+    shutil.copytree(ROOT / "tests" / "data" / "forward64", scene)
+    before = {p: p.read_bytes() for p in scene.rglob("*.png")}
+    test_pngs = sorted((scene / "test").glob("*.png"))
+    assert test_pngs
+    for out in (scene, scene / "." / "test" / ".."):
+        one_error_line(run(script, "--data", str(scene), "--out", str(out), *TINY), script,
+                       f"--out {out}", "would replace the scene's image", test_pngs[0].name)
+    assert {p: p.read_bytes() for p in scene.rglob("*.png")} == before
+    assert not (scene / "metrics.json").exists() and not (scene / "checkpoint.pt").exists()
+    # a folder beside the scene is fine
+    proc = run(script, "--data", str(scene), "--out", str(tmp_path / "out"), *TINY)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert {p: p.read_bytes() for p in scene.rglob("*.png")} == before
+
+
+def timed_scene(tmp_path) -> Path:
+    """A copy of tests/data/forward64 whose frames carry times (a D-NeRF scene)."""
+    import shutil
+
+    scene = tmp_path / "timed"
+    shutil.copytree(ROOT / "tests" / "data" / "forward64", scene)
+    for split in ("train", "test"):
+        path = scene / f"transforms_{split}.json"
+        meta = json.loads(path.read_text())
+        n = len(meta["frames"])
+        for i, frame in enumerate(meta["frames"]):
+            frame["time"] = i / max(1, n - 1)
+        path.write_text(json.dumps(meta))
+    return scene
+
+
+def test_a_dynamic_scene_given_to_a_static_model_is_trained_with_a_note(tmp_path):
+    # Frames with a time (D-NeRF) given to train_3dgs.py: one static model is trained, and the
+    # user is told so and pointed at train_4dgs.py; a static scene gets no such line.
+    scene = timed_scene(tmp_path)
+    proc = run("train_3dgs.py", "--data", str(scene), "--out", str(tmp_path / "o"), *TINY)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    notes = [line for line in proc.stderr.splitlines() if line.startswith("train_3dgs.py: note: ")]
+    n_train = len(json.loads((scene / "transforms_train.json").read_text())["frames"])
+    assert len(notes) == 1 and f"{n_train} of the {n_train} training frames" in notes[0] and "train_4dgs.py" in notes[0]
+    plain = run("train_3dgs.py", "--data", str(ROOT / "tests" / "data" / "forward64"), "--out", str(tmp_path / "p"), *TINY)
+    assert plain.returncode == 0 and "note:" not in plain.stderr, plain.stderr[-2000:]
+
+
+@pytest.mark.parametrize("blocker, kind", [("test", "file"), ("point_cloud.ply", "folder"), ("metrics.json", "folder")])
+def test_a_reused_out_whose_outputs_cannot_be_written_is_refused_before_training(tmp_path, blocker, kind):
+    out = tmp_path / "o"
+    out.mkdir()
+    path = out / blocker
+    if kind == "file":
+        path.write_text("keep me")
+    else:
+        path.mkdir()
+    one_error_line(run("train_3dgs.py", "--out", str(out), *TINY), "train_3dgs.py", f"--out {out}", str(path),
+                   f"is a {kind}")
+    assert sorted(p.name for p in out.iterdir()) == [blocker]  # nothing trained, nothing written
+    assert kind != "file" or path.read_text() == "keep me"
+
+
+def test_a_reused_4dgs_out_keeps_only_this_runs_baked_times(tmp_path):
+    scene, out = timed_scene(tmp_path), tmp_path / "o"
+    out.mkdir()
+    (out / "point_cloud_t0.900.ply").write_text("not ours")  # no run of ours listed it: it stays
+    common = ["--data", str(scene), "--out", str(out), "--preset", "baseline", "--steps", "6", "--no-progress"]
+    assert run("train_4dgs.py", *common).returncode == 0
+    first = {"point_cloud_t0.000.ply", "point_cloud_t0.500.ply", "point_cloud_t1.000.ply"}
+    assert first <= {p.name for p in out.iterdir()}
+    proc = run("train_4dgs.py", *common, "--export-times", "0.25")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    baked = sorted(p.name for p in out.glob("point_cloud_t*.ply"))
+    assert baked == ["point_cloud_t0.250.ply", "point_cloud_t0.900.ply"], baked
+    assert json.loads((out / "metrics.json").read_text())["baked"] == ["point_cloud_t0.250.ply"]

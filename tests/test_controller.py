@@ -134,7 +134,9 @@ def test_baseline_preset_is_plain_single_view_training(scene):
     single-view loop of examples/three_line_wrap does."""
     steps = 20
     config = MVGSConfig.baseline().with_total_steps(steps)
-    trainer = MVGS(make(scene), scene, config)  # make() seeds 0 as the example's train() does
+    run = GS3DConfig.for_run(config)  # the example's model: its schedules on the run's clock
+    trainer = MVGS(make(scene, position_lr_max_steps=run.position_lr_max_steps,
+                        sh_degree_interval=run.sh_degree_interval), scene, config)  # make() seeds 0 as train() does
     trainer.fit(progress=False)
     single = _load_example("single_view")
     model = single.train(scene, steps)
@@ -200,7 +202,9 @@ def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset,
     assert not [w for w in caught if "cross-ray" in str(w.message)], [str(w.message) for w in caught]
     if preset == "paper":
         assert sum(boxes) > 0  # cross-ray densification cloned
-    trainer = MVGS(make(scene), scene, cfg)
+    run = GS3DConfig.for_run(cfg.for_scene(scene))  # the example's model: its schedules on the run's clock
+    trainer = MVGS(make(scene, position_lr_max_steps=run.position_lr_max_steps,
+                        sh_degree_interval=run.sh_degree_interval), scene, cfg)
     counts = watch_counts(trainer)
     trainer.fit(progress=False)
     if "max_gaussians" in config:
@@ -417,6 +421,27 @@ class NoZeroGrad(GS3DAdapter):
         pass
 
 
+class ForgetsStats(GS3DAdapter):
+    def load_state_dict(self, state):  # a resume that starts the window's statistics over
+        super().load_state_dict(state)
+        for value in self.stats.values():
+            value.zero_()
+
+
+class Unseeded(GS3DAdapter):
+    calls = 0
+
+    @classmethod
+    def from_scene(cls, scene, config=None, **kw):  # another random jitter at every call
+        adapter = super().from_scene(scene, config, **kw)
+        Unseeded.calls += 1
+        gen = torch.Generator().manual_seed(Unseeded.calls)
+        with torch.no_grad():
+            means = adapter.params["means"]
+            means.add_(0.01 * torch.randn(means.shape, generator=gen, dtype=means.dtype))
+        return adapter
+
+
 class Raises(GS3DAdapter):
     def reset_opacity(self):
         raise NotImplementedError("never written")
@@ -433,6 +458,10 @@ class Raises(GS3DAdapter):
     (StaleOptimizer, "check_stats_and_densify: after densify, an optimizer step with gradients changed nothing"),
     (NoZeroGrad, "check_gradients_reach_every_group: zero_grad\\(\\) left a gradient in group"),
     (Raises, "check_state_dict_round_trip: the adapter raised RuntimeError: cannot save"),
+    (Unseeded, r"check_make_adapter_is_deterministic: two calls of make_adapter built models that render "
+               r"differently .*[(]seed its random initialisation"),
+    (ForgetsStats, r"check_state_dict_round_trip: a densify right after load_state_dict went (\d+) -> \1 where the "
+                   r"saved adapter went \1 -> \d+: state_dict must carry the densification statistics"),
 ])
 def test_the_conformance_suite_names_what_a_broken_adapter_breaks(scene, kind, message):
     """One deliberate fault per adapter (as an outside integrator's adapters had them); the
@@ -760,3 +789,42 @@ def test_checkpoint_that_would_run_code_is_refused_without_side_effect(scene, tm
         trainer.load_checkpoint(str(tmp_path / "truncated.pt"))
     trainer.load_checkpoint(str(good))
     assert trainer.step_count == 1
+
+
+def test_an_adapter_on_another_clock_is_named_and_for_run_puts_it_on_the_runs(scene):
+    # The README's Python route: a 300-unit budget with the model's 30k-step schedules would keep
+    # the means' rate near its start; the controller says so, and GS3DConfig.for_run fixes it.
+    config = MVGSConfig.default().with_budget(300)
+    with pytest.warns(UserWarning, match=r"over 30000 steps .* clock is 300.*GS3DConfig\.for_run"):
+        MVGS(GS3DAdapter.from_scene(scene), scene, config)
+    model = GS3DConfig.for_run(config, seed=3)
+    assert (model.position_lr_max_steps, model.sh_degree_interval, model.seed) == (300, 10, 3)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        trainer = MVGS(GS3DAdapter.from_scene(scene, model), scene, config)
+    adapter = trainer.adapter
+    # at the end of the clock the means' rate is 3DGS's final one (1.6e-6 x extent), at its start
+    # the initial one, and the SH degree is full: written out, not read from the schedule code
+    assert adapter.means_lr(300) == pytest.approx(1.6e-6 * adapter.scene_extent, rel=1e-9)
+    assert adapter.means_lr(0) == pytest.approx(1.6e-4 * adapter.scene_extent, rel=1e-9)
+    adapter.set_step(300)
+    assert adapter.active_sh_degree == 3
+    # a step-clock run: the clock is its steps
+    assert GS3DConfig.for_run(MVGSConfig.baseline().with_total_steps(3000)).position_lr_max_steps == 3000
+
+
+def test_a_stage_asking_for_more_views_than_the_scene_has_is_said_and_renders_them_all(scene):
+    n = len(scene.train_cameras)
+    config = MVGSConfig.baseline().with_total_steps(20)
+    config = dataclasses.replace(config, stages=(Stage(factor=2, views=n + 3, steps=4), Stage(factor=1, views=2, steps=16)))
+    with pytest.warns(UserWarning, match=rf"stage 0 \({n + 3} views at 1/2\) asks for more views .* {n} training views"):
+        schedule = ViewSchedule(scene, config)
+    plan = schedule.next()
+    assert sorted(plan.views) == list(range(n))  # every view once, not n + 3 draws
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ViewSchedule(scene, dataclasses.replace(config, stages=(Stage(factor=1, views=n, steps=20),)))

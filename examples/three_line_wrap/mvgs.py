@@ -14,7 +14,7 @@ import argparse
 
 import torch
 
-from mvgs_plugin.adapters.gs3d import GS3DAdapter
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 
@@ -23,8 +23,8 @@ from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, load_scene, sc
 
 def train(scene, steps: int, seed: int = 0, preset: str = "default", **config) -> GS3DAdapter:
     torch.manual_seed(seed)
-    model = GS3DAdapter.from_scene(scene)
     schedule = ViewSchedule(scene, MVGSConfig.from_preset(preset, seed=seed, **config).for_scene(scene).with_total_steps(steps))
+    model = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(schedule.config))  # its lr decay and SH steps on the run's clock
     cut = schedule.initial_cut(model.num_primitives())  # with a budget (max_gaussians): a larger model is cut first
     if cut is not None:
         model.densify(cut)
