@@ -171,7 +171,7 @@ class ViewSchedule:
         over = [f"stage {k} ({st.views} views at 1/{st.factor:g})" for k, st in enumerate(config.stages) if st.views > n_views]
         if over:
             warnings.warn(f"{', '.join(over)} {'ask' if len(over) > 1 else 'asks'} for more views per step than the scene's {n_views} training views: "
-                          f"each of its steps renders all {n_views} (the plan and its record keep the number asked)",
+                          f"each of {'their' if len(over) > 1 else 'its'} steps renders all {n_views} (the plan and its record keep the number asked)",
                           stacklevel=2)
 
     @property
