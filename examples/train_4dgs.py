@@ -24,18 +24,16 @@ steps does the baseline's N steps of work, and its last steps see two times of t
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
-from pathlib import Path
 
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
-    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, metrics_record,
-    model_config, rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args,
-    world_size_arg, late_views_arg, resolve_late_views, UsageError,
+    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in, metrics_record,
+    model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
+    scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
 from mvgs_plugin.data.nerf import is_dynamic
 
@@ -85,19 +83,6 @@ def build_adapter(args, scene, config: MVGSConfig) -> GS4DAdapter:
     return GS4DAdapter.from_scene(scene, gs4d_config(config, args), device=args.device)
 
 
-def remove_stale_bakes(out: Path, baked: list) -> None:
-    """In a reused --out, remove the baked PLYs an earlier run listed in its metrics.json
-    ("baked") that this run did not write, so the folder holds this run's times only. A PLY no
-    run of ours listed stays."""
-    try:
-        earlier = json.loads((out / "metrics.json").read_text()).get("baked", [])
-    except (OSError, ValueError, AttributeError):
-        return
-    for name in sorted(set(n for n in earlier if isinstance(n, str)) - set(baked)):
-        if Path(name).name == name and name.startswith("point_cloud_t") and name.endswith(".ply") and (out / name).is_file():
-            (out / name).unlink()
-
-
 def main(argv=None) -> dict:
     return launch(parse_args(argv), run)
 
@@ -141,7 +126,7 @@ def run(args, dist) -> dict:
     baked = [f"point_cloud_t{t:.3f}.ply" for t in args.export_times]
     for t, name in zip(args.export_times, baked):
         adapter.export_at_time(str(out / name), t)
-    remove_stale_bakes(out, baked)
+    remove_stale_outputs(out, listed_in(out / "metrics.json", "baked"), baked, prefix="point_cloud_t", suffix=".ply")
     model_bytes = os.path.getsize(out / "point_cloud.ply") + os.path.getsize(out / "deformation.pt")
     metrics = metrics_record(
         args, config, trainer, result, train_seconds,

@@ -541,14 +541,27 @@ def save_test_renders(out: Path, result) -> None:
     for row, name in zip(result.per_view, written):
         save_png(str(folder / name), row["image"].numpy())
     manifest = folder / RENDERS_MANIFEST
-    try:
-        earlier = json.loads(manifest.read_text()).get("renders", [])
-    except (OSError, ValueError, AttributeError):  # none yet, or not ours
-        earlier = []
-    for stale in sorted(set(n for n in earlier if isinstance(n, str)) - set(written)):
-        if Path(stale).name == stale and stale.endswith(".png") and (folder / stale).is_file():  # a plain name of ours
-            (folder / stale).unlink()
+    remove_stale_outputs(folder, listed_in(manifest, "renders"), written, suffix=".png")
     write_json(manifest, {"renders": written})
+
+
+def listed_in(record: Path, key: str) -> list:
+    """The file names an earlier run listed under `key` of its JSON record (OUT/test/renders.json,
+    OUT/metrics.json), or [] when there is none or it is not ours."""
+    try:
+        names = json.loads(Path(record).read_text()).get(key, [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [n for n in names if isinstance(n, str)] if isinstance(names, list) else []
+
+
+def remove_stale_outputs(folder: Path, earlier, written, prefix: str = "", suffix: str = "") -> None:
+    """In a reused output folder, remove the files an earlier run listed (`earlier`, see
+    listed_in) that this run did not write (`written`): plain names with `prefix` and `suffix`
+    only, so a file no run of ours listed (a dataset's, when --out is its folder) stays."""
+    for name in sorted(set(earlier) - set(written)):
+        if Path(name).name == name and name.startswith(prefix) and name.endswith(suffix) and (folder / name).is_file():
+            (folder / name).unlink()
 
 
 def model_settings(adapter) -> dict:

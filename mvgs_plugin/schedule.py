@@ -168,11 +168,13 @@ class ViewSchedule:
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
         n_views = len(scene.train_cameras)
-        over = [f"stage {k} ({st.views} views at 1/{st.factor:g})" for k, st in enumerate(config.stages) if st.views > n_views]
+        over = [f"stage {k} ({st.views} views at 1/{st.factor:g})" for k, st in enumerate(config.stages)
+                if st.views > n_views]
         if over:
-            warnings.warn(f"{', '.join(over)} {'ask' if len(over) > 1 else 'asks'} for more views per step than the scene's {n_views} training views: "
-                          f"each of {'their' if len(over) > 1 else 'its'} steps renders all {n_views} (the plan and its record keep the number asked)",
-                          stacklevel=2)
+            verb, whose = ("ask", "their") if len(over) > 1 else ("asks", "its")
+            warnings.warn(f"{', '.join(over)} {verb} for more views per step than the scene's {n_views} training "
+                          f"views: each of {whose} steps renders all {n_views} (the plan and its record keep the "
+                          "number asked)", stacklevel=2)
 
     @property
     def total_steps(self) -> int:
