@@ -308,8 +308,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
-                         "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a Gaussian budget of the "
-                         "training pixels / 213 (none on a forward-facing rig); paper: the released code; "
+                         "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of the "
+                         "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a forward-facing rig); paper: the released code; "
                          "baseline: plain 3DGS")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
     ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")

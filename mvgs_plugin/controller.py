@@ -454,6 +454,11 @@ class MVGS:
         them. Stages must match either way. Distributed: every rank loads the same state; the
         summed statistics stay on rank 0 only (the others start from zero), so the next
         densification sums them once."""
+        own = self.adapter.state_dict()  # also the backup below
+        kinds = [st.get("format") if isinstance(st, dict) else None for st in (state["adapter"], own)]
+        if None not in kinds and kinds[0] != kinds[1]:  # another model first: its config differs as a consequence
+            raise ValueError(f"the checkpoint holds a {kinds[0]!r} model and this run trains a {kinds[1]!r} model "
+                             f"({type(self.adapter).__name__}): it was written by another script or adapter")
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
             def plan(stages):
@@ -473,7 +478,7 @@ class MVGS:
             warnings.warn(f"checkpoint config differs, this run's values are kept: {said}", stacklevel=2)
         # All or nothing: if any part fails to load, the trainer is put back as it was (a caller
         # who catches the error and trains on must not get a half-restored run).
-        backup = (self.schedule.state_dict(), torch.get_rng_state(), self.adapter.state_dict())
+        backup = (self.schedule.state_dict(), torch.get_rng_state(), own)
         try:
             self.schedule.load_state_dict(state["schedule"])
             torch.set_rng_state(state["torch_rng"])

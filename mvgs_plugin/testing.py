@@ -395,6 +395,48 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
     fresh.load_statistics({name: t.clone() for name, (t, _) in stats.items()})
     for name, (t, _) in fresh.statistics().items():
         assert torch.equal(t, stats[name][0]), f"load_statistics() did not restore {name!r}"
+    # One step as two ranks take it (mvgs_plugin.distributed): the .grad of every tensor
+    # gradient_parameters() names summed over the ranks, the statistics combined, then each rank
+    # steps. It must leave the state one adapter that rendered every view reaches; a trainable
+    # group gradient_parameters() leaves out keeps one rank's gradient, so its update and its
+    # optimizer moments differ.
+    ranks = (first, rest)
+    for name in params:
+        grads_r = [r.gradient_parameters()[name].grad for r in ranks]
+        present = [g for g in grads_r if g is not None]
+        if present:
+            total = torch.stack(present).sum(dim=0)
+            for r in ranks:
+                r.gradient_parameters()[name].grad = total.clone()
+    first.load_statistics({name: (a[name][0] + b[name][0] if op == "sum" else torch.maximum(a[name][0], b[name][0]))
+                           for name, (_, op) in stats.items()})
+    for adapter in (whole, first):
+        adapter.optimizer_step()
+    want, got = dict(_tensors(whole.state_dict())), dict(_tensors(first.state_dict()))
+    assert set(want) == set(got), f"state_dict() holds other tensors after the step: {sorted(set(want) ^ set(got))}"
+    for key, t in want.items():
+        u = got[key]
+        if not t.is_floating_point():
+            assert torch.equal(t, u), f"state_dict(){key} differs after a step taken as two ranks take it"
+            continue
+        scale = max(float(t.abs().max()) if t.numel() else 0.0, 1e-12)
+        err = float((t - u).abs().max()) / scale if t.numel() else 0.0
+        assert tuple(t.shape) == tuple(u.shape) and err <= 1e-3, (
+            f"after one step taken as two ranks take it (the gradients of gradient_parameters() summed), "
+            f"state_dict(){key} differs from one adapter that rendered every view by {err:.3g} (relative): "
+            f"gradient_parameters() must name every trainable tensor (it names {sorted(params)})")
+
+
+def _tensors(obj, key: str = ""):
+    """(path, tensor) for every tensor in a nested dict / list / tuple (a state_dict)."""
+    if isinstance(obj, torch.Tensor):
+        yield key, obj
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _tensors(v, f"{key}[{k!r}]")
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _tensors(v, f"{key}[{i}]")
 
 
 CHECKS = [

@@ -428,6 +428,19 @@ def test_conformance_suite_checks_the_distributed_methods():
     with pytest.raises(AssertionError, match="statistic 'max_radii2D': the sum over two adapters that rendered "
                                              "disjoint views differs"):
         check_distributed_support(lambda s: RadiiSummed.from_scene(s, GS3DConfig()), scene)
+    class OpacityUnnamed(GS3DAdapter):
+        """Trains its opacities but names them neither to gradient_parameters() nor to
+        named_gradients(): ranks would not sum their gradients, and each would step its own."""
+
+        def gradient_parameters(self):
+            return {k: v for k, v in super().gradient_parameters().items() if k != "opacities"}
+
+        def named_gradients(self):
+            return {k: v for k, v in super().named_gradients().items() if k != "opacities"}
+
+    with pytest.raises(AssertionError, match=r"state_dict\(\)\['params'\]\['opacities'\] differs from one adapter "
+                                             r"that rendered every view .*must name every trainable tensor"):
+        check_distributed_support(lambda s: OpacityUnnamed.from_scene(s, GS3DConfig()), scene)
     with pytest.raises(ValueError, match=r"statistics\['denom'\] must be \[80\], got \[3\]"):
         make(scene).load_statistics({"grad_accum": torch.zeros(80), "denom": torch.zeros(3),
                                      "max_radii2D": torch.zeros(80), "grad_sq_accum": torch.zeros(80),

@@ -138,6 +138,12 @@ def test_ctrl_c_says_where_the_run_stopped_and_how_to_resume(tmp_path, monkeypat
     said = capsys.readouterr().err
     assert err.value.code == 2 and "made with other settings (max_gaussians: checkpoint None, this run 900); resume " \
         "with the flags it was written with" in said and "strict=False" not in said
+    with pytest.raises(SystemExit) as err:  # another script's model: named as such, before its config
+        _example("train_scaffold.py").main(base + ["--out", str(tmp_path / "s"), "--resume", str(checkpoint)])
+    said = capsys.readouterr().err
+    assert err.value.code == 2 and "the checkpoint holds a 'mvgs-gs3d/1' model and this run trains a " \
+        "'mvgs-scaffold/1' model (ScaffoldAdapter): it was written by another script or adapter" in said
+    assert "stages" not in said and not (tmp_path / "s" / "metrics.json").exists()
     monkeypatch.setattr(controller.MVGS, "step", interrupted)
     for out in ("b", "a"):  # no checkpoint; a checkpoint.pt of an earlier run in --out is not this run's
         with pytest.raises(SystemExit) as err:
