@@ -31,7 +31,7 @@ import sys
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
-    HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in, metrics_record,
+    MAX_INIT_POINTS, HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in, metrics_record,
     model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
     scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
@@ -54,7 +54,7 @@ def parse_args(argv=None):
                     help="share of the steps in the static coarse stage, in [0, 1) (default: 3000/23000, the original's)")
     ap.add_argument("--time-spread", choices=["random", "stratified"], default="stratified",
                     help="how the M views of a step spread over time (MVGSConfig.time_spread)")
-    ap.add_argument("--init-random", type=int_at_least(0), default=0,
+    ap.add_argument("--init-random", type=int_at_least(0, MAX_INIT_POINTS), default=0,
                     help="extra random initial points (the scene's points may miss the moving objects)")
     ap.add_argument("--init-box", type=float_above(-math.inf), nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                     help="box of the extra random points (default: the scene points' box widened to a cube)")

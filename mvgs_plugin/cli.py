@@ -21,14 +21,15 @@ import math
 import os
 import resource
 import sys
+import tempfile
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DConfig
-from mvgs_plugin.config import PRESETS, MVGSConfig, Stage
+from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig, Stage
 from mvgs_plugin.controller import MVGS, ConfigMismatch
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
@@ -39,8 +40,8 @@ __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
     "BUNDLED", "HelpFormatter", "common_args", "config_from_args", "launch", "train_and_evaluate",
     "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
-    "parse_stages", "checkpoint_file", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
-    "scene_from_args",
+    "parse_stages", "checkpoint_file", "out_folder", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
+    "scene_from_args", "MAX_STEPS", "MAX_INIT_POINTS",
 ]
 
 # The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package:
@@ -57,6 +58,11 @@ MIN_IMAGE_SIDE = 16
 # --background-points' default (mvgs_plugin.data.init.background_shell; docs/data.md#the-far-background):
 # fixed before it was measured, never varied; 0 keeps 3DGS's init
 BACKGROUND_POINTS = 2000
+# Upper bounds of the run's length and of a generated init: a run of more steps, or a shell of
+# more points, than any trainer runs or any scene holds is a typo (1e12 steps never ends; 1e11
+# points fail an allocation deep in the init)
+MAX_STEPS = 10**8
+MAX_INIT_POINTS = 10**7
 
 
 class UsageError(ValueError):
@@ -183,15 +189,18 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2))
 
 
-def int_at_least(low: int) -> Callable[[str], int]:
-    """An argparse type: an int >= low (argparse turns the error into a usage message)."""
+def int_at_least(low: int, high: Optional[int] = None) -> Callable[[str], int]:
+    """An argparse type: an int >= low (and <= high when given; argparse turns the error into a
+    usage message)."""
+    want = f"an int >= {low}" if high is None else f"an int in {low}..{high}"
+
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected an int >= {low}, got {value}")
+            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {want}, got {value}")
         return value
     return parse
 
@@ -255,6 +264,11 @@ def check_out(out: Path) -> None:
         raise ValueError(f"--out {out}: {probe} is a file, so the folder cannot be created under it")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: {probe} is not writable by this user")
+    if probe.is_dir():  # permissions are not the whole answer (root under /sys, a read-only mount): try it
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".mvgs-out-check-", dir=probe))
+        except OSError as err:
+            raise ValueError(f"--out {out}: a folder cannot be made in {probe} ({err.strerror or err})") from None
     if out.is_dir():  # a reused folder: what a run writes there must be able to take its place
         if (out / "test").exists() and not (out / "test").is_dir():
             raise ValueError(f"--out {out}: {out / 'test'} is a file, where the test renders' folder goes")
@@ -312,8 +326,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a forward-facing rig); paper: the released code; "
                          "baseline: plain 3DGS")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
-    ap.add_argument("--steps", type=int_at_least(1), default=3000, help="total steps (the preset's schedule is rescaled to it)")
-    ap.add_argument("--budget", type=float_above(0), default=None,
+    ap.add_argument("--steps", type=int_at_least(1, MAX_STEPS), default=3000, help="total steps (the preset's schedule is rescaled to it)")
+    ap.add_argument("--budget", type=float_above(0, high=MAX_STEPS), default=None,
                     help="train on a budget of work instead of --steps: full-resolution view renders (a baseline "
                          "step is 1; a view at pyramid factor f counts A + (1 - A) / f, --view-cost); every schedule runs "
                          "on it (default: not set, --steps counts)")
@@ -328,7 +342,7 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "views at their poses, the rest filled with photo-consistent points; falls back to random "
                          "with the reason when too few tracks are found), random (the 3DGS cube when the cameras "
                          "surround the scene, the training frusta when they face one way), frusta or cube")
-    ap.add_argument("--background-points", type=int_at_least(0), default=BACKGROUND_POINTS, metavar="N",
+    ap.add_argument("--background-points", type=int_at_least(0, MAX_INIT_POINTS), default=BACKGROUND_POINTS, metavar="N",
                     help="N more initial points on a sphere twice the rig's radius for the far background (sky, "
                          "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
                          "(3DGS's init). A forward-facing rig gets none")
@@ -358,7 +372,7 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--stage-growth", type=float_above(1), default=None,
                     help="cap densification within a stage at this multiple of the count the stage began with "
                          "(default: no cap)")
-    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
+    ap.add_argument("--max-gaussians", type=int_at_least(1, MAX_PRIMITIVES), default=None,
                     help="budget of primitives (Gaussians; anchors for Scaffold-GS): the run never holds more; "
                          "a larger initial model is cut to it by keep score, growth follows a schedule that "
                          "reaches it when densification ends (MVGSConfig.max_gaussians; default: no budget)")
@@ -377,9 +391,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--budget-size-pruning", action="store_true", default=None,
                     help="with a budget, still prune Gaussians by size after the first opacity reset, as 3DGS "
                          "(MVGSConfig.budget_size_pruning; default: off with a budget, on without)")
-    ap.add_argument("--out", type=Path, default=Path(out),
+    ap.add_argument("--out", type=out_folder, default=Path(out),
                     help="output folder (created; metrics.json, test/*.png and the model are written there)")
-    ap.add_argument("--seed", type=int_at_least(0), default=0,
+    ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
                     help="seed of the view order, the model's random draws and torch")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -400,6 +414,14 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="continue the run a checkpoint was written by (same data and flags; it is refused "
                          "otherwise, naming the settings that differ; default: start fresh)")
     return ap
+
+
+def out_folder(text: str) -> Path:
+    """An argparse type for --out: a non-empty path (what is there check_out checks)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a folder path, got {text!r} (to write into the current folder, "
+                                         "say so: --out .)")
+    return Path(text)
 
 
 def checkpoint_file(text: str) -> Path:

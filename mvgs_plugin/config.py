@@ -63,6 +63,11 @@ DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((4, 1, 0.10), (2, 1, 0.20)
 # recipe that is to beat the baseline; not tuned (docs/equal_compute.md, "The compact preset").
 COMPACT_PIXELS_PER_GAUSSIAN = 213.0
 
+# Upper bounds of the run's ints: a seed every RNG takes (numpy's legacy ones stop at 2^32), and
+# a primitive count an int32 index holds (beyond it a budget is not a budget but an overflow).
+MAX_SEED = 2**32 - 1
+MAX_PRIMITIVES = 2**31 - 1
+
 # The config fields that are clocks (steps, or work with clock_unit="work"): rescaled together.
 CLOCK_FIELDS: Tuple[str, ...] = ("densify_from", "densify_until", "densify_every", "opacity_reset_every",
                                  "prune_large_after")
@@ -384,7 +389,7 @@ class MVGSConfig:
             v = getattr(self, name)
             if name == "chunk_size" and v is None:
                 continue
-            check_int(name, v, low)
+            check_int(name, v, low, MAX_SEED if name == "seed" else None)
         _check_finite_above("max_views_fraction", self.max_views_fraction, 0, "None or a fraction in (0, 1]",
                             optional=True)
         for name in ("budget_size_pruning", "forward_rig_budget"):
@@ -401,7 +406,7 @@ class MVGSConfig:
             raise ValueError(f"max_views_fraction must be None or a fraction in (0, 1], got {self.max_views_fraction!r}")
         _check_finite_above("stage_growth", self.stage_growth, 1, "None or a finite factor > 1", optional=True)
         if self.max_gaussians is not None:
-            check_int("max_gaussians", self.max_gaussians, 1)
+            check_int("max_gaussians", self.max_gaussians, 1, MAX_PRIMITIVES)
         _check_finite_above("pixels_per_gaussian", self.pixels_per_gaussian, 0,
                             "None or a finite number of training pixels per Gaussian > 0", optional=True)
         _check_finite_above("chunk_memory_mb", self.chunk_memory_mb, 0, "a finite number of MiB > 0")

@@ -459,6 +459,7 @@ class MVGS:
         if None not in kinds and kinds[0] != kinds[1]:  # another model first: its config differs as a consequence
             raise ValueError(f"the checkpoint holds a {kinds[0]!r} model and this run trains a {kinds[1]!r} model "
                              f"({type(self.adapter).__name__}): it was written by another script or adapter")
+        self.schedule.check_views_of(state["schedule"])  # another scene: said as such, not as its stage plan
         saved = MVGSConfig.from_dict(state["config"])
         if saved.stages != self.config.stages:
             def plan(stages):

@@ -151,7 +151,13 @@ class ViewSchedule:
             raise ValueError("scene has no training cameras")
         self.scene = scene
         self.load_images = load_images  # False: plans carry no images (a loop that loads its own data)
-        self.config = config = config.for_scene(scene)
+        resolved = config.for_scene(scene)
+        if config.budget is None and resolved.total_steps != config.total_steps:
+            warnings.warn(f"on this rig the plan's coarser stages hand their work to the full-resolution stage "
+                          f"(MVGSConfig.for_scene): this run takes {resolved.total_steps} steps, not the config's "
+                          f"{config.total_steps}; for {config.total_steps} steps resolve the recipe first, "
+                          f"config.for_scene(scene).with_total_steps(N), as the examples' --steps does", stacklevel=3)
+        self.config = config = resolved
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
@@ -395,14 +401,19 @@ class ViewSchedule:
                 "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
                 "views": self._views}
 
+    def check_views_of(self, state: Dict) -> None:
+        """ValueError unless a state_dict() was saved on these training views (check_same_views;
+        a state saved before views were recorded passes)."""
+        saved = state.get("views") if isinstance(state, dict) else None
+        if saved is not None:
+            check_same_views(saved, self._views)
+
     def load_state_dict(self, state: Dict) -> None:
         """Restore a state_dict(). A state saved on other training views (names, sizes,
         intrinsics, poses, times) is refused with a ValueError naming the first view that
         differs, before anything is changed; states saved before views were recorded load
         without that check."""
-        saved = state.get("views")
-        if saved is not None:
-            check_same_views(saved, self._views)
+        self.check_views_of(state)
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])

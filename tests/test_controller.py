@@ -606,6 +606,13 @@ def test_a_checkpoint_of_other_training_views_is_refused_and_nothing_changes(sce
         assert fresh.step_count == 0
         for k, v in before.items():
             assert torch.equal(fresh.adapter.params[k], v), k
+    # Another scene whose run also has another stage plan: the scene is the cause named
+    other = synthetic_scene(n_train=5, n_test=2, size=16, n_points=80)
+    fresh = MVGS(make(other), other, MVGSConfig.default().with_total_steps(60))
+    assert fresh.config.stages != trainer.config.stages
+    with pytest.raises(ValueError, match="made on 6 training views, this run has 5") as err:
+        fresh.load_checkpoint(str(path))
+    assert "stages" not in str(err.value)
 
 
 def test_a_checkpoint_of_another_length_is_refused_naming_both_plans(scene, tmp_path):

@@ -90,6 +90,27 @@ def test_a_rescaled_steps_config_keeps_its_work_and_every_clock():
     assert got.clock_length == config.clock_length
 
 
+def test_a_rescaled_steps_config_on_a_forward_rig_warns_with_the_count_it_takes():
+    """The API route the docs once showed (with_total_steps before the controller's for_scene)
+    takes fewer steps on a forward rig: the schedule says how many and how to get N; resolved
+    first, or on a budget, or on an orbit, it says nothing."""
+    fwd, orbit = synthetic_scene(), synthetic_scene()
+    fwd.train_cameras = parallel_rig([-1.0, 0.0, 1.0])
+    config = MVGSConfig.default().with_total_steps(1000)
+    coarse = sum(s.steps * (0.1 + 0.9 / s.factor) for s in config.stages if s.factor > 1)
+    taken = config.stages[-1].steps + round(coarse)  # the work of the coarse stages, at one step per unit
+    assert taken < 1000
+    with pytest.warns(UserWarning, match=rf"this run takes {taken} steps, not the config's 1000; for 1000 steps "
+                                         r"resolve the recipe first, config.for_scene\(scene\).with_total_steps\(N\)"):
+        assert ViewSchedule(fwd, config, load_images=False).config.total_steps == taken
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for quiet in (MVGSConfig.default().for_scene(fwd).with_total_steps(1000), MVGSConfig.default().with_budget(1000)):
+            ViewSchedule(fwd, quiet, load_images=False)
+        ViewSchedule(orbit, config, load_images=False)
+
+
 def test_orbits_other_presets_and_pyramid_keep_their_plans():
     orbit, fwd = Rig(ring(12)), Rig(parallel_rig([-1.0, 0.0, 1.0]))
     config = MVGSConfig.default().with_budget(1000)

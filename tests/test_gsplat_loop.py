@@ -26,7 +26,7 @@ from mvgs_plugin import CRDConfig, MVGSConfig
 from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy, views_of
 from mvgs_plugin.adapters import gsplat_strategy
 from mvgs_plugin.data import load_scene
-from mvgs_plugin.io import load_checked
+from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import ssim
 from mvgs_plugin.schedule import ViewSchedule
 
@@ -678,10 +678,23 @@ def test_a_refused_resume_is_one_line_and_exit_2(tmp_path, capsys):
     assert f"error: --resume {ckpt}: " in lines[0] and "max_gaussians" in lines[0]
     bad = tmp_path / "bad.pt"
     bad.write_bytes(ckpt.read_bytes()[:200])
-    cfg = common.parse_config(base + ["--out", str(tmp_path / "c"), "--max-gaussians", "400", "--resume", str(bad)])
-    with pytest.raises(SystemExit) as err:
-        common.run(simple_trainer_mvgs.Runner, cfg)
-    assert err.value.code == 2 and f"error: --resume {bad}: " in capsys.readouterr().err
+    foreign = tmp_path / "controller.pt"  # the keys of a controller's checkpoint (examples/train_3dgs.py)
+    save_checked({"config": {}, "schedule": {}, "torch_rng": torch.get_rng_state(), "adapter": {}}, str(foreign))
+    for name, flags, said in [
+            ("c", ["--resume", str(bad)], f"error: --resume {bad}: not a checkpoint this loop wrote, or damaged ("),
+            ("d", ["--resume", str(foreign)], f"error: --resume {foreign}: not a checkpoint of this loop: it has no "
+                                              "['step', 'splats', 'optimizers', 'schedulers', 'strategy_state', 'data', "
+                                              "'rng'] (it holds ['adapter', 'config', 'schedule', 'torch_rng'])"),
+            ("e", ["--resume", str(ckpt), "--seed", "4"], f"error: --resume {ckpt}: the checkpoint was made with --seed 0 "
+                                                          "(this command: 4); resume with the flags it was written with")]:
+        cfg = common.parse_config(base + ["--out", str(tmp_path / name), "--max-gaussians", "400", *flags])
+        with pytest.raises(SystemExit) as err:
+            common.run(simple_trainer_mvgs.Runner, cfg)
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert err.value.code == 2 and len(lines) == 1 and said in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "bad.pt", "controller.pt"]  # refused runs leave no folder
+    cfg = common.parse_config(base + ["--out", str(tmp_path / "a"), "--max-gaussians", "400", "--resume", str(ckpt)])
+    assert common.run(simple_trainer_mvgs.Runner, cfg)["seed"] == 0  # the same seed resumes, and says its seed
 
 
 def test_the_example_cli_takes_a_budget_from_the_data(tmp_path, forward):

@@ -335,6 +335,9 @@ def test_half_truncated_points_file_is_refused_quickly(tmp_path):
 @pytest.mark.parametrize("option,value", [
     ("--views", "0"), ("--steps", "0"), ("--threads", "0"), ("--seed", "-1"), ("--budget", "nan"),
     ("--budget", "-1"), ("--threshold-width", "-5"), ("--max-gaussians", "0"), ("--resolution-scale", "0"),
+    # past what any run needs, where the run would overflow later (a seed, a budget past int32) or never end
+    ("--seed", "99999999999999999999"), ("--max-gaussians", "100000000000000000000"), ("--budget", "1e30"),
+    ("--steps", "1000000000000"), ("--background-points", "100000000000"), ("--out", ""), ("--out", "  "),
 ])
 def test_bad_argument_is_a_usage_error_naming_the_option(capsys, option, value):
     example = load_example()
@@ -351,23 +354,41 @@ def test_good_arguments_parse(tmp_path):
                                       "--resolution-scale", "1", "--out", str(tmp_path / "o")])
     assert (args.views, args.steps, args.threads, args.seed, args.budget) == (1, 1, 1, 0, 0.5)
     assert (args.threshold_width, args.max_gaussians, args.resolution_scale) == (0.0, 1, 1)
+    top = load_example().parse_args(["--seed", "4294967295", "--max-gaussians", "2147483647", "--steps", "100000000",
+                                     "--budget", "1e8", "--background-points", "10000000"])
+    assert (top.seed, top.max_gaussians, top.steps, top.budget, top.background_points) == (
+        2**32 - 1, 2**31 - 1, 10**8, 1e8, 10**7)
 
 
-@pytest.mark.parametrize("where", ["file", "under_file"])
+def test_the_config_bounds_a_budget_and_a_seed_where_they_would_overflow():
+    from mvgs_plugin import MVGSConfig
+    with pytest.raises(ValueError, match=r"max_gaussians must be an int in 1\.\.2147483647, got 2147483648"):
+        MVGSConfig(max_gaussians=2**31)
+    with pytest.raises(ValueError, match=r"seed must be an int in 0\.\.4294967295, got 4294967296"):
+        MVGSConfig(seed=2**32)
+    assert MVGSConfig(max_gaussians=2**31 - 1, seed=2**32 - 1).max_gaussians == 2**31 - 1
+
+
+@pytest.mark.parametrize("where", ["file", "under_file", "unmakeable"])
 def test_bad_out_is_refused_before_any_work(tmp_path, monkeypatch, where):
+    """An --out that is a file, under a file, or where no folder can be made though the
+    permissions say yes (/proc: the run used to train, then fail on its first write)."""
     example = load_example()
     calls = []
     monkeypatch.setattr(example, "run", lambda *a: calls.append("run"))
     monkeypatch.setattr(example, "scene_from_args", lambda *a: calls.append("load_scene"))
     blocker = tmp_path / "a_file"
     blocker.write_text("keep me")
-    out = blocker if where == "file" else blocker / "sub" / "dir"
+    out = {"file": blocker, "under_file": blocker / "sub" / "dir", "unmakeable": Path("/proc/mvgs-out/run")}[where]
     t0 = time.perf_counter()
     with pytest.raises(ValueError) as info:
         example.main(["--out", str(out), "--steps", "2", "--no-progress", "--debug"])
     assert time.perf_counter() - t0 < 1.0
     msg = str(info.value)
-    assert str(out) in msg and (str(blocker) in msg) and "file" in msg, msg
+    if where == "unmakeable":
+        assert msg.startswith(f"--out {out}: a folder cannot be made in /proc ("), msg
+    else:
+        assert str(out) in msg and (str(blocker) in msg) and "file" in msg, msg
     assert calls == []
     assert blocker.is_file() and blocker.read_text() == "keep me"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]

@@ -116,7 +116,7 @@ def test_with_views():
     ("densify_until", float("nan"), "densify_until must be an int >= 0"),
     ("densify_from", 2.5, "densify_from must be an int >= 0"),
     ("prune_large_after", -1, "prune_large_after must be an int >= 0"),
-    ("seed", -1, "seed must be an int >= 0"),
+    ("seed", -1, "seed must be an int in 0..4294967295, got -1"),
 ])
 def test_bad_config(field, value, pattern):
     with pytest.raises(ValueError, match=pattern):

@@ -36,7 +36,7 @@ from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, scene_folder  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, MAX_STEPS, HelpFormatter, int_at_least, scene_folder  # noqa: E402
 
 
 def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
@@ -140,7 +140,7 @@ def evaluate(gaussians: GaussianModel, scene) -> float:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder with points (default: the bundled one)")
-    ap.add_argument("--steps", type=int_at_least(2), default=1000, help="iterations")
+    ap.add_argument("--steps", type=int_at_least(2, MAX_STEPS), default=1000, help="iterations")
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the MVGS recipe (MVGSConfig.from_preset)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "

@@ -41,8 +41,9 @@ from gsplat.strategy import DefaultStrategy
 
 from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
-from mvgs_plugin.cli import BUNDLED, check_device, check_out, float_above, int_at_least, rasterize_function
-from mvgs_plugin.config import PRESETS, MVGSConfig
+from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, check_device, check_out, float_above, int_at_least,
+                             out_folder, rasterize_function)
+from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.metrics import psnr, ssim as ssim_metric
@@ -263,15 +264,23 @@ class _Counted:
         return item
 
 
+# The command's settings a checkpoint must share with the command that resumes it, beyond what
+# the parameters and the strategy's state already pin down (run() sets them; the trainers call
+# save_checkpoint / load_checkpoint with gsplat's arguments only, so the patch stays small).
+_RUN_SETTINGS: Dict[str, Any] = {}
+_CHECKPOINT_KEYS = ("step", "splats", "optimizers", "schedulers", "strategy_state", "data", "rng")
+
+
 def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strategy_state, data_state) -> None:
     """Everything a resumed run needs to continue as if never stopped (atomic, checksummed, and
     loadable without running pickled code): the next step, parameters, optimizer and scheduler
-    states, the strategy's running statistics, the data position, the RNG."""
+    states, the strategy's running statistics, the data position, the RNG, and the settings of
+    the command (its seed)."""
     save_checked({
         "step": step + 1, "splats": {k: v.detach().cpu() for k, v in splats.items()},
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "schedulers": [s.state_dict() for s in schedulers], "strategy_state": dict(strategy_state),
-        "data": data_state, "rng": torch.get_rng_state(),
+        "data": data_state, "rng": torch.get_rng_state(), "settings": dict(_RUN_SETTINGS),
     }, str(path))
 
 
@@ -286,7 +295,17 @@ def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) 
     try:
         ckpt = load_checked(str(path))
     except (ValueError, RuntimeError, OSError) as err:  # damaged, foreign or unsafe file
-        raise ResumeRefused(str(err).splitlines()[0] if str(err) else type(err).__name__) from err
+        said = str(err).splitlines()[0] if str(err) else ""
+        raise ResumeRefused(f"not a checkpoint this loop wrote, or damaged ({type(err).__name__}: {said})") from err
+    missing = [k for k in _CHECKPOINT_KEYS if not (isinstance(ckpt, dict) and k in ckpt)]
+    if missing:  # e.g. examples/train_3dgs.py's checkpoint: a controller's state, not this loop's
+        held = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise ResumeRefused(f"not a checkpoint of this loop: it has no {missing} (it holds {held}); resume with a "
+                            "ckpt_<step>.pt this script wrote")
+    saved = ckpt.get("settings", {})  # none in a checkpoint of a version that did not save them
+    differ = [f"--{k} {saved[k]} (this command: {v})" for k, v in _RUN_SETTINGS.items() if k in saved and saved[k] != v]
+    if differ:
+        raise ResumeRefused(f"the checkpoint was made with {', '.join(differ)}; resume with the flags it was written with")
     if set(ckpt["splats"]) != set(splats.keys()):
         raise ResumeRefused(f"parameters {sorted(ckpt['splats'])}, this run has {sorted(splats.keys())}")
     for name, value in ckpt["splats"].items():
@@ -324,11 +343,11 @@ def evaluate(splats, cfg: Config, parser: Parser) -> Dict:
 def parse_config(argv=None, doc: str = "") -> Config:
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
-    ap.add_argument("--steps", type=int_at_least(2), default=1000, help="training steps (default: %(default)s)")
+    ap.add_argument("--steps", type=int_at_least(2, MAX_STEPS), default=1000, help="training steps (default: %(default)s)")
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
-    ap.add_argument("--out", type=Path, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
-    ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed (default: %(default)s)")
+    ap.add_argument("--out", type=out_folder, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
+    ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0, help="seed (default: %(default)s)")
     ap.add_argument("--grow-grad2d", type=float_above(0.0), default=2e-4,
                     help="DefaultStrategy.grow_grad2d, the densification threshold (default: %(default)s, gsplat's)")
     ap.add_argument("--save-steps", type=int_at_least(1), nargs="*", default=[],
@@ -338,7 +357,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
                     help="DataLoader workers (default: %(default)s; gsplat's trainer uses 4)")
     ap.add_argument("--chunk-size", type=int_at_least(1), default=None,
                     help="views per render call in simple_trainer_chunked.py (default: what chunk_memory_mb allows)")
-    ap.add_argument("--max-gaussians", type=int_at_least(1), default=None,
+    ap.add_argument("--max-gaussians", type=int_at_least(1, MAX_PRIMITIVES), default=None,
                     help="budget of Gaussians of the MVGS loops (MVGSConfig.max_gaussians): the model is cut to it at "
                          "check_sanity and never holds more; growth follows its schedule (default: no budget)")
     ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
@@ -374,6 +393,9 @@ def run(runner_class, cfg: Config) -> Dict:
     train_seconds (wall; on CUDA after a synchronize, the GPU's clock), gpu_peak_memory_mb,
     strategy, preset, per view."""
     torch.manual_seed(cfg.seed)
+    _RUN_SETTINGS.clear()
+    _RUN_SETTINGS.update(seed=cfg.seed)
+    made = not cfg.result_dir.exists()
     cfg.result_dir.mkdir(parents=True, exist_ok=True)
     runner = runner_class(cfg)
     cuda = str(cfg.device).startswith("cuda")
@@ -384,6 +406,8 @@ def run(runner_class, cfg: Config) -> Dict:
     try:
         runner.train()
     except ResumeRefused as err:
+        if made and not any(cfg.result_dir.iterdir()):  # a refused run leaves nothing behind
+            cfg.result_dir.rmdir()
         print(f"{Path(sys.argv[0]).name}: error: --resume {cfg.resume}: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     if cuda:
@@ -395,7 +419,7 @@ def run(runner_class, cfg: Config) -> Dict:
              "work": strategy.schedule.work_done if mvgs else float(cfg.max_steps)}
     result = evaluate(runner.splats, cfg, runner.parser)
     metrics = {"psnr": result["psnr"], "ssim": result["ssim"], "num_gaussians": len(runner.splats["means"]),
-               "steps": cfg.max_steps, "cpu_seconds": cpu, "train_seconds": wall,
+               "steps": cfg.max_steps, "seed": cfg.seed, "cpu_seconds": cpu, "train_seconds": wall,
                "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                "threads": torch.get_num_threads(), "data": str(cfg.data_dir), "device": str(cfg.device),
                "gpu_peak_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None, **extra,

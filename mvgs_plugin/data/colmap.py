@@ -131,6 +131,65 @@ def check_binary_counts(model_dir: Path) -> None:
             r.done()
 
 
+def _text_lines(file: Path):
+    """(line number, fields) of a COLMAP text file's records, comments and blank lines left out."""
+    with open(file, encoding="utf-8", errors="replace") as fh:
+        for number, line in enumerate(fh, 1):
+            line = line.strip()
+            if line and not line.startswith("#"):
+                yield number, line.split()
+
+
+def _finite_fields(file: Path, number: int, fields: Sequence[str], what: str) -> None:
+    for text in fields:
+        try:
+            ok = math.isfinite(float(text))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ValueError(f"{file}:{number}: {what}: {text!r} is not a finite number")
+
+
+def check_text_model(model_dir: Path) -> None:
+    """Check a text model's records before pycolmap reads it, so an error names the file, the
+    line and the value (pycolmap's own says "Check failed" or names a rig that does not exist):
+    every camera's and pose's numbers finite, every image's camera listed in cameras.txt, every
+    point's position finite. Only for a text model (a binary one is walked by
+    check_binary_counts); a line these checks pass is pycolmap's to read."""
+    model_dir = Path(model_dir)
+    if all((model_dir / f"{stem}.bin").is_file() for stem in ("cameras", "images")):
+        return
+    cameras, images = model_dir / "cameras.txt", model_dir / "images.txt"
+    if not (cameras.is_file() and images.is_file()):
+        return
+    ids = set()
+    for number, fields in _text_lines(cameras):
+        if len(fields) < 5:
+            raise ValueError(f"{cameras}:{number}: a camera needs CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got "
+                             f"{len(fields)} field(s)")
+        ids.add(fields[0])
+        _finite_fields(cameras, number, fields[4:], f"the parameters of camera {fields[0]}")
+    with open(images, encoding="utf-8", errors="replace") as fh:
+        lines = iter(enumerate(fh, 1))
+        for number, line in lines:
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split()
+            if len(fields) < 10:
+                raise ValueError(f"{images}:{number}: an image needs IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
+                                 f"got {len(fields)} field(s)")
+            _finite_fields(images, number, fields[1:8], f"the pose of image {' '.join(fields[9:])!r}")
+            if fields[8] not in ids:
+                raise ValueError(f"{images}:{number}: image {' '.join(fields[9:])!r} names camera {fields[8]}, which "
+                                 f"{cameras} does not list (it lists {', '.join(sorted(ids, key=str)) or 'none'})")
+            next(lines, None)  # the image's 2D points: the next line, even a blank one
+    points = model_dir / "points3D.txt"
+    if points.is_file():
+        for number, fields in _text_lines(points):
+            _finite_fields(points, number, fields[1:4], f"the position of point {fields[0]}")
+
+
 def _read_model(pycolmap, model_dir: Path):
     """pycolmap.Reconstruction of model_dir. The points file is optional (the loader then has no
     points, and the examples triangulate or draw them), but pycolmap needs all three files of
@@ -224,8 +283,9 @@ def _split(names: Sequence[str], test_every: Optional[int], test_names: Optional
 def _points(rec, model_dir: Path) -> Optional[PointCloud]:
     pts = list(rec.points3D.values())
     if not pts:
-        warnings.warn(f"the COLMAP model in {model_dir} holds 0 3D points: the scene has no point cloud (models "
-                      "initialise randomly, where the cameras look)", stacklevel=3)
+        warnings.warn(f"the COLMAP model in {model_dir} holds 0 3D points: the scene has no point cloud (the examples' "
+                      "--init makes one, by default triangulated from the training views; an adapter given none "
+                      "initialises randomly, where the cameras look)", stacklevel=3)
         return None
     xyz = np.array([p.xyz for p in pts], dtype=np.float64)
     rgb = np.array([p.color for p in pts], dtype=np.float64) / 255.0
@@ -262,6 +322,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     import pycolmap
 
     check_binary_counts(model_dir)
+    check_text_model(model_dir)
     rec = _read_model(pycolmap, model_dir)
 
     records = []

@@ -217,8 +217,9 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     ply = root / "points3d.ply"
     points = read_points_ply(ply) if ply.is_file() else None
     if points is not None and len(points) == 0:
-        warnings.warn(f"{ply} holds 0 points: the scene has no point cloud (models initialise randomly, "
-                      "where the cameras look)", stacklevel=3)
+        warnings.warn(f"{ply} holds 0 points: the scene has no point cloud (the examples' "
+                      "--init makes one, by default triangulated from the training views; an adapter given none "
+                      "initialises randomly, where the cameras look)", stacklevel=3)
         points = None
     # sizes were read from the headers above, so the Scene need not read them again
     return Scene(splits["train"], splits["test"], files, points=points, background=bg,
