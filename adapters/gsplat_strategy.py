@@ -271,6 +271,11 @@ class MVGSStrategy(DefaultStrategy):
             config = config.with_total_steps(steps)
         run_steps = config.total_steps
         if clock == "strategy":
+            if strategy.refine_start_iter >= run_steps:  # gsplat's defaults are set for 30k steps
+                warnings.warn(f"the strategy's refine window starts at step {strategy.refine_start_iter}, at or after "
+                              f"the run's {run_steps} steps: this run never densifies; scale the DefaultStrategy's "
+                              "refine_start_iter / refine_stop_iter / refine_every / reset_every to the run, or pass "
+                              "clock='config' (the config's own clock, compressed to the run)", stacklevel=2)
             config = adopt_strategy_clock(config, strategy, run_steps)
         r = _clock_per_step(config, run_steps)
         self._scale2d_until = strategy.refine_scale2d_stop_iter * r

@@ -670,6 +670,7 @@ class MVGSConfig:
 
     def with_views(self, views: int) -> "MVGSConfig":
         """Override M in the last (full-resolution) stage; coarser stages keep their ratio to it."""
+        check_int("views", views, 1)
         last = self.stages[-1].views
         stages = tuple(Stage(s.factor, max(1, round(s.views * views / last)), s.steps) for s in self.stages)
         return dataclasses.replace(self, stages=stages)

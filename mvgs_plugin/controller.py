@@ -26,10 +26,11 @@ from .camera import Camera
 from .config import MVGSConfig
 from .densify import loss_map
 from .distributed import Collective, require_support
+from .checks import is_int
 from .io import load_checked, save_checked
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
-from .protocol import Adapter, DensifyReport
+from .protocol import Adapter, DensifyReport, check_is_adapter
 from .schedule import ViewSchedule
 
 # MVGSConfig fields a resumed run may change (speed, memory and guards, not what it trains)
@@ -141,7 +142,12 @@ class EvalResult:
     psnr: float
     ssim: float
     lpips: Optional[float]
-    per_view: List[Dict] = field(default_factory=list)
+    per_view: List[Dict] = field(default_factory=list)  # name, psnr, ssim, lpips, image [H, W, 3] per view
+
+    def __repr__(self) -> str:  # the per-view images stay out of a print
+        lp = "None" if self.lpips is None else f"{self.lpips:.4f}"
+        return (f"EvalResult(psnr={self.psnr:.4f}, ssim={self.ssim:.4f}, lpips={lp}, "
+                f"per_view=[{len(self.per_view)} views: name, psnr, ssim, lpips, image])")
 
 
 class MVGS:
@@ -159,6 +165,14 @@ class MVGS:
 
     def __init__(self, adapter: Adapter, scene, config: Optional[MVGSConfig] = None,
                  distributed: Optional[Collective] = None):
+        check_is_adapter(adapter)
+        if not (hasattr(scene, "train_cameras") and hasattr(scene, "test_cameras")):
+            raise TypeError(f"scene must be a mvgs_plugin.data.Scene (train_cameras, test_cameras, images), got "
+                            f"{type(scene).__name__}" + (" (a path: load it with mvgs_plugin.data.load_scene)"
+                                                         if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else ""))
+        if config is not None and not isinstance(config, MVGSConfig):
+            raise TypeError(f"config must be an MVGSConfig or None, got {type(config).__name__} {config!r}"
+                            + (f" (a preset by name: MVGSConfig.from_preset({config!r}))" if isinstance(config, str) else ""))
         self.adapter = adapter
         self.scene = scene
         self.schedule = ViewSchedule(scene, config or MVGSConfig.default())
@@ -381,6 +395,8 @@ class MVGS:
         """Runs the remaining steps (or `steps` more) with a progress bar (rank 0 only, and only
         when stderr is a terminal: a log file or a pipe gets no bar). In a distributed run every
         rank must call it with the same `steps`."""
+        if steps is not None and not (is_int(steps) and steps >= 1):
+            raise ValueError(f"steps must be None (the rest of the run) or an int >= 1, got {steps!r}")
         remaining = self.total_steps - self.step_count
         n = remaining if steps is None else min(steps, remaining)
         bar = None

@@ -56,7 +56,12 @@ class RenderResult:
 class DensifyContext:
     """Everything the controller decided for one densification call.
 
-    step: global step (1-based, as the original 3DGS counts).
+    step: the clock the schedules run on at this step (StepPlan.clock), the value set_step got:
+        the step number (1-based, as the original 3DGS counts) when the clocks count steps; the
+        work done so far in full-resolution view renders, an int, when they count work (a
+        budget, or clock_unit="work", as the default preset) so cheap coarse steps advance it by
+        less than 1 and consecutive calls may see the same value; counted per stage with
+        restart_per_stage. 0 for the cut to the budget before the first step.
     grad_threshold: screen-space gradient threshold (NDC units, 2e-4 by default) after the
         multi-view augmented rule (MVAD) has possibly lowered it for this step.
     scene_extent: the scene scale used by size thresholds (Scene.extent).
@@ -128,7 +133,10 @@ class Adapter(Protocol):
         """The periodic opacity reset of 3DGS (a no-op for models without one)."""
 
     def set_step(self, step: int) -> None:
-        """Called at the start of every step: learning-rate schedule, SH degree, stage switches."""
+        """Called at the start of every step with the clock the schedules run on (the value
+        DensifyContext.step gets: the step number, or the work done so far, which may repeat
+        over cheap coarse steps and starts at 0): learning-rate schedule, SH degree, stage
+        switches. Schedule on it, not on a count of calls; it never decreases within a stage."""
 
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:
         """Current gradients of every trainable group by name (for the NaN/Inf guard)."""
@@ -154,6 +162,27 @@ class Adapter(Protocol):
     def export(self, path: str, camera: Optional[Camera] = None) -> None:
         """Write the model in its standard interchange format (a 3DGS PLY for Gaussians); the
         camera is for models that decode Gaussians per view."""
+
+
+ADAPTER_METHODS = ("render", "regularization", "accumulate_stats", "densify", "reset_opacity", "set_step",
+                   "named_gradients", "optimizer_step", "zero_grad", "positions", "num_primitives", "state_dict",
+                   "load_state_dict", "export")
+
+
+def check_is_adapter(adapter, what: str = "adapter") -> None:
+    """TypeError unless `adapter` is an instance with every Adapter method (a class, None, or an
+    object missing some is named with what it lacks): a missing method would otherwise end a
+    run at the step that first calls it (reset_opacity: the first opacity reset)."""
+    if isinstance(adapter, type):
+        raise TypeError(f"{what} must be an adapter instance, got the class {adapter.__name__} (build one, e.g. "
+                        f"{adapter.__name__}.from_scene(scene, ...))")
+    missing = [m for m in ADAPTER_METHODS if not callable(getattr(adapter, m, None))]
+    if missing:
+        raise TypeError(f"{what} must implement the Adapter protocol (mvgs_plugin.protocol.Adapter): "
+                        f"{type(adapter).__name__} has no {', '.join(missing)}" +
+                        (" (a model without an opacity reset implements reset_opacity as a no-op; one without a "
+                         "regularizer returns None from regularization)" if {"reset_opacity", "regularization"} &
+                         set(missing) else ""))
 
 
 class ScaledViewsAdapter(Protocol):

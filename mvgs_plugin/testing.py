@@ -24,7 +24,7 @@ import torch
 from .camera import Camera
 from .data.scene import PointCloud, Scene
 from .losses import photometric_loss
-from .protocol import Adapter, DensifyContext, DistributedAdapter, RenderResult
+from .protocol import Adapter, DensifyContext, DistributedAdapter, RenderResult, check_is_adapter
 
 MakeAdapter = Callable[[Scene], Adapter]
 
@@ -135,6 +135,15 @@ def _with_stats(make_adapter: MakeAdapter, scene: Scene, cams: List[Camera]) -> 
     return adapter
 
 
+def check_protocol_methods(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """The adapter has every method of the Adapter protocol (the controller calls some only late:
+    reset_opacity at the first opacity reset)."""
+    try:
+        check_is_adapter(make_adapter(scene), "make_adapter(scene)")
+    except TypeError as err:
+        raise AssertionError(str(err)) from None
+
+
 def check_make_adapter_is_deterministic(make_adapter: MakeAdapter, scene: Scene) -> None:
     """Two calls of make_adapter build the same model (the checks after this one compare
     adapters built by separate calls, and a resume rebuilds the model before it loads)."""
@@ -238,6 +247,8 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
     densification keeps parameters and optimizer state aligned (a step after it works)."""
     for threshold, grows in ((math.inf, False), (0.0, True)):
         adapter = _with_stats(make_adapter, scene, scene.train_cameras[:3])
+        adapter.optimizer_step()  # as in training: the optimizer holds state (Adam's moments) when densify comes
+        adapter.zero_grad()
         n0 = adapter.num_primitives()
         ctx = DensifyContext(step=1, grad_threshold=threshold, scene_extent=float(scene.extent),
                              cameras=tuple(scene.train_cameras[:3]))
@@ -262,13 +273,40 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
         adapter.zero_grad()
         loss, result = _loss(adapter, scene, scene.train_cameras[:1])
         loss.backward()
-        adapter.optimizer_step()  # shapes of optimizer state and parameters must agree
+        _check_optimizer_state_shapes(adapter, n0, n1)  # before the step: torch's fused Adam may abort on a mismatch
+        try:
+            adapter.optimizer_step()  # shapes of optimizer state and parameters must agree
+        except RuntimeError as err:
+            raise AssertionError(
+                f"the optimizer step after a densify that went {n0} -> {n1} failed ({err}): the optimizer's state "
+                "(e.g. Adam's exp_avg / exp_avg_sq) must be cut and extended with the parameters' rows") from err
         adapter.zero_grad()
         with torch.no_grad():
             after = adapter.render(scene.train_cameras[:1], torch.zeros(1, 3)).images
         assert not torch.equal(after, result.images.detach()), (
             "after densify, an optimizer step with gradients changed nothing the view renders: the optimizer "
             "still holds the tensors from before densify (its state must follow the new parameters)")
+
+
+def _check_optimizer_state_shapes(adapter: Adapter, n0: int, n1: int) -> None:
+    """For an adapter that keeps its torch optimizer(s) as `optimizer` (or a dict `optimizers`,
+    gsplat's layout): every per-parameter state tensor (Adam's moments) has its parameter's shape.
+    Checked before the step, as torch's multi-tensor Adam can end the process on a mismatch
+    rather than raise; other layouts are checked by the step itself."""
+    found = getattr(adapter, "optimizer", None)
+    optimizers = list(found.values()) if isinstance(found, dict) else [found]
+    more = getattr(adapter, "optimizers", None)
+    optimizers += list(more.values()) if isinstance(more, dict) else [more]
+    for opt in (o for o in optimizers if isinstance(o, torch.optim.Optimizer)):
+        for group in opt.param_groups:
+            for param in group["params"]:
+                for key, value in opt.state.get(param, {}).items():
+                    if isinstance(value, torch.Tensor) and value.dim() > 0 and value.shape != param.shape:
+                        name = group.get("name", f"group {opt.param_groups.index(group)}")
+                        raise AssertionError(
+                            f"after a densify that went {n0} -> {n1}, the optimizer's {key!r} of {name!r} has shape "
+                            f"{list(value.shape)} where its parameter has {list(param.shape)}: the optimizer's state "
+                            "(e.g. Adam's exp_avg / exp_avg_sq) must be cut and extended with the parameters' rows")
 
 
 def check_the_cap_holds(make_adapter: MakeAdapter, scene: Scene) -> None:
@@ -297,6 +335,9 @@ def check_background(make_adapter: MakeAdapter, scene: Scene) -> None:
     colours = torch.tensor([[0.2, 0.5, 0.9], [0.9, 0.1, 0.3]])
     with torch.no_grad():
         images = adapter.render([away, away], colours).images
+    assert torch.isfinite(images).all(), ("a view with nothing in it (the camera looks away from every "
+                                          "primitive) rendered non-finite pixels: a division by the view's coverage "
+                                          "or alpha, 0 there, is the usual cause")
     for i in range(2):
         err = float((images[i] - colours[i].to(images)).abs().max())
         assert err <= 1e-3, (f"an empty view rendered with background {colours[i].tolist()} is off it by {err:.3g}: "
@@ -350,20 +391,24 @@ def check_hard_cameras(make_adapter: MakeAdapter, scene: Scene) -> None:
     base = scene.train_cameras[0]
     K = base.K.clone()
     hard = [
-        Camera(900, "inside", K, look_at((0.05, 0.02, 0.01), (1.0, 0.0, 0.0)), base.width, base.height, base.time),
-        Camera(901, "far", K, look_at((300.0, 0.0, 0.0)), base.width, base.height, base.time),
-        Camera(902, "away", K, look_at((3.0, 0.0, 0.0), (6.0, 0.0, 0.0)), base.width, base.height, base.time),
-        base.scaled(base.width),  # 1x1
-        Camera(903, "wide", [[10.0, 0, 20], [0, 10.0, 3], [0, 0, 1]], base.world_to_camera, 40, 6, base.time),
+        ("inside the model", Camera(900, "inside", K, look_at((0.05, 0.02, 0.01), (1.0, 0.0, 0.0)), base.width,
+                                    base.height, base.time)),
+        ("far away", Camera(901, "far", K, look_at((300.0, 0.0, 0.0)), base.width, base.height, base.time)),
+        ("looking away", Camera(902, "away", K, look_at((3.0, 0.0, 0.0), (6.0, 0.0, 0.0)), base.width, base.height,
+                                base.time)),
+        ("1x1 px", base.scaled(base.width)),
+        ("40x6 px", Camera(903, "wide", [[10.0, 0, 20], [0, 10.0, 3], [0, 0, 1]], base.world_to_camera, 40, 6,
+                           base.time)),
     ]
     adapter = make_adapter(scene)
     adapter.set_step(100_000)
-    for cam in hard:
+    for label, cam in hard:
         out = adapter.render([cam], torch.rand(1, 3))
-        assert torch.isfinite(out.images).all(), f"non-finite pixels for the {cam.name!r} camera"
+        assert torch.isfinite(out.images).all(), f"non-finite pixels for the {label} camera ({cam.name!r})"
         (out.images.sum() + (0 if out.alphas is None else out.alphas.sum())).backward()
         for name, g in adapter.named_gradients().items():
-            assert g is None or torch.isfinite(g).all(), f"non-finite gradient in {name!r} for the {cam.name!r} camera"
+            assert g is None or torch.isfinite(g).all(), \
+                f"non-finite gradient in {name!r} for the {label} camera ({cam.name!r})"
         adapter.zero_grad()
 
 
@@ -440,6 +485,7 @@ def _tensors(obj, key: str = ""):
 
 
 CHECKS = [
+    check_protocol_methods,
     check_make_adapter_is_deterministic,
     check_render,
     check_background,
@@ -458,6 +504,9 @@ def check_adapter(make_adapter: MakeAdapter, scene: Optional[Scene] = None) -> D
     error the adapter raised inside a check is reported the same way, with its type).
     Returns {check name: "ok"}. scene: synthetic_scene() when None, whose cameras have no
     time; a time-dependent model (4DGS) needs synthetic_scene(time=True)."""
+    if not callable(make_adapter) or isinstance(make_adapter, Adapter):
+        raise TypeError(f"check_adapter takes make_adapter, a function scene -> a fresh adapter, got "
+                        f"{type(make_adapter).__name__} (e.g. check_adapter(lambda scene: MyAdapter.from_scene(scene)))")
     scene = synthetic_scene() if scene is None else scene
     checks = list(CHECKS)
     if isinstance(make_adapter(scene), DistributedAdapter):  # optional: only adapters that support it

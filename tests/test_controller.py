@@ -442,6 +442,28 @@ class Unseeded(GS3DAdapter):
         return adapter
 
 
+class StaleMoments(GS3DAdapter):
+    def densify(self, ctx):  # the optimizer follows the new tensors, but keeps their Adam moments of before
+        old = [{k: v.clone() for k, v in self.optimizer.state[g["params"][0]].items()}
+               if g["params"][0] in self.optimizer.state else None for g in self.optimizer.param_groups]
+        report = super().densify(ctx)
+        for group, state in zip(self.optimizer.param_groups, old):
+            if state is not None:
+                self.optimizer.state[group["params"][0]] = state
+        return report
+
+
+class NoReset(GS3DAdapter):
+    reset_opacity = None  # not written: the controller calls it first at the first opacity reset
+
+
+class NaNWhenEmpty(GS3DAdapter):
+    def render(self, cameras, backgrounds):  # normalised by the view's coverage: 0 / 0 where nothing is seen
+        out = super().render(cameras, backgrounds)
+        cover = out.alphas.sum(dim=(1, 2, 3), keepdim=True)
+        return dataclasses.replace(out, images=out.images * (cover / cover))
+
+
 class Raises(GS3DAdapter):
     def reset_opacity(self):
         raise NotImplementedError("never written")
@@ -462,12 +484,51 @@ class Raises(GS3DAdapter):
                r"differently .*[(]seed its random initialisation"),
     (ForgetsStats, r"check_state_dict_round_trip: a densify right after load_state_dict went (\d+) -> \1 where the "
                    r"saved adapter went \1 -> \d+: state_dict must carry the densification statistics"),
+    (StaleMoments, r"check_stats_and_densify: after a densify that went (\d+) -> \d+, the optimizer's 'exp_avg' of "
+                   r"'means' has shape \[\1, 3\] where its parameter has \[\d+, 3\]: the optimizer's state \(e.g. "
+                   r"Adam's exp_avg / exp_avg_sq\) must be cut and extended"),
+    (NoReset, r"check_protocol_methods: make_adapter\(scene\) must implement the Adapter protocol .*: NoReset has no "
+              r"reset_opacity \(a model without an opacity reset implements reset_opacity as a no-op"),
+    (NaNWhenEmpty, r"check_background: a view with nothing in it .* rendered non-finite pixels"),
 ])
 def test_the_conformance_suite_names_what_a_broken_adapter_breaks(scene, kind, message):
     """One deliberate fault per adapter (as an outside integrator's adapters had them); the
     suite fails on it with the check's name and what is wrong."""
     with pytest.raises(AssertionError, match=message):
         check_adapter(lambda s: make_kind(kind, s), scene)
+
+
+def test_misuse_of_the_suite_and_the_controller_is_named_at_once(scene):
+    """An adapter instance given to check_adapter, an adapter class, None, a path or a preset name
+    given to MVGS, a views count of 0, a fit of 0 steps: each a TypeError / ValueError naming the
+    value and what was expected, before any step (not an AttributeError at some step)."""
+    adapter = make(scene)
+    with pytest.raises(TypeError, match="check_adapter takes make_adapter, a function scene -> a fresh adapter, got "
+                                        "GS3DAdapter"):
+        check_adapter(adapter, scene)
+    config = MVGSConfig.baseline().with_total_steps(10)
+    for args, message in [((None, scene, config), "adapter must implement the Adapter protocol .*: NoneType has no "
+                                                  "render, regularization"),
+                          ((GS3DAdapter, scene, config), r"adapter must be an adapter instance, got the class "
+                                                         r"GS3DAdapter \(build one, e.g. GS3DAdapter.from_scene"),
+                          ((adapter, "my_scene", config), r"scene must be a mvgs_plugin.data.Scene .*got str \(a path: "
+                                                          r"load it with mvgs_plugin.data.load_scene\)"),
+                          ((adapter, scene, "default"), r"config must be an MVGSConfig or None, got str 'default' "
+                                                        r"\(a preset by name: MVGSConfig.from_preset\('default'\)\)")]:
+        with pytest.raises(TypeError, match=message):
+            MVGS(*args)
+    with pytest.raises(ValueError, match="views must be a positive int, got 0"):
+        MVGSConfig.multiview().with_views(0)
+    trainer = MVGS(adapter, scene, config)
+    for steps in (0, -1, 2.5):
+        with pytest.raises(ValueError, match=rf"steps must be None \(the rest of the run\) or an int >= 1, got {steps}"):
+            trainer.fit(steps=steps, progress=False)
+    assert trainer.step_count == 0
+    result = trainer.evaluate()  # printed, it says its numbers, not every test image's pixels
+    n = len(scene.test_cameras)
+    lp = "None" if result.lpips is None else f"{result.lpips:.4f}"
+    assert repr(result) == (f"EvalResult(psnr={result.psnr:.4f}, ssim={result.ssim:.4f}, lpips={lp}, per_view=[{n} views: "
+                            "name, psnr, ssim, lpips, image])") and "tensor" not in repr(result)
 
 
 def make_kind(kind, scene):

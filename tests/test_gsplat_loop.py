@@ -251,6 +251,10 @@ def test_the_strategy_clock_becomes_the_schedule_clock(forward):
         round(60 * r), round(150 * r), round(10 * r), round(100 * r))
     kept = MVGSStrategy(s, forward, "multiview", steps=300, clock="config").config
     assert kept == MVGSConfig.multiview().with_total_steps(300)
+    # gsplat's defaults (refine from step 500) on a 300-step run: said, not a run that never densifies in silence
+    with pytest.warns(UserWarning, match="the strategy's refine window starts at step 500, at or after the run's 300 "
+                                         "steps: this run never densifies"):
+        MVGSStrategy(DefaultStrategy(), forward, "default", steps=300)
 
 
 def mvad_expected(scene, data, base, width):
