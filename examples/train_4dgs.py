@@ -31,8 +31,8 @@ import sys
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
-    MAX_INIT_POINTS, HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in, metrics_record,
-    model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
+    MAX_INIT_POINTS, HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in,
+    metrics_record, model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
     scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
 from mvgs_plugin.data.nerf import is_dynamic

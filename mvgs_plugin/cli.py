@@ -40,8 +40,8 @@ __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
     "BUNDLED", "HelpFormatter", "common_args", "config_from_args", "launch", "train_and_evaluate",
     "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
-    "parse_stages", "checkpoint_file", "out_folder", "check_device", "check_out", "rasterize_function", "save_test_renders", "load_scene",
-    "scene_from_args", "MAX_STEPS", "MAX_INIT_POINTS",
+    "parse_stages", "checkpoint_file", "out_folder", "check_device", "check_out", "rasterize_function",
+    "save_test_renders", "load_scene", "scene_from_args", "MAX_STEPS", "MAX_INIT_POINTS",
 ]
 
 # The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package:
@@ -323,7 +323,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
                          "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of the "
-                         "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a forward-facing rig); paper: the released code; "
+                         "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a "
+                         "forward-facing rig); paper: the released code; "
                          "baseline: plain 3DGS")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
     ap.add_argument("--steps", type=int_at_least(1, MAX_STEPS), default=3000, help="total steps (the preset's schedule is rescaled to it)")

@@ -23,10 +23,10 @@ from typing import Callable, Dict, Iterator, List, Optional, Sequence
 import torch
 
 from .camera import Camera
+from .checks import is_int
 from .config import MVGSConfig
 from .densify import loss_map
 from .distributed import Collective, require_support
-from .checks import is_int
 from .io import load_checked, save_checked
 from .losses import photometric_loss
 from .metrics import lpips, lpips_available, psnr, ssim
@@ -167,12 +167,12 @@ class MVGS:
                  distributed: Optional[Collective] = None):
         check_is_adapter(adapter)
         if not (hasattr(scene, "train_cameras") and hasattr(scene, "test_cameras")):
+            path = isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__")
             raise TypeError(f"scene must be a mvgs_plugin.data.Scene (train_cameras, test_cameras, images), got "
-                            f"{type(scene).__name__}" + (" (a path: load it with mvgs_plugin.data.load_scene)"
-                                                         if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else ""))
+                            f"{type(scene).__name__}" + (" (a path: load it with mvgs_plugin.data.load_scene)" if path else ""))
         if config is not None and not isinstance(config, MVGSConfig):
-            raise TypeError(f"config must be an MVGSConfig or None, got {type(config).__name__} {config!r}"
-                            + (f" (a preset by name: MVGSConfig.from_preset({config!r}))" if isinstance(config, str) else ""))
+            hint = f" (a preset by name: MVGSConfig.from_preset({config!r}))" if isinstance(config, str) else ""
+            raise TypeError(f"config must be an MVGSConfig or None, got {type(config).__name__} {config!r}{hint}")
         self.adapter = adapter
         self.scene = scene
         self.schedule = ViewSchedule(scene, config or MVGSConfig.default())

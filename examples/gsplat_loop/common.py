@@ -305,7 +305,8 @@ def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) 
     saved = ckpt.get("settings", {})  # none in a checkpoint of a version that did not save them
     differ = [f"--{k} {saved[k]} (this command: {v})" for k, v in _RUN_SETTINGS.items() if k in saved and saved[k] != v]
     if differ:
-        raise ResumeRefused(f"the checkpoint was made with {', '.join(differ)}; resume with the flags it was written with")
+        raise ResumeRefused(f"the checkpoint was made with {', '.join(differ)}; resume with the flags it was "
+                            "written with")
     if set(ckpt["splats"]) != set(splats.keys()):
         raise ResumeRefused(f"parameters {sorted(ckpt['splats'])}, this run has {sorted(splats.keys())}")
     for name, value in ckpt["splats"].items():
