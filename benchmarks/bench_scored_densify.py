@@ -40,7 +40,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def make(n: int):
+def make(n: int, run):
+    """The bundled scene with n points, and a 3DGS adapter on `run`'s clock (GS3DConfig.for_run)."""
     from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
     from mvgs_plugin.data import PointCloud, load_nerf_synthetic
 
@@ -49,7 +50,7 @@ def make(n: int):
     idx = torch.randint(len(pts), (n,), generator=g)
     scene.points = PointCloud(pts.xyz[idx] + 0.01 * torch.randn(n, 3, generator=g), pts.rgb[idx])
     torch.manual_seed(0)
-    return scene, GS3DAdapter.from_scene(scene, GS3DConfig(sh_degree=3))
+    return scene, GS3DAdapter.from_scene(scene, GS3DConfig.for_run(run, sh_degree=3))
 
 
 def timed(fn, repeats: int) -> float:
@@ -79,8 +80,9 @@ def measure(n: int, repeats: int) -> dict:
     from mvgs_plugin.losses import photometric_loss
     from mvgs_plugin.protocol import DensifyContext
 
-    scene, adapter = make(n)
-    trainer = MVGS(adapter, scene, MVGSConfig.baseline(stages=(Stage(1, 1, 10_000),), densify_from=10**9))
+    config = MVGSConfig.baseline(stages=(Stage(1, 1, 10_000),), densify_from=10**9)
+    scene, adapter = make(n, config)
+    trainer = MVGS(adapter, scene, config)
     for cam in scene.train_cameras:
         scene.image(cam)
     for _ in range(2):

@@ -151,11 +151,13 @@ def _finite_fields(file: Path, number: int, fields: Sequence[str], what: str) ->
 
 
 def check_text_model(model_dir: Path) -> None:
-    """Check a text model's records before pycolmap reads it, so an error names the file, the
-    line and the value (pycolmap's own says "Check failed" or names a rig that does not exist):
-    every camera's and pose's numbers finite, every image's camera listed in cameras.txt, every
+    """Check a text model's records line by line, so an error names the file, the line and the
+    value (pycolmap's own says "Check failed" or names a rig that does not exist): every
+    camera's and pose's numbers finite, every image's camera listed in cameras.txt, every
     point's position finite. Only for a text model (a binary one is walked by
-    check_binary_counts); a line these checks pass is pycolmap's to read."""
+    check_binary_counts). _read_model runs it when pycolmap refuses a model, not before: on a
+    model pycolmap reads it would double the load time (1.97 s against pycolmap's 2.24 s for
+    a million points)."""
     model_dir = Path(model_dir)
     if all((model_dir / f"{stem}.bin").is_file() for stem in ("cameras", "images")):
         return
@@ -222,6 +224,7 @@ def _read_model(pycolmap, model_dir: Path):
                 (Path(tmp) / "points3D.txt").write_text("")
             return pycolmap.Reconstruction(tmp)
     except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
+        check_text_model(model_dir)  # a text model: the file, line and value, when these checks find them
         raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
 
 
@@ -322,7 +325,6 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     import pycolmap
 
     check_binary_counts(model_dir)
-    check_text_model(model_dir)
     rec = _read_model(pycolmap, model_dir)
 
     records = []
