@@ -428,10 +428,12 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
     stats = whole.statistics()
     assert stats, "statistics() must name at least one statistic"
     a, b = first.statistics(), rest.statistics()
+    combined_stats = {}
     for name, (t, op) in stats.items():
         assert op in ("sum", "max"), f"statistic {name!r} combines by {op!r}; expected 'sum' or 'max'"
         assert name in a and name in b, f"statistic {name!r} is missing from another adapter's statistics()"
         combined = a[name][0] + b[name][0] if op == "sum" else torch.maximum(a[name][0], b[name][0])
+        combined_stats[name] = combined
         scale = float(t.abs().max()) if t.numel() else 0.0
         err = float((combined - t).abs().max()) / max(scale, 1e-30) if t.numel() else 0.0
         assert err <= rtol, (f"statistic {name!r}: the {op} over two adapters that rendered disjoint views "
@@ -453,8 +455,7 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
             total = torch.stack(present).sum(dim=0)
             for r in ranks:
                 r.gradient_parameters()[name].grad = total.clone()
-    first.load_statistics({name: (a[name][0] + b[name][0] if op == "sum" else torch.maximum(a[name][0], b[name][0]))
-                           for name, (_, op) in stats.items()})
+    first.load_statistics(combined_stats)
     for adapter in (whole, first):
         adapter.optimizer_step()
     want, got = dict(_tensors(whole.state_dict())), dict(_tensors(first.state_dict()))
