@@ -20,7 +20,7 @@ from mvgs_plugin import controller
 from mvgs_plugin.testing import synthetic_scene
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS, EVERY = 400, 150
+STEPS, EVERY = 400, 150  # 4DGS: 240, 90 (its phases fit in 240 steps; its steps cost 4x a 16 px 3DGS step)
 
 
 def _example(script: str):
@@ -42,18 +42,18 @@ class Crash(RuntimeError):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("script, extra, views", [
-    ("train_3dgs.py", ["--resolution-scale", "8"], 2),
-    ("train_scaffold.py", ["--resolution-scale", "8", "--voxel-size", "0.05"], 2),
+@pytest.mark.parametrize("script, extra, views, steps, every", [
+    ("train_3dgs.py", ["--resolution-scale", "8"], 2, STEPS, EVERY),
+    ("train_scaffold.py", ["--resolution-scale", "8", "--voxel-size", "0.05"], 2, STEPS, EVERY),
     # 4DGS's own default: one view per pyramid step, then 2-view steps at the end (--late-views);
     # its M-view steps at every level run through the same adapter in test_adapter_gs4d.py
-    ("train_4dgs.py", ["--init-random", "60", "--export-times", "0.5"], None),
+    ("train_4dgs.py", ["--init-random", "60", "--export-times", "0.5"], None, 240, 90),
 ])
-def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, script, extra, views):
+def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, script, extra, views, steps, every):
     if script == "train_4dgs.py":
         extra = extra + ["--data", str(_dnerf(tmp_path / "scene"))]
     example = _example(script)
-    base = ["--preset", "default", "--steps", str(STEPS), "--threads", "1", "--no-progress", *extra]
+    base = ["--preset", "default", "--steps", str(steps), "--threads", "1", "--no-progress", *extra]
     base += ["--views", str(views)] if views else []
 
     infos = []
@@ -67,31 +67,31 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     monkeypatch.setattr(controller.MVGS, "step", recording)
     whole = example.main(base + ["--out", str(tmp_path / "whole")])
     # the run went through every phase
-    assert len(infos) == STEPS and len({i.stage for i in infos}) == (3 if views else 4)
+    assert len(infos) == steps and len({i.stage for i in infos}) == (3 if views else 4)
     if not views:  # the late 2-view stage, in the part the resumed run makes
         late = [i for i in infos if i.stage == 3]
-        assert late and all(len(i.views) == 2 for i in late) and late[0].step > EVERY
+        assert late and all(len(i.views) == 2 for i in late) and late[0].step > every
         assert all(len(i.views) == 1 for i in infos if i.stage < 3)
     densified = [i.step for i in infos if i.densify is not None]
     resets = [i.step for i in infos if i.opacity_reset]
     assert densified and resets, (densified, resets)
-    assert any(d > EVERY for d in densified), "the resumed part must densify too"
+    assert any(d > every for d in densified), "the resumed part must densify too"
 
     def crashing(self):
-        if self.step_count == 2 * EVERY - 20:  # 130 steps after the checkpoint at EVERY, before the next
+        if self.step_count == 2 * every - 20:  # after the checkpoint at `every`, before the next
             raise Crash("simulated kill")
         return step(self)
 
     monkeypatch.setattr(controller.MVGS, "step", crashing)
     with pytest.raises(Crash):
-        example.main(base + ["--out", str(tmp_path / "cut"), "--checkpoint-every", str(EVERY)])
+        example.main(base + ["--out", str(tmp_path / "cut"), "--checkpoint-every", str(every)])
     checkpoint = tmp_path / "cut" / "checkpoint.pt"
     assert checkpoint.exists() and not (tmp_path / "cut" / "metrics.json").exists()
 
     infos.clear()
     monkeypatch.setattr(controller.MVGS, "step", recording)
     resumed = example.main(base + ["--out", str(tmp_path / "resumed"), "--resume", str(checkpoint)])
-    assert [i.step for i in infos] == list(range(EVERY + 1, STEPS + 1))  # only the steps after the checkpoint
+    assert [i.step for i in infos] == list(range(every + 1, steps + 1))  # only the steps after the checkpoint
     for key in ("psnr", "ssim", "steps", "work", "num_gaussians"):
         assert resumed[key] == whole[key], (key, resumed[key], whole[key])
     assert [v["psnr"] for v in resumed["per_view"]] == [v["psnr"] for v in whole["per_view"]]

@@ -3,7 +3,9 @@ say what they should."""
 
 import importlib.util
 import json
+import multiprocessing
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -96,17 +98,24 @@ def test_ablation_smoke(tmp_path, monkeypatch):
     assert "--threshold-width 800" in table
 
 
+def _run_example(argv):
+    return load_example().main(argv)
+
+
 @pytest.mark.slow
 def test_train_3dgs_on_a_budget(tmp_path):
     """--budget: baseline and MVGS do the same work (full-resolution view renders) through
     densification and opacity resets; metrics.json says what was spent, in work and CPU time."""
     example = load_example()
-    runs = {}
-    for preset, views in (("baseline", []), ("default", []), ("multiview", ["--views", "2"])):
-        out = tmp_path / preset
-        runs[preset] = example.main(["--preset", preset, "--budget", "600", *views, "--resolution-scale", "4",
-                                     "--out", str(out), "--no-progress"])
-        saved = json.loads((out / "metrics.json").read_text())
+    argv = {preset: ["--preset", preset, "--budget", "600", *views, "--resolution-scale", "4", "--threads", "1",
+                     "--out", str(tmp_path / preset), "--no-progress"]
+            for preset, views in (("baseline", []), ("default", []), ("multiview", ["--views", "2"]))}
+    # three independent runs, two at a time in their own processes (one thread each)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        runs = {preset: pool.submit(_run_example, args) for preset, args in argv.items()}
+        runs = {preset: run.result() for preset, run in runs.items()}
+    for preset in runs:
+        saved = json.loads((tmp_path / preset / "metrics.json").read_text())
         assert saved["budget"] == 600 and saved["cpu_seconds"] > 0 and saved["train_seconds"] > 0
         # Each stage's step count is rounded to whole steps: within half a step's work per stage.
         assert saved["work"] == pytest.approx(600, abs=4)

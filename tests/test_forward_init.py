@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -174,20 +176,34 @@ def _train(scene, random_cube: bool = False, budget: float = 600):
     return trainer.evaluate().psnr
 
 
+def _run(kind: str, bare: Path) -> tuple[float, str | None]:
+    """One of forward_runs' trainings, in its own process (one torch thread): "points" (the
+    scene's own points), "random", "cube" (the scene without points) or "triangulate". Returns
+    the test PSNR and where the init points came from (None: no points)."""
+    torch.set_num_threads(1)
+    if kind == "triangulate":
+        scene = load_scene(bare, init="triangulate", threads=1)
+    else:
+        scene = load_nerf_synthetic(FORWARD if kind == "points" else bare)
+    origin = None if scene.points is None else scene.points_origin
+    return _train(scene, random_cube=kind == "cube"), origin
+
+
 @pytest.fixture(scope="module")
 def forward_runs(tmp_path_factory):
-    torch.set_num_threads(1)
-    with_points = load_nerf_synthetic(FORWARD)
     bare = tmp_path_factory.mktemp("forward_no_points")
     for name in ("train", "test"):
         shutil.copytree(FORWARD / name, bare / name)
         shutil.copy(FORWARD / f"transforms_{name}.json", bare)
-    without = load_nerf_synthetic(bare)
-    assert without.points is None
-    triangulated = load_scene(bare, init="triangulate", threads=1)
-    assert triangulated.points_origin.startswith("triangulated"), triangulated.points_origin
-    return {"points": _train(with_points), "random": _train(without), "cube": _train(without, random_cube=True),
-            "triangulate": _train(triangulated)}
+    # four independent trainings, two at a time (one thread each), the longest first
+    kinds = ("triangulate", "points", "random", "cube")
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        runs = dict(zip(kinds, [pool.submit(_run, kind, bare) for kind in kinds]))
+        runs = {kind: run.result() for kind, run in runs.items()}
+    assert runs["random"][1] is None and runs["cube"][1] is None  # trained without points
+    assert runs["points"][1] is not None
+    assert runs["triangulate"][1].startswith("triangulated"), runs["triangulate"][1]
+    return {kind: psnr for kind, (psnr, _) in runs.items()}
 
 
 @pytest.mark.slow
