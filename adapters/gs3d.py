@@ -37,6 +37,7 @@ from mvgs_plugin.data.init import is_forward_facing, random_init_points
 from mvgs_plugin.densify import boxes_contain, check_boxes, top_by_score
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from mvgs_plugin.reference_renderer import rasterization
+from mvgs_plugin.reference_renderer._validate import max_scale
 from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
 
 from .knn import knn_mean_sq_dist
@@ -57,11 +58,16 @@ _STATE_FORMAT = "mvgs-gs3d/1"
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
 # Elements per temporary distance matrix in kNN and box tests (2^24 float64 = 128 MB).
 LOG = logging.getLogger("mvgs_plugin")
-# After an optimizer step a log-scale above this, or a mean farther than this many scene extents
-# from the model's median position, means a diverging run: exp(80) ~ 5.5e34 is near float32's limit (3.4e38, so the
-# 2D covariance would overflow), and at 1e4 extents a Gaussian's parallax between the training
-# cameras is below 1e-4 rad while float32 spacing there is ~1e-3 extent.
-MAX_LOG_SCALE = 80.0
+# After an optimizer step a log-scale above the log of the largest scale the renderer takes in
+# the parameters' dtype (max_log_scale: 37.45 in float32, whose covariance squares the scale), or
+# a mean farther than this many scene extents from the model's median position, means a
+# diverging run: at 1e4 extents a Gaussian's parallax between the training cameras is below
+# 1e-4 rad while float32 spacing there is ~1e-3 extent.
+def max_log_scale(dtype: torch.dtype) -> float:
+    return math.log(max_scale(dtype))
+
+
+MAX_LOG_SCALE = max_log_scale(torch.float32)
 MAX_MEAN_EXTENTS = 1e4
 # GS3DConfig.means_lr_rule: how a mean's Adam step scales with its distance from the scene centre
 MEANS_LR_RULES = ("auto", "extent", "distance", "disparity")
@@ -843,7 +849,7 @@ class GS3DAdapter:
         scene_center, the means' Adam move is applied with the rule's per-row factors,
         means_step_scale, in one addition, so a move far below float32's spacing at the mean is
         not rounded away before it is scaled), then a check of what
-        the renderer will take: a scale whose exp overflows (log-scale > MAX_LOG_SCALE) or a mean
+        the renderer will take: a scale it refuses (log-scale > max_log_scale(dtype)) or a mean
         beyond MAX_MEAN_EXTENTS scene extents raises FloatingPointError naming the group (a
         diverging learning rate)."""
         means = self.params["means"]
@@ -861,9 +867,11 @@ class GS3DAdapter:
                 means.add_(self._ruled_move(group, lr, *rule))  # one rounding, however small the move
         with torch.no_grad():
             top = float(self.params["scales"].max()) if self.params["scales"].numel() else 0.0
-            if top > MAX_LOG_SCALE:  # NaN passes here: the controller's finiteness check names it
-                raise FloatingPointError(f"group 'scales': a log-scale reached {top:.4g} (> {MAX_LOG_SCALE}, "
-                                         f"scale {math.exp(min(top, 700)):.3g}); the learning rate diverges")
+            limit = max_log_scale(self.params["scales"].dtype)
+            if top > limit:  # NaN passes here: the controller's finiteness check names it
+                raise FloatingPointError(f"group 'scales': a log-scale reached {top:.4g} (> {limit:.4g}, scale "
+                                         f"{math.exp(min(top, 700)):.3g}, beyond what the renderer takes in "
+                                         f"{self.params['scales'].dtype}); the learning rate diverges")
             means = self.params["means"]
             if means.numel():
                 if self._mean_reference is None:  # the model's median at its first step here (not saved)

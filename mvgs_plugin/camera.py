@@ -68,7 +68,7 @@ def _check_rigid(T: torch.Tensor, what: str) -> None:
     err = float((R.T @ R - torch.eye(3, dtype=T.dtype)).abs().max())
     if err > ROTATION_TOL:
         raise ValueError(
-            f"{what} rotation block must be orthonormal (max |R^T R - I| = {err:.3g} > "
+            f"{what} rotation block must be orthonormal (max |R^T R - I| = {err:.6g} > "
             f"{ROTATION_TOL}), got {R.tolist()}"
         )
     det = float(torch.linalg.det(R))

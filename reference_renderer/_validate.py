@@ -71,9 +71,11 @@ def check_positive_int(name: str, v) -> int:
     return check_int(name, v, 1)
 
 
-def check_scalar(name: str, v, lo: float = -math.inf, lo_open: bool = False) -> float:
+def check_scalar(name: str, v, lo: float = -math.inf, lo_open: bool = False, finite: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
         raise ValueError(f"{name} must be a real number, got {v!r}")
+    if finite and math.isinf(v):
+        raise ValueError(f"{name} must be finite, got {v!r}")
     if (v <= lo) if lo_open else (v < lo):
         raise ValueError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
     return float(v)
@@ -101,10 +103,15 @@ def check_quats(quats: Tensor) -> None:
                          f"(they are normalised), got norm {norm:.3g} at row {i}: {q[i].tolist()}")
 
 
+def max_scale(dtype: torch.dtype) -> float:
+    """The largest scale the renderer takes in `dtype`: the 3D covariance squares the scales, and
+    beyond this (with a 1e3 margin for the sums of the projection) the square overflows."""
+    return math.sqrt(torch.finfo(dtype).max) / 1e3
+
+
 def check_scales(scales: Tensor) -> None:
     check_range("scales", scales, 0.0, math.inf, ">= 0 (activated, not log-scales)")
-    # The 3D covariance squares the scales; beyond this the square overflows the dtype.
-    limit = math.sqrt(torch.finfo(scales.dtype).max) / 1e3
+    limit = max_scale(scales.dtype)
     check_range("scales", scales, 0.0, limit, f"<= {limit:.3g} (its square must fit in {scales.dtype})")
 
 

@@ -119,7 +119,10 @@ class _CompositeCpp(torch.autograd.Function):
             grad_color, grad_alpha, width, height, tile,
         )
         g_bg = (grad_color * trans.unsqueeze(-1)).sum(dim=(1, 2))
-        for name, g in (("means2d", g_m), ("conics", g_q), ("opacities", g_o), ("colors", g_c)):
+        checked = [("means2d", g_m), ("conics", g_q), ("opacities", g_o), ("colors", g_c)]
+        if ctx.needs_input_grad[4]:  # a learnt background: its gradient is summed here, not in the kernel
+            checked.append(("backgrounds", g_bg))
+        for name, g in checked:
             if not V.all_finite(g):
                 raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the compositing backward")
         if ctx.absgrad_target is not None:
@@ -241,6 +244,7 @@ def rasterization(
             _guard(t, name) for t, name in ((means, "means"), (quats, "quats"), (scales, "scales"),
                                             (opacities, "opacities"), (colors, "colors"), (viewmats, "viewmats"),
                                             (Ks, "Ks")))
+        backgrounds = None if backgrounds is None else _guard(backgrounds, "backgrounds")
     proj, rgb = _project(means, quats, scales, colors, viewmats, Ks, width, height, near_plane, far_plane,
                          eps2d, tile_size, radius_clip, sh_degree, render_mode, backend)
     feats = _features(means, colors, viewmats, sh_degree, render_mode, proj.depths, C, rgb)
@@ -395,7 +399,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     if V.check_scalar("far_plane", far_plane) <= near:
         raise ValueError(f"far_plane must be > near_plane={near_plane}, got {far_plane!r}")
     V.check_scalar("radius_clip", radius_clip, 0.0)
-    V.check_scalar("eps2d", eps2d, 0.0)
+    V.check_scalar("eps2d", eps2d, 0.0, finite=True)  # an infinite low-pass has no finite conic
     if packed:
         raise ValueError("packed=True is not supported: pass packed=False (outputs are dense [C, N])")
     if render_mode not in RENDER_MODES:

@@ -57,7 +57,7 @@ class Spy(DefaultStrategy):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.log = {"n_cameras": [], "grow": [], "prune": 0}
+        self.log = {"n_cameras": [], "grow": [], "grown": [], "prune": 0}
 
     def _update_state(self, params, state, info, packed=False):
         self.log["n_cameras"].append(int(info["n_cameras"]))
@@ -65,7 +65,9 @@ class Spy(DefaultStrategy):
 
     def _grow_gs(self, params, optimizers, state, step):
         self.log["grow"].append(self.grow_grad2d)
-        return super()._grow_gs(params, optimizers, state, step)
+        n_dupli, n_split = super()._grow_gs(params, optimizers, state, step)
+        self.log["grown"].append((step, n_dupli + n_split))
+        return n_dupli, n_split
 
 
 class SceneParser:
@@ -653,6 +655,9 @@ def test_example_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, f
     torch.manual_seed(123)  # the checkpoint restores the RNG
     resumed = module.Runner(resumed_cfg)
     resumed.train()
+    strategy = resumed.cfg.strategy
+    spy = strategy.strategy if isinstance(strategy, MVGSStrategy) else strategy
+    assert any(n > 0 for _, n in spy.log["grown"]), spy.log["grown"]  # the resumed part grew the model
     for k in splats.keys():
         assert torch.equal(resumed.splats[k], splats[k]), k
 

@@ -33,7 +33,7 @@ from mvgs_plugin import CRDConfig, MVGS, MVGSConfig, Stage
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data import PointCloud, Scene, load_colmap, load_nerf_synthetic
 from mvgs_plugin.losses import photometric_loss
-from mvgs_plugin.testing import look_at
+from mvgs_plugin.testing import look_at, synthetic_scene
 
 try:
     from tests.test_controller import grads_at_optimizer_step
@@ -576,6 +576,25 @@ def test_parameter_explosion_is_named(bundled_scene, tmp_path, overrides, group)
         assert float(adapter.params["scales"].detach().max()) > MAX_LOG_SCALE
     else:
         assert float((adapter.params["means"].detach() - initial["means"]).abs().max()) > 1e4 * scene.extent
+
+
+def test_scales_diverging_past_what_the_renderer_takes_are_named_at_their_step():
+    """The divergence check on log-scales is the renderer's own limit in the parameters' dtype
+    (float32 squares a scale in the covariance: log 37.45), so a run whose scales' learning rate
+    diverges (10 where 3DGS's is 0.005) stops at the optimizer step that crossed
+    it, naming the group, and not at the next render with the renderer's input error."""
+    assert MAX_LOG_SCALE == pytest.approx(math.log(math.sqrt(torch.finfo(torch.float32).max) / 1e3))
+    scene = synthetic_scene(n_train=6, n_test=2, size=24, n_points=300)
+    config = MVGSConfig.baseline().for_scene(scene).with_total_steps(100)
+    adapter = GS3DAdapter.from_scene(scene, dataclasses.replace(GS3DConfig.for_run(config), lr_scales=10.0))
+    infos = []
+    with pytest.raises(FloatingPointError) as err:
+        MVGS(adapter, scene, config).fit(progress=False, callback=infos.append)
+    msg = str(err.value)
+    assert f"step {len(infos) + 1}: after the optimizer step, group 'scales': a log-scale reached" in msg, msg
+    assert "(> 37.45," in msg and "torch.float32" in msg
+    top = float(adapter.params["scales"].detach().max())
+    assert MAX_LOG_SCALE < top < 80  # the old limit (80) let this through to the renderer
 
 
 @pytest.mark.parametrize("group,value", [("opacities", math.nan), ("quats", math.inf), ("sh0", -math.inf)])

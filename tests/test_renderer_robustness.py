@@ -239,6 +239,7 @@ BAD_INPUTS = [
     ("near", dict(near_plane=0.0), ValueError, r"near_plane must be >= 1e-10"),
     ("far", dict(far_plane=0.001), ValueError, r"far_plane must be > near_plane"),
     ("eps2d", dict(eps2d=-0.1), ValueError, r"eps2d must be >= 0"),
+    ("eps2d inf", dict(eps2d=float("inf")), ValueError, r"eps2d must be finite, got inf"),
     ("sh degree", dict(sh_degree=4, colors=torch.zeros(2, 25, 3, dtype=F64)), ValueError, r"sh_degree must be None or 0..3, got 4"),
     ("sh coeffs", dict(sh_degree=2, colors=torch.zeros(2, 4, 3, dtype=F64)), ValueError, r"K >= 9 for sh_degree=2.*got \[2,4,3\]"),
     ("backgrounds", dict(backgrounds=torch.zeros(2, 3, dtype=F64)), ValueError, r"backgrounds must be \[C,D\] with C=1, got \[2,3\]"),
@@ -262,6 +263,23 @@ def test_scale_whose_square_overflows_is_rejected():
     args["scales"] = torch.full((2, 3), 1e30)
     with pytest.raises(ValueError, match=r"scales must be <= .*float32"):
         rasterization(**args)
+
+
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_a_non_finite_gradient_to_a_learnt_background_is_named(backend):
+    """A NaN in the loss at a pixel no Gaussian covers reaches only the background's gradient:
+    it is named there on both backends; with a background that is not learnt nothing
+    non-finite flows, so nothing is raised."""
+    bg = torch.tensor([[0.1, 0.2, 0.3]], dtype=F64, requires_grad=True)
+    img, _, _ = rasterization(**_args(backgrounds=bg, backend=backend))
+    target = torch.rand_like(img)
+    target[0, 0, 0, 0] = float("nan")  # a corner pixel: the two Gaussians at the centre do not reach it
+    with pytest.raises(FloatingPointError, match="non-finite gradient w.r.t. backgrounds"):
+        ((img - target) ** 2).mean().backward()
+    means = _args()["means"].clone().requires_grad_(True)
+    img, _, _ = rasterization(**_args(means=means, backgrounds=bg.detach(), backend=backend))
+    ((img - target) ** 2).mean().backward()
+    assert torch.isfinite(means.grad).all()
 
 
 def test_device_mismatch_is_rejected():

@@ -486,7 +486,7 @@ void forward(const Settings& s, const T* means, const T* quats, const T* scales,
 // gradients (accumulated in double).
 template <typename P>
 inline void pair_backward(const Pair<P>& q, const Cam<P>& cam, double gu, double gv, double gq0, double gq1,
-                          double gq2, double gd, double gcp, double* dm, double* dcov) {
+                          double gq2, double gd, double gcp, double eps2d, double* dm, double* dcov) {
     P dp[3] = {0, 0, P(gd)}, dzs = 0;
     // means2d = (fx x / zs + cx, fy y / zs + cy)
     dp[0] += P(gu) * cam.fx / q.zs;
@@ -494,25 +494,27 @@ inline void pair_backward(const Pair<P>& q, const Cam<P>& cam, double gu, double
     dzs -= (P(gu) * cam.fx * q.p[0] + P(gv) * cam.fy * q.p[1]) / (q.zs * q.zs);
     // conics = (c, -b, a) / det_s
     P da = P(gq2) / q.det_s, db = -P(gq1) / q.det_s, dc = P(gq0) / q.det_s;
-    if (q.ok) {
-        const P ddet = -(P(gq0) * q.c - P(gq1) * q.b + P(gq2) * q.a) / (q.det_s * q.det_s);
+    if (q.ok) {  // d(conic)/d(det) = -conic / det: divided twice, as det^2 overflows float beyond 1.8e19
+        const P inv_det = P(1) / q.det_s;
+        const P ddet = -(P(gq0) * (q.c * inv_det) - P(gq1) * (q.b * inv_det) + P(gq2) * (q.a * inv_det)) * inv_det;
         da += ddet * q.c;
         dc += ddet * q.a;
         db -= P(2) * ddet * q.b;
     }
     P da_raw = 0, dc_raw = 0;
-    if (q.ok && gcp != 0.0) {  // compensation = sqrt(max(det_raw / det, 1e-12))
-        const P det_raw = q.a_raw * q.c_raw - q.b * q.b;
-        const P r = det_raw / q.det_s;
+    if (q.ok && gcp != 0.0) {  // compensation = sqrt(max(r, 1e-12)), r = det_raw / det
+        const P r = (q.a_raw * q.c_raw - q.b * q.b) / q.det_s;
         if (r >= P(1e-12)) {
-            const P dr = P(gcp) * P(0.5) / std::sqrt(r);
-            const P ddet_raw = dr / q.det_s, ddet = -dr * det_raw / (q.det_s * q.det_s);
-            da_raw += ddet_raw * q.c_raw;
-            dc_raw += ddet_raw * q.a_raw;
-            db -= P(2) * ddet_raw * q.b;
-            da += ddet * q.c;
-            dc += ddet * q.a;
-            db -= P(2) * ddet * q.b;
+            // r's derivatives in closed form: with det = det_raw + e (a_raw + c_raw) + e^2,
+            // dr/da_raw = e (c_raw c + b^2) / det^2, dr/dc_raw = e (a_raw a + b^2) / det^2 and
+            // dr/db = -2 b e (a_raw + c_raw + e) / det^2. Taken through det_raw and det apart,
+            // the two terms cancel to a few ulp of 1/a for a splat much wider than eps2d (a
+            // float32 splat 1e7 px wide got gradients 1e3-1e11 times too large), and det^2 overflows.
+            const P e = P(eps2d), inv_det = P(1) / q.det_s;
+            const P dr = P(gcp) * P(0.5) / std::sqrt(r) * e * inv_det;
+            da_raw += dr * ((q.c_raw * inv_det) * q.c + (q.b * inv_det) * q.b);
+            dc_raw += dr * ((q.a_raw * inv_det) * q.a + (q.b * inv_det) * q.b);
+            db -= P(2) * dr * (q.b * inv_det) * (q.a_raw + q.c_raw + e);
         }
     }
     da += da_raw;
@@ -596,11 +598,11 @@ void backward(const Settings& s, const T* means, const T* quats, const T* scales
                 q.compute(cam, mean, blk.cov[n - n0], s);
                 // the forward's choice (culled pairs, whose outputs did not fit, get no gradient)
                 if (!needs_double(q, cam, mean, blk.smax2[n - n0], blk.smin2[n - n0], T(s.eps2d))) {
-                    pair_backward(q, cam, gu, gv, gq0, gq1, gq2, gd, gcp, dm, dcovs[n - n0]);
+                    pair_backward(q, cam, gu, gv, gq0, gq1, gq2, gd, gcp, s.eps2d, dm, dcovs[n - n0]);
                 } else {
                     double gmean[3];
                     pair_backward(pair_double(quats, scales, n, mean, gcams[c], s, gmean), gcams[c], gu, gv, gq0, gq1,
-                                  gq2, gd, gcp, dm, dcovs[n - n0]);
+                                  gq2, gd, gcp, s.eps2d, dm, dcovs[n - n0]);
                 }
             }
         }
