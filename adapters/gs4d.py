@@ -94,7 +94,9 @@ class GS4DConfig:
         features: channels per plane (original 32); width: hidden width of the MLP (64).
         bounds: ((x0, y0, z0), (x1, y1, z1)) box mapped to [-1, 1]^3; None = the bounding box of
             the initial Gaussians, each side widened to at least min_bounds_fraction of the
-            longest (a flat initial cloud, e.g. ground points only, still gets a 3D box).
+            longest (a flat initial cloud, e.g. ground points only, still gets a 3D box); from_scene
+            leaves out the far background shell (PointCloud.shell), whose Gaussians then look up
+            the box's border.
         zero_init_heads: start the field at exactly zero offset (see the module docstring).
     Learning rates (Adam, log-linear decay over fine_steps, times the scene extent):
         lr_planes_init / lr_planes_final (1.6e-3 -> 1.6e-4), lr_mlp_init / lr_mlp_final
@@ -106,7 +108,8 @@ class GS4DConfig:
         model has this many Gaussians (None = no cap); prune_min_count (200000): the prune rules
         act only when the model (after growth) has more Gaussians than this (0 = always, as 3DGS).
     Initialisation (from_scene): init_random_points extra points uniform in init_box
-        (((x0, y0, z0), (x1, y1, z1)); None = the scene points' bounding box widened to a cube,
+        (((x0, y0, z0), (x1, y1, z1)); None = the scene's own points' bounding box (not the
+        background shell's) widened to a cube,
         or without points where the cameras look, as mvgs_plugin.data.init.random_init_points
         places them: the cube scene.center ± scene.extent around the scene, photo-consistent
         points in the frusta of a forward-facing rig), colours uniform in [0, 1]; for scenes
@@ -379,33 +382,50 @@ class GS4DAdapter(GS3DAdapter):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
         points = cls._with_random_points(scene, config) if config.init_random_points else None
         base = GS3DAdapter.from_scene(scene, config.canonical, dtype, device, points=points)
+        pts = points if points is not None else getattr(scene, "points", None)
+        if config.bounds is None and pts is not None and pts.shell and len(pts.own) > 1:
+            # the deformation box of the scene's own points: the far background shell (static,
+            # at twice the rig's radius) would spread the planes' cells over empty space; its
+            # Gaussians fall outside the box, where lookups clamp to the border
+            own = pts.own.double()
+            if float((own.max(0).values - own.min(0).values).max()) > 0:
+                box = bounds_from_points(own, config.min_bounds_fraction)
+                config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
         return cls.from_canonical(base, config)
 
     @staticmethod
     def _with_random_points(scene, config: GS4DConfig) -> PointCloud:
         pts = getattr(scene, "points", None)
-        xyz = torch.zeros(0, 3) if pts is None else pts.xyz
-        rgb = torch.zeros(0, 3) if pts is None else pts.rgb
-        if config.init_box is not None:
-            box = torch.tensor(config.init_box, dtype=torch.float64)
-        elif len(xyz):
-            lo, hi = xyz.double().min(0).values, xyz.double().max(0).values
-            half = float((hi - lo).max()) / 2
-            if not half > 0:
-                raise ValueError("init_random_points: the scene points span no volume; give init_box")
-            c = (lo + hi) / 2
-            box = torch.stack([c - half, c + half])
-        else:  # no points: where the cameras look (the 3DGS cube around the scene, the frusta of a forward rig)
-            gen = torch.Generator().manual_seed(config.canonical.seed + 2)
-            new_xyz, new_rgb, description = random_init_points(scene, config.init_random_points, gen)
-            LOG.info("4DGS extra points: %s", description)
-            return PointCloud(new_xyz, new_rgb)
+        own = 0 if pts is None else len(pts) - pts.shell  # the scene's own points come first, the shell last
+        xyz = torch.zeros(0, 3) if pts is None else pts.xyz[:own]
+        rgb = torch.zeros(0, 3) if pts is None else pts.rgb[:own]
         gen = torch.Generator().manual_seed(config.canonical.seed + 2)
-        n = config.init_random_points
-        u = torch.rand(n, 3, generator=gen, dtype=torch.float64)
-        new_xyz = box[0] + u * (box[1] - box[0])
-        new_rgb = torch.rand(n, 3, generator=gen, dtype=torch.float64)
-        return PointCloud(torch.cat([xyz.double(), new_xyz]), torch.cat([rgb.double(), new_rgb]))
+        if config.init_box is None and not len(xyz):
+            # no points of the scene's own: where the cameras look (the 3DGS cube around the scene,
+            # the frusta of a forward rig)
+            new_xyz, new_rgb, description = random_init_points(scene, config.init_random_points, gen)
+            new_xyz, new_rgb = new_xyz.double(), new_rgb.double()
+            LOG.info("4DGS extra points: %s", description)
+        else:
+            if config.init_box is not None:
+                box = torch.tensor(config.init_box, dtype=torch.float64)
+            else:  # the scene's own points' box widened to a cube (the shell left out)
+                lo, hi = xyz.double().min(0).values, xyz.double().max(0).values
+                half = float((hi - lo).max()) / 2
+                if not half > 0:
+                    raise ValueError("init_random_points: the scene points span no volume; give init_box "
+                                     "(--init-box)")
+                c = (lo + hi) / 2
+                box = torch.stack([c - half, c + half])
+            n = config.init_random_points
+            u = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+            new_xyz = box[0] + u * (box[1] - box[0])
+            new_rgb = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+        shell = 0 if pts is None else pts.shell  # kept last, and counted as the shell
+        tail_xyz = torch.zeros(0, 3, dtype=torch.float64) if pts is None else pts.xyz[own:].double()
+        tail_rgb = torch.zeros(0, 3, dtype=torch.float64) if pts is None else pts.rgb[own:].double()
+        return PointCloud(torch.cat([xyz.double(), new_xyz, tail_xyz]), torch.cat([rgb.double(), new_rgb, tail_rgb]),
+                          shell=shell)
 
     # ---- schedule -----------------------------------------------------------------------
     @property

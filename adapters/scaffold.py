@@ -82,7 +82,8 @@ _NEAR = 0.01
 class ScaffoldConfig:
     """Hyper-parameters (defaults: the released Scaffold-GS).
 
-    Model: voxel_size (None = median distance of the points to their 3 nearest neighbours),
+    Model: voxel_size (None = the median over the scene's own points, PointCloud.own, of their
+        RMS distance to their 3 nearest neighbours),
         feat_dim (32), n_offsets k (10), use_distance (feed |a - c| to the three MLPs; off in the
         original's defaults), offset_init_std (0 = the original's zero offsets; > 0 draws
         N(0, std^2) offsets, which lets a fresh model grow, e.g. in conformance tests), prefilter
@@ -315,9 +316,14 @@ class ScaffoldAdapter:
             xyz = points.xyz.to(torch.float64)
         voxel = config.voxel_size
         if voxel is None:
-            voxel = float(knn_mean_sq_dist(xyz, k=3).sqrt().median())
+            # the scene's own points' spacing: the far background shell (load_scene's
+            # background_points) is sparse and, on a scene with few points, most of the points
+            own = xyz if points is None or len(points) - points.shell < 4 else points.own.to(torch.float64)
+            voxel = float(knn_mean_sq_dist(own, k=3).sqrt().median()) if len(own) > 1 else 0.0
             if not voxel > 0:
-                raise ValueError("voxel_size=None needs points with distinct positions (median kNN distance is 0)")
+                raise ValueError(f"voxel_size=None needs points at distinct positions to take the voxel from their "
+                                 f"spacing (median distance to the nearest points is 0, {len(own)} points); give "
+                                 f"ScaffoldConfig.voxel_size (--voxel-size)")
         anchors = voxelize(xyz, voxel)
         a, k = anchors.shape[0], config.n_offsets
         d2 = knn_mean_sq_dist(anchors, k=3).clamp_min(1e-7)

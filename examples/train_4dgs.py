@@ -27,6 +27,7 @@ import argparse
 import math
 import os
 import sys
+from pathlib import Path
 
 from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
@@ -95,6 +96,10 @@ def run(args, dist) -> dict:
     if twice:  # a bake would replace another
         raise UsageError(f"--export-times {' '.join(f'{t:g}' for t in args.export_times)}: times that round to the "
                          f"same 3 decimals write one file ({', '.join(twice)}); give each time once")
+    taken = [n for n in names if (Path(args.out) / n).is_dir()]
+    if taken:  # found before training, not when the bake would fail after it
+        raise UsageError(f"--out {args.out}: {Path(args.out) / taken[0]} is a folder, where the run writes the baked "
+                         f"{taken[0]}")
     if args.init_box is not None and not all(lo < hi for lo, hi in zip(args.init_box[:3], args.init_box[3:])):
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: expected X0 Y0 Z0 X1 Y1 Z1 with "
                          "each minimum below its maximum")

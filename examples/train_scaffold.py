@@ -36,7 +36,8 @@ def parse_args(argv=None):
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     common_args(ap, "out/train_scaffold")  # --max-gaussians: the budget of anchors
     ap.add_argument("--voxel-size", type=float_above(0), default=None,
-                    help="anchor voxel edge (default: median nearest-neighbour distance of the points)")
+                    help="anchor voxel edge (default: the median over the scene's own points, not the background "
+                         "shell's, of their RMS distance to the 3 nearest others)")
     ap.add_argument("--use-distance", action="store_true", help="feed the camera distance to the MLPs")
     args = ap.parse_args(argv)
     if args.budget_swap:  # the adapter would take it and do nothing

@@ -128,6 +128,8 @@ def test_load_scene_appends_the_shell_after_the_scene_points_on_an_orbit_only():
                                   dim=1).max())
     assert torch.allclose(far, torch.full_like(far, SHELL_RADIUS * rig), rtol=1e-5)
     assert "background shell" in shelled.points_origin and plain.points_origin in shelled.points_origin
+    assert shelled.points.shell == k and plain.points.shell == 0  # the shell's rows are counted
+    assert torch.equal(shelled.points.own, plain.points.xyz)
     forward = load_scene(FORWARD, background_points=2000)
     assert len(forward.points) == len(load_scene(FORWARD).points)
     assert "forward-facing" in forward.points_origin
@@ -142,3 +144,66 @@ def test_the_cli_flag_defaults_to_the_module_value_and_refuses_negatives(capsys)
     with pytest.raises(SystemExit):
         ap.parse_args(["--background-points", "-1"])
     assert "expected an int in 0..10000000, got -1" in capsys.readouterr().err
+
+
+def test_point_cloud_shell_count_is_checked():
+    from mvgs_plugin.data import PointCloud
+
+    for bad in (-1, 4, 1.0, True):
+        with pytest.raises(ValueError, match=rf"shell must be an int in \[0, 3\] \(rows of xyz\), got {bad!r}"):
+            PointCloud(torch.zeros(3, 3), torch.zeros(3, 3), shell=bad)
+    assert len(PointCloud(torch.zeros(3, 3), torch.zeros(3, 3), shell=3).own) == 0
+
+
+def _sparse_scene_with_shell(n_own=60, seed=0):
+    """The bundled scene's cameras with a few points of its own in a small cluster (spacing about
+    0.05) and the 2000-point shell load_scene adds (spacing about 0.5)."""
+    from mvgs_plugin.data import PointCloud
+
+    scene = load_scene(BUNDLED, background_points=2000)
+    gen = torch.Generator().manual_seed(seed)
+    own = torch.rand(n_own, 3, generator=gen) * 0.2 - 0.1
+    shell = scene.points.xyz[len(scene.points) - scene.points.shell:]
+    scene.points = PointCloud(torch.cat([own, shell]), torch.rand(n_own + len(shell), 3, generator=gen),
+                              shell=len(shell))
+    return scene, own
+
+
+def test_scaffold_takes_its_voxel_from_the_scenes_own_points_not_the_shell():
+    """The default voxel is the median over the scene's own points of their RMS distance to
+    their 3 nearest others (a plain pairwise-distance computation here), not that of own points
+    and shell together, which the shell's spacing would set when it is most of the points."""
+    from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
+
+    scene, own = _sparse_scene_with_shell()
+    d = torch.cdist(own.double(), own.double())
+    d.fill_diagonal_(float("inf"))
+    expected = float(d.topk(3, largest=False).values.pow(2).mean(1).sqrt().median())
+    adapter = ScaffoldAdapter.from_scene(scene, ScaffoldConfig())
+    assert adapter.voxel_size == pytest.approx(expected, rel=1e-6)
+    everything = scene.points.xyz.double()
+    d = torch.cdist(everything, everything)
+    d.fill_diagonal_(float("inf"))
+    with_shell = float(d.topk(3, largest=False).values.pow(2).mean(1).sqrt().median())
+    assert with_shell > 3 * expected  # what it took before: the shell's spacing
+
+
+def test_4dgs_deformation_box_and_extra_points_are_the_scenes_own_not_the_shells():
+    """The HexPlane box is the own points' bounding box (widened as bounds_from_points does, by
+    hand here), and --init-random's default box is the own points' box widened to a cube: the
+    shell, at twice the rig's radius, spans a box 30x wider in which the moving content would get
+    a few of the planes' cells."""
+    from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
+
+    scene, own = _sparse_scene_with_shell()
+    adapter = GS4DAdapter.from_scene(scene, GS4DConfig())
+    lo, hi = own.double().min(0).values, own.double().max(0).values
+    assert torch.allclose(adapter.field.bounds.double(), torch.stack([lo, hi]), atol=1e-6)
+    extra = GS4DAdapter.from_scene(scene, GS4DConfig(init_random_points=500))
+    means = extra.params["means"].detach().double()
+    assert len(means) == len(scene.points) + 500
+    added = means[len(own): len(own) + 500]  # own points first, then the extra ones, the shell last
+    half = float((hi - lo).max()) / 2
+    centre = (lo + hi) / 2
+    assert bool(((added - centre).abs() <= half + 1e-6).all())
+    assert torch.allclose(means[len(own) + 500:], scene.points.xyz[len(own):].double())

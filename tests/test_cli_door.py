@@ -236,3 +236,7 @@ def test_a_reused_4dgs_out_keeps_only_this_runs_baked_times(tmp_path):
     baked = sorted(p.name for p in out.glob("point_cloud_t*.ply"))
     assert baked == ["point_cloud_t0.250.ply", "point_cloud_t0.900.ply"], baked
     assert json.loads((out / "metrics.json").read_text())["baked"] == ["point_cloud_t0.250.ply"]
+    (out / "point_cloud_t0.750.ply").mkdir()  # a folder where a bake goes: refused before training
+    proc = run("train_4dgs.py", *common, "--export-times", "0.75", "--steps", "100000")
+    one_error_line(proc, "train_4dgs.py", f"--out {out}: {out / 'point_cloud_t0.750.ply'} is a folder, where the "
+                                          "run writes the baked point_cloud_t0.750.ply")

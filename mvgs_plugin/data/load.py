@@ -66,7 +66,7 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         if xyz.shape[0]:
             pts = scene.points  # float32 (PointCloud's dtype)
             scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),
-                                      rgb=torch.cat([pts.rgb, rgb.to(pts.rgb.dtype)]))
+                                      rgb=torch.cat([pts.rgb, rgb.to(pts.rgb.dtype)]), shell=pts.shell + len(xyz))
         scene.points_origin = f"{scene.points_origin}; {said}" if scene.points_origin else said
         LOG.info("%s: %s", path, said)
     return scene

@@ -19,10 +19,14 @@ ImageSource = Union[str, Path, torch.Tensor]
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class PointCloud:
-    """Initial points: xyz [P, 3] float32 (world units), rgb [P, 3] float32 in [0, 1]."""
+    """Initial points: xyz [P, 3] float32 (world units), rgb [P, 3] float32 in [0, 1]. shell: how
+    many of the last rows are the far background shell that load_scene adds
+    (background_points), not the scene's own points: sizes taken from the scene's points (the
+    Scaffold-GS voxel, the 4DGS deformation box) leave them out."""
 
     xyz: torch.Tensor
     rgb: torch.Tensor
+    shell: int = 0
 
     def __post_init__(self) -> None:
         xyz = torch.as_tensor(self.xyz).detach().to("cpu", torch.float32)
@@ -36,11 +40,18 @@ class PointCloud:
         if rgb.numel() and not (bool(torch.isfinite(rgb).all()) and rgb.min() >= 0 and rgb.max() <= 1):
             raise ValueError(f"rgb must be finite and in [0,1], got range "
                              f"[{float(rgb.min())}, {float(rgb.max())}]")
+        if isinstance(self.shell, bool) or not isinstance(self.shell, int) or not 0 <= self.shell <= len(xyz):
+            raise ValueError(f"shell must be an int in [0, {len(xyz)}] (rows of xyz), got {self.shell!r}")
         object.__setattr__(self, "xyz", xyz)
         object.__setattr__(self, "rgb", rgb)
 
     def __len__(self) -> int:
         return self.xyz.shape[0]
+
+    @property
+    def own(self) -> torch.Tensor:
+        """xyz of the scene's own points (the rows before the shell)."""
+        return self.xyz[: len(self) - self.shell]
 
 
 def camera_normalization(cams: Sequence[Camera]) -> tuple[torch.Tensor, float]:
