@@ -175,6 +175,21 @@ class GS4DConfig:
     def total_steps(self) -> int:
         return self.coarse_steps + self.fine_steps
 
+    @classmethod
+    def for_run(cls, run, coarse_fraction: float = 3000 / 23000, canonical: Optional[GS3DConfig] = None,
+                **fields) -> "GS4DConfig":
+        """The config whose schedules follow the run's clock, as examples/train_4dgs.py builds it:
+        the canonical Gaussians' GS3DConfig.for_run(run) (or `canonical`), and the coarse (static)
+        stage the original's share of it, 3000 of 23000 steps, then the deformation field.
+        fields: any other GS4DConfig field. Without it a short run keeps the field off (the
+        default coarse stage is 3000 steps)."""
+        clock = int(run.clock_length)
+        if not 0 <= coarse_fraction < 1:
+            raise ValueError(f"coarse_fraction must be in [0, 1), got {coarse_fraction!r}")
+        coarse = min(clock - 1, round(coarse_fraction * clock))
+        return cls(canonical=GS3DConfig.for_run(run) if canonical is None else canonical, coarse_steps=coarse,
+                   fine_steps=clock - coarse, **fields)
+
     def saved_values(self) -> Dict[str, Any]:
         """The fields a checkpoint carries (the canonical config travels with the 3DGS state)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "canonical"}

@@ -160,6 +160,13 @@ class ScaffoldConfig:
     def saved_values(self) -> Dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in _RUNTIME_FIELDS}
 
+    @classmethod
+    def for_run(cls, run, **fields) -> "ScaffoldConfig":
+        """The config whose learning-rate decays follow the run's clock (run.clock_length of an
+        MVGSConfig) instead of the original's 30k steps, as examples/train_scaffold.py builds it.
+        fields: any other ScaffoldConfig field."""
+        return cls(lr_max_steps=int(run.clock_length), **fields)
+
     def cell_size(self, voxel_size: float, level: int) -> float:
         """Grid cell edge of growing level ``level`` (0 = coarsest)."""
         return voxel_size * (self.update_init_factor // self.update_hierarchy_factor ** level)

@@ -68,14 +68,12 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     """The canonical 3DGS schedules compressed with the run (as train_3dgs.py) and the coarse /
     fine split of the clock the adapter sees (the whole run; with restart_per_stage, as the paper
     preset, the clock restarts at every pyramid stage, so each stage begins with a coarse part)."""
-    total = config.clock_length
-    coarse = min(total - 1, round(args.coarse_fraction * total))
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
     canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
                              world_size_rule=args.world_size_rule,
                              means_lr_rule=args.means_lr_rule)
-    return GS4DConfig(canonical=canonical, coarse_steps=coarse,
-                      fine_steps=total - coarse, init_random_points=args.init_random, init_box=box)
+    return GS4DConfig.for_run(config, args.coarse_fraction, canonical, init_random_points=args.init_random,
+                              init_box=box)
 
 
 def build_adapter(args, scene, config: MVGSConfig) -> GS4DAdapter:
@@ -120,6 +118,12 @@ def run(args, dist) -> dict:
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
     config = config_from_args(args, scene, time_spread=args.time_spread)
     adapter = build_adapter(args, scene, config)
+    if args.init_random:  # metrics.json's "init" says where every initial point came from
+        box = (f"the box {' '.join(f'{v:g}' for v in args.init_box)}" if args.init_box is not None
+               else "the scene's own points' box widened to a cube" if scene.points is not None
+               else "where the cameras look")
+        said = f"plus {args.init_random} --init-random points in {box}"
+        scene.points_origin = f"{scene.points_origin}; {said}" if scene.points_origin else said
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)
     model_cfg = adapter.gs4d_config  # after a resume, the checkpoint's (the same as the command's: checked)
     if result is None:  # not rank 0

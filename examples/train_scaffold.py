@@ -49,9 +49,7 @@ def parse_args(argv=None):
 def scaffold_config(config: MVGSConfig, args) -> ScaffoldConfig:
     """The MLP and offset learning-rate decays (30k steps in the original) compressed with the
     run, as train_3dgs.py compresses the 3DGS schedules."""
-    clock = config.clock_length
-    return ScaffoldConfig(voxel_size=args.voxel_size, use_distance=args.use_distance, seed=args.seed,
-                          lr_max_steps=clock)
+    return ScaffoldConfig.for_run(config, voxel_size=args.voxel_size, use_distance=args.use_distance, seed=args.seed)
 
 
 def build_adapter(args, scene, config: MVGSConfig) -> ScaffoldAdapter:

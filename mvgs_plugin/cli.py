@@ -325,7 +325,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of the "
                          "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a "
                          "forward-facing rig); paper: the released code; "
-                         "baseline: plain 3DGS")
+                         "baseline: the plain model (3DGS, Scaffold-GS or 4DGS: one view per step at full "
+                         "resolution, no MVGS rule)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
     ap.add_argument("--steps", type=int_at_least(1, MAX_STEPS), default=3000, help="total steps (the preset's schedule is rescaled to it)")
     ap.add_argument("--budget", type=float_above(0, high=MAX_STEPS), default=None,

@@ -177,12 +177,7 @@ class MVGS:
         self.scene = scene
         self.schedule = ViewSchedule(scene, config or MVGSConfig.default())
         self.config = self.schedule.config  # resolved for the scene (MVGSConfig.for_scene)
-        model_clock = getattr(getattr(adapter, "config", None), "position_lr_max_steps", None)
-        if isinstance(model_clock, int) and model_clock != self.config.clock_length:
-            warnings.warn(f"the adapter's own schedules run over {model_clock} steps (its config's "
-                          f"position_lr_max_steps) but this run's clock is {self.config.clock_length}: its means' "
-                          "learning rate will not decay as planned; build its config with "
-                          "GS3DConfig.for_run(config), as the examples do", stacklevel=2)
+        self._warn_other_clock(adapter)
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
@@ -193,6 +188,27 @@ class MVGS:
             require_support(adapter)
         self.distributed = distributed
         self._loss_level: Optional[float] = None  # running loss per view; None before the first step
+
+    def _warn_other_clock(self, adapter) -> None:
+        """Warn when a bundled model's own schedules are on another clock than this run's (its
+        config built without for_run): the decays would stop part-way, or 4DGS's deformation
+        field would start late or never. Duck-typed, so any adapter with these fields is seen."""
+        clock = self.config.clock_length
+        gs4d = getattr(adapter, "gs4d_config", None)
+        config = getattr(adapter, "config", None)
+        found = []  # (what, steps, the fix)
+        if isinstance(getattr(gs4d, "total_steps", None), int) and gs4d.total_steps != clock:
+            found.append((f"coarse_steps + fine_steps ({gs4d.coarse_steps} + {gs4d.fine_steps}): its deformation "
+                          f"field starts at step {gs4d.coarse_steps}", gs4d.total_steps, "GS4DConfig.for_run(config)"))
+        elif isinstance(getattr(config, "position_lr_max_steps", None), int) and config.position_lr_max_steps != clock:
+            found.append(("position_lr_max_steps: its means' learning rate will not decay as planned",
+                          config.position_lr_max_steps, "GS3DConfig.for_run(config)"))
+        elif isinstance(getattr(config, "lr_max_steps", None), int) and config.lr_max_steps != clock:
+            found.append(("lr_max_steps: its learning rates will not decay as planned", config.lr_max_steps,
+                          "ScaffoldConfig.for_run(config)"))
+        for what, steps, fix in found:
+            warnings.warn(f"the adapter's own schedules run over {steps} steps (its config's {what}) but this run's "
+                          f"clock is {clock}; build its config with {fix}, as the examples do", stacklevel=3)
 
     @property
     def is_main(self) -> bool:

@@ -5,6 +5,8 @@ import dataclasses
 import difflib
 import importlib.util
 import math
+import re
+import warnings
 from pathlib import Path
 import struct
 import zipfile
@@ -142,6 +144,33 @@ def test_baseline_preset_is_plain_single_view_training(scene):
     model = single.train(scene, steps)
     assert model.num_primitives() == trainer.adapter.num_primitives()
     assert torch.allclose(model.positions(), trainer.adapter.positions(), atol=1e-6)
+
+
+def test_every_bundled_model_warns_when_its_schedules_are_on_another_clock_and_for_run_fits_them(scene):
+    """3DGS, Scaffold-GS and 4DGS built with their configs' defaults (30k-step decays, 4DGS's
+    3000 coarse steps) warn, naming the field and the fix, on a 40-step run; built with their
+    for_run(config) they do not, and GS4DConfig.for_run splits the clock as train_4dgs.py does."""
+    from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
+    from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
+
+    timed = synthetic_scene(n_train=6, n_test=2, size=16, n_points=80, time=True)
+    config = MVGSConfig.baseline().with_total_steps(40)
+    for kind, cfg_type, field, on in ((GS3DAdapter, GS3DConfig, "position_lr_max_steps", scene),
+                                      (ScaffoldAdapter, ScaffoldConfig, "lr_max_steps", scene),
+                                      (GS4DAdapter, GS4DConfig, "coarse_steps + fine_steps (3000 + 20000)", timed)):
+        with pytest.warns(UserWarning, match=re.escape(f"its config's {field}") + r".* this run's clock is 40; build its "
+                          + re.escape(f"config with {cfg_type.__name__}.for_run(config)")):
+            MVGS(kind.from_scene(on, cfg_type()), on, config)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            MVGS(kind.from_scene(on, cfg_type.for_run(config)), on, config)
+    spec = importlib.util.spec_from_file_location("train_4dgs_for_run", EXAMPLES / "train_4dgs.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    theirs = example.gs4d_config(config, example.parse_args(["--data", str(EXAMPLES / "scenes" / "tabletop")]))
+    ours = GS4DConfig.for_run(config)
+    assert (ours.coarse_steps, ours.fine_steps) == (theirs.coarse_steps, theirs.fine_steps) == (5, 35)
+    assert ours.canonical.position_lr_max_steps == theirs.canonical.position_lr_max_steps == 40
 
 
 def _load_example(name):

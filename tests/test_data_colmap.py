@@ -172,7 +172,7 @@ def test_a_model_without_its_points_file_loads_without_points(tmp_path, fmt):
     full = load_colmap(tmp_path)
     (info["model_dir"] / f"points3D.{fmt}").unlink()
     files = sorted(f.name for f in info["model_dir"].iterdir())
-    with pytest.warns(UserWarning, match="holds 0 3D points: the scene has no point cloud \\(the examples' --init makes "
+    with pytest.warns(UserWarning, match="holds 0 3D points \\(an empty or absent points3D file\\): the scene has no point cloud \\(the examples' --init makes "
                                          "one, by default triangulated from the training views"):
         scene = load_colmap(tmp_path)
     assert scene.points is None or len(scene.points) == 0

@@ -286,7 +286,8 @@ def _split(names: Sequence[str], test_every: Optional[int], test_names: Optional
 def _points(rec, model_dir: Path) -> Optional[PointCloud]:
     pts = list(rec.points3D.values())
     if not pts:
-        warnings.warn(f"the COLMAP model in {model_dir} holds 0 3D points: the scene has no point cloud (the examples' "
+        warnings.warn(f"the COLMAP model in {model_dir} holds 0 3D points (an empty or absent points3D file): the "
+                      "scene has no point cloud (the examples' "
                       "--init makes one, by default triangulated from the training views; an adapter given none "
                       "initialises randomly, where the cameras look)", stacklevel=3)
         return None
