@@ -508,6 +508,14 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
                                                                               enabled=getattr(args, rule))})
     if args.threshold_width is not None:
         config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
+    first = (config.densify_from // config.densify_every + 1) * config.densify_every  # the first call's clock
+    if first >= config.densify_until:
+        length = f"--budget {args.budget:g}" if args.budget is not None else f"--steps {args.steps}"
+        print(f"{Path(sys.argv[0]).name}: note: {length}: this run densifies at no step: its densification window, "
+              f"after {config.densify_from} and before {config.densify_until} on the run's clock (every "
+              f"{config.densify_every}), holds no call (a short run waits {min(50, config.densify_from)} before its "
+              "first, so that densification does not act on a model that has fitted nothing yet); a longer run "
+              "densifies", file=sys.stderr)
     return config
 
 

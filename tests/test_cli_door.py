@@ -108,8 +108,31 @@ def test_the_main_job_prints_one_line_when_stderr_is_not_a_terminal(tmp_path):
     proc = run("train_3dgs.py", "--steps", "3", "--resolution-scale", "4", "--out", str(tmp_path / "o"))
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("default: test PSNR "), proc.stderr
+    # a 3-step run is told that it densifies at no step (a note, before training), then the result
+    assert len(lines) == 2 and lines[0].startswith("train_3dgs.py: note: --steps 3: this run densifies at no step")
+    assert lines[1].startswith("default: test PSNR "), proc.stderr
     assert proc.stdout == ""
+
+
+def test_a_run_too_short_to_densify_is_told_so_and_one_long_enough_is_not(capsys):
+    """The note's rule against the schedule itself: a run gets the note exactly when none of its
+    steps densifies (the controller's own plan, stepped through), for 3DGS's and 4DGS's flags."""
+    import importlib.util
+
+    from mvgs_plugin.schedule import ViewSchedule
+    from mvgs_plugin.testing import synthetic_scene
+
+    scene = synthetic_scene(n_train=6, n_test=2, size=16, n_points=80)
+    for script, extra in (("train_3dgs.py", []), ("train_4dgs.py", ["--data", str(ROOT / "tests" / "data" / "forward64")])):
+        spec = importlib.util.spec_from_file_location(script[:-3] + "_note", EXAMPLES / script)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        for steps in (60, 150, 160, 200, 400):
+            capsys.readouterr()
+            config = module.config_from_args(module.parse_args(["--steps", str(steps), *extra]))
+            told = "densifies at no step" in capsys.readouterr().err
+            densified = any(plan.densify for plan in ViewSchedule(scene, config, load_images=False))
+            assert told == (not densified), (script, steps, told)
 
 
 def _load(name: str):
@@ -201,11 +224,12 @@ def test_a_dynamic_scene_given_to_a_static_model_is_trained_with_a_note(tmp_path
     scene = timed_scene(tmp_path)
     proc = run("train_3dgs.py", "--data", str(scene), "--out", str(tmp_path / "o"), *TINY)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    notes = [line for line in proc.stderr.splitlines() if line.startswith("train_3dgs.py: note: ")]
+    notes = [line for line in proc.stderr.splitlines()  # (a tiny run is also told it densifies at no step)
+             if line.startswith("train_3dgs.py: note: ") and "densifies at no step" not in line]
     n_train = len(json.loads((scene / "transforms_train.json").read_text())["frames"])
     assert len(notes) == 1 and f"{n_train} of the {n_train} training frames" in notes[0] and "train_4dgs.py" in notes[0]
     plain = run("train_3dgs.py", "--data", str(ROOT / "tests" / "data" / "forward64"), "--out", str(tmp_path / "p"), *TINY)
-    assert plain.returncode == 0 and "note:" not in plain.stderr, plain.stderr[-2000:]
+    assert plain.returncode == 0 and "carry a time" not in plain.stderr, plain.stderr[-2000:]
 
 
 @pytest.mark.parametrize("blocker, kind", [("test", "file"), ("point_cloud.ply", "folder"), ("metrics.json", "folder")])
