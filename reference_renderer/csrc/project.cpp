@@ -482,6 +482,23 @@ void forward(const Settings& s, const T* means, const T* quats, const T* scales,
     });
 }
 
+// Antialiasing's compensation = sqrt(max(r, 1e-12)), r = det_raw / det, backward: adds to the
+// gradients of a_raw, c_raw and b. r's derivatives in closed form: with det = det_raw + e (a_raw +
+// c_raw) + e^2, dr/da_raw = e (c_raw c + b^2) / det^2, dr/dc_raw = e (a_raw a + b^2) / det^2 and
+// dr/db = -2 b e (a_raw + c_raw + e) / det^2. Taken through det_raw and det apart, the two terms
+// cancel to a few ulp of 1/a for a splat much wider than eps2d (a float32 splat 1e7 px wide got
+// gradients 1e3-1e11 times too large), and det^2 overflows.
+template <typename P>
+inline void compensation_backward(const Pair<P>& q, double gcp, double eps2d, P& da_raw, P& dc_raw, P& db) {
+    const P r = (q.a_raw * q.c_raw - q.b * q.b) / q.det_s;
+    if (!(r >= P(1e-12))) return;
+    const P e = P(eps2d), inv_det = P(1) / q.det_s;
+    const P dr = P(gcp) * P(0.5) / std::sqrt(r) * e * inv_det;
+    da_raw += dr * ((q.c_raw * inv_det) * q.c + (q.b * inv_det) * q.b);
+    dc_raw += dr * ((q.a_raw * inv_det) * q.a + (q.b * inv_det) * q.b);
+    db -= P(2) * dr * (q.b * inv_det) * (q.a_raw + q.c_raw + e);
+}
+
 // Backward of one pair's geometry (P = T or double): adds to the mean's and the covariance's
 // gradients (accumulated in double).
 template <typename P>
@@ -494,29 +511,18 @@ inline void pair_backward(const Pair<P>& q, const Cam<P>& cam, double gu, double
     dzs -= (P(gu) * cam.fx * q.p[0] + P(gv) * cam.fy * q.p[1]) / (q.zs * q.zs);
     // conics = (c, -b, a) / det_s
     P da = P(gq2) / q.det_s, db = -P(gq1) / q.det_s, dc = P(gq0) / q.det_s;
-    if (q.ok) {  // d(conic)/d(det) = -conic / det: divided twice, as det^2 overflows float beyond 1.8e19
-        const P inv_det = P(1) / q.det_s;
-        const P ddet = -(P(gq0) * (q.c * inv_det) - P(gq1) * (q.b * inv_det) + P(gq2) * (q.a * inv_det)) * inv_det;
+    if (q.ok) {  // d(conic)/d(det) = -conic / det
+        P ddet = -(P(gq0) * q.c - P(gq1) * q.b + P(gq2) * q.a) / (q.det_s * q.det_s);
+        if (!std::isfinite(q.det_s * q.det_s)) {  // det^2 overflows float beyond 1.8e19 (a splat ~1e5 px wide)
+            const P inv_det = P(1) / q.det_s;
+            ddet = -(P(gq0) * (q.c * inv_det) - P(gq1) * (q.b * inv_det) + P(gq2) * (q.a * inv_det)) * inv_det;
+        }
         da += ddet * q.c;
         dc += ddet * q.a;
         db -= P(2) * ddet * q.b;
     }
     P da_raw = 0, dc_raw = 0;
-    if (q.ok && gcp != 0.0) {  // compensation = sqrt(max(r, 1e-12)), r = det_raw / det
-        const P r = (q.a_raw * q.c_raw - q.b * q.b) / q.det_s;
-        if (r >= P(1e-12)) {
-            // r's derivatives in closed form: with det = det_raw + e (a_raw + c_raw) + e^2,
-            // dr/da_raw = e (c_raw c + b^2) / det^2, dr/dc_raw = e (a_raw a + b^2) / det^2 and
-            // dr/db = -2 b e (a_raw + c_raw + e) / det^2. Taken through det_raw and det apart,
-            // the two terms cancel to a few ulp of 1/a for a splat much wider than eps2d (a
-            // float32 splat 1e7 px wide got gradients 1e3-1e11 times too large), and det^2 overflows.
-            const P e = P(eps2d), inv_det = P(1) / q.det_s;
-            const P dr = P(gcp) * P(0.5) / std::sqrt(r) * e * inv_det;
-            da_raw += dr * ((q.c_raw * inv_det) * q.c + (q.b * inv_det) * q.b);
-            dc_raw += dr * ((q.a_raw * inv_det) * q.a + (q.b * inv_det) * q.b);
-            db -= P(2) * dr * (q.b * inv_det) * (q.a_raw + q.c_raw + e);
-        }
-    }
+    if (q.ok && gcp != 0.0) compensation_backward(q, gcp, eps2d, da_raw, dc_raw, db);
     da += da_raw;
     dc += dc_raw;
     // a = jw0^T S jw0, b = jw0^T S jw1, c = jw1^T S jw1 (S symmetric)
