@@ -844,6 +844,12 @@ class GS3DAdapter:
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:
         return {name: p.grad for name, p in self.params.items()}
 
+    def clock_mismatch(self, clock: int) -> Optional[Tuple[str, int, str]]:
+        """ClockedAdapter: the means' learning-rate decay spans config.position_lr_max_steps."""
+        steps = self.config.position_lr_max_steps
+        return None if steps == clock else ("position_lr_max_steps: its means' learning rate will not decay as "
+                                            "planned", steps, "GS3DConfig.for_run(config)")
+
     def optimizer_step(self) -> None:
         """Adam on every group (with config.means_lr_rule "distance" or "disparity" and a
         scene_center, the means' Adam move is applied with the rule's per-row factors,

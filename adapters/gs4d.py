@@ -398,51 +398,59 @@ class GS4DAdapter(GS3DAdapter):
         points = cls._with_random_points(scene, config) if config.init_random_points else None
         base = GS3DAdapter.from_scene(scene, config.canonical, dtype, device, points=points)
         pts = points if points is not None else getattr(scene, "points", None)
-        if config.bounds is None and pts is not None and pts.shell and len(pts.own) > 1:
+        if config.bounds is None and pts is not None and pts.shell:
             # the deformation box of the scene's own points: the far background shell (static,
             # at twice the rig's radius) would spread the planes' cells over empty space; its
-            # Gaussians fall outside the box, where lookups clamp to the border
+            # Gaussians fall outside the box, where lookups clamp to the border. Own points that
+            # span nothing keep the box of every point.
             own = pts.own.double()
-            if float((own.max(0).values - own.min(0).values).max()) > 0:
+            if len(own) and float((own.max(0).values - own.min(0).values).max()) > 0:
                 box = bounds_from_points(own, config.min_bounds_fraction)
                 config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
         return cls.from_canonical(base, config)
 
     @staticmethod
     def _with_random_points(scene, config: GS4DConfig) -> PointCloud:
+        """The scene's points with config.init_random_points added after its own ones (the
+        background shell stays last, counted as such)."""
         pts = getattr(scene, "points", None)
-        own = 0 if pts is None else len(pts) - pts.shell  # the scene's own points come first, the shell last
-        xyz = torch.zeros(0, 3) if pts is None else pts.xyz[:own]
-        rgb = torch.zeros(0, 3) if pts is None else pts.rgb[:own]
+        if pts is None:
+            pts = PointCloud(torch.zeros(0, 3), torch.zeros(0, 3))
+        own = len(pts) - pts.shell
         gen = torch.Generator().manual_seed(config.canonical.seed + 2)
-        if config.init_box is None and not len(xyz):
+        if config.init_box is None and own == 0:
             # no points of the scene's own: where the cameras look (the 3DGS cube around the scene,
             # the frusta of a forward rig)
             new_xyz, new_rgb, description = random_init_points(scene, config.init_random_points, gen)
-            new_xyz, new_rgb = new_xyz.double(), new_rgb.double()
             LOG.info("4DGS extra points: %s", description)
         else:
             if config.init_box is not None:
                 box = torch.tensor(config.init_box, dtype=torch.float64)
             else:  # the scene's own points' box widened to a cube (the shell left out)
-                lo, hi = xyz.double().min(0).values, xyz.double().max(0).values
+                lo, hi = pts.own.double().min(0).values, pts.own.double().max(0).values
                 half = float((hi - lo).max()) / 2
                 if not half > 0:
                     raise ValueError("init_random_points: the scene points span no volume; give init_box "
                                      "(--init-box)")
                 c = (lo + hi) / 2
                 box = torch.stack([c - half, c + half])
-            n = config.init_random_points
-            u = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+            u = torch.rand(config.init_random_points, 3, generator=gen, dtype=torch.float64)
             new_xyz = box[0] + u * (box[1] - box[0])
-            new_rgb = torch.rand(n, 3, generator=gen, dtype=torch.float64)
-        shell = 0 if pts is None else pts.shell  # kept last, and counted as the shell
-        tail_xyz = torch.zeros(0, 3, dtype=torch.float64) if pts is None else pts.xyz[own:].double()
-        tail_rgb = torch.zeros(0, 3, dtype=torch.float64) if pts is None else pts.rgb[own:].double()
-        return PointCloud(torch.cat([xyz.double(), new_xyz, tail_xyz]), torch.cat([rgb.double(), new_rgb, tail_rgb]),
-                          shell=shell)
+            new_rgb = torch.rand(config.init_random_points, 3, generator=gen, dtype=torch.float64)
+        xyz = torch.cat([pts.xyz[:own], new_xyz.to(pts.xyz.dtype), pts.xyz[own:]])
+        rgb = torch.cat([pts.rgb[:own], new_rgb.to(pts.rgb.dtype), pts.rgb[own:]])
+        return PointCloud(xyz, rgb, shell=pts.shell)
 
     # ---- schedule -----------------------------------------------------------------------
+    def clock_mismatch(self, clock: int) -> Optional[Tuple[str, int, str]]:
+        """ClockedAdapter: the coarse and fine stages span coarse_steps + fine_steps (then the
+        canonical Gaussians' schedules, as GS3DAdapter's)."""
+        c = self.gs4d_config
+        if c.total_steps != clock:
+            return (f"coarse_steps + fine_steps ({c.coarse_steps} + {c.fine_steps}): its deformation field starts at "
+                    f"step {c.coarse_steps}", c.total_steps, "GS4DConfig.for_run(config)")
+        return super().clock_mismatch(clock)
+
     @property
     def deformation_active(self) -> bool:
         """Whether the current step is in the fine stage (the field moves the Gaussians)."""

@@ -394,6 +394,12 @@ class ScaffoldAdapter:
             "mlp_cov": log_linear(step, 0, L, c.lr_mlp_cov_init, c.lr_mlp_cov_final),
         }
 
+    def clock_mismatch(self, clock: int) -> Optional[Tuple[str, int, str]]:
+        """ClockedAdapter: the learning-rate decays span config.lr_max_steps."""
+        steps = self.config.lr_max_steps
+        return None if steps == clock else ("lr_max_steps: its learning rates will not decay as planned", steps,
+                                            "ScaffoldConfig.for_run(config)")
+
     def set_step(self, step: int) -> None:
         """Learning rates for ``step`` (pure functions of it)."""
         self._step = check_int("step", step, 0)

@@ -35,6 +35,7 @@ from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text, load_checked
+from mvgs_plugin.schedule import densifies_at_some_step
 
 __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
@@ -508,8 +509,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
                                                                               enabled=getattr(args, rule))})
     if args.threshold_width is not None:
         config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
-    first = (config.densify_from // config.densify_every + 1) * config.densify_every  # the first call's clock
-    if first >= config.densify_until:
+    if not densifies_at_some_step(config):
         length = f"--budget {args.budget:g}" if args.budget is not None else f"--steps {args.steps}"
         print(f"{Path(sys.argv[0]).name}: note: {length}: this run densifies at no step: its densification window, "
               f"after {config.densify_from} and before {config.densify_until} on the run's clock (every "

@@ -190,23 +190,14 @@ class MVGS:
         self._loss_level: Optional[float] = None  # running loss per view; None before the first step
 
     def _warn_other_clock(self, adapter) -> None:
-        """Warn when a bundled model's own schedules are on another clock than this run's (its
-        config built without for_run): the decays would stop part-way, or 4DGS's deformation
-        field would start late or never. Duck-typed, so any adapter with these fields is seen."""
+        """Warn when the model's own schedules are on another clock than this run's (its config
+        built without for_run): the decays would stop part-way, or 4DGS's deformation field would
+        start late or never. Asks the adapter (ClockedAdapter.clock_mismatch, optional)."""
         clock = self.config.clock_length
-        gs4d = getattr(adapter, "gs4d_config", None)
-        config = getattr(adapter, "config", None)
-        found = []  # (what, steps, the fix)
-        if isinstance(getattr(gs4d, "total_steps", None), int) and gs4d.total_steps != clock:
-            found.append((f"coarse_steps + fine_steps ({gs4d.coarse_steps} + {gs4d.fine_steps}): its deformation "
-                          f"field starts at step {gs4d.coarse_steps}", gs4d.total_steps, "GS4DConfig.for_run(config)"))
-        elif isinstance(getattr(config, "position_lr_max_steps", None), int) and config.position_lr_max_steps != clock:
-            found.append(("position_lr_max_steps: its means' learning rate will not decay as planned",
-                          config.position_lr_max_steps, "GS3DConfig.for_run(config)"))
-        elif isinstance(getattr(config, "lr_max_steps", None), int) and config.lr_max_steps != clock:
-            found.append(("lr_max_steps: its learning rates will not decay as planned", config.lr_max_steps,
-                          "ScaffoldConfig.for_run(config)"))
-        for what, steps, fix in found:
+        ask = getattr(adapter, "clock_mismatch", None)
+        found = ask(clock) if callable(ask) else None
+        if found is not None:
+            what, steps, fix = found
             warnings.warn(f"the adapter's own schedules run over {steps} steps (its config's {what}) but this run's "
                           f"clock is {clock}; build its config with {fix}, as the examples do", stacklevel=3)
 

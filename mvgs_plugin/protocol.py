@@ -195,6 +195,17 @@ class ScaledViewsAdapter(Protocol):
         """Scale the optimizer for steps of `views` views from the next set_step on."""
 
 
+class ClockedAdapter(Protocol):
+    """An optional method for a model whose own schedules (learning-rate decays, a static first
+    stage) are set in steps: MVGS calls it once with the run's clock length (config.clock_length)
+    and warns with what it returns. The bundled adapters implement it; their configs' for_run(run)
+    puts the schedules on the run's clock."""
+
+    def clock_mismatch(self, clock: int) -> Optional[Tuple[str, int, str]]:
+        """None when the model's schedules span `clock`; else (what: the config field and what it
+        does, the steps it spans, the fix: e.g. "GS3DConfig.for_run(config)")."""
+
+
 @runtime_checkable
 class DistributedAdapter(Protocol):
     """Optional extra methods an adapter implements to be trained over several processes

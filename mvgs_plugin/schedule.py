@@ -134,6 +134,15 @@ class StepPlan:
             yield [self.cameras[i] for i in chunk], [self.images[i] for i in chunk], self.backgrounds[chunk], collect
 
 
+def densifies_at_some_step(config: MVGSConfig) -> bool:
+    """Whether the config's densification window (clock > densify_from and < densify_until,
+    where the clock crosses a multiple of densify_every: ViewSchedule.next's rule) holds a call.
+    Exact for a clock counting steps; a clock counting work can also fire just past a multiple
+    equal to densify_from, so a window shorter than one interval may be judged empty."""
+    first = (config.densify_from // config.densify_every + 1) * config.densify_every
+    return first < config.densify_until
+
+
 class ViewSchedule:
     """The sequence of StepPlans of a run: sampler + stage plan + densification clock.
 
