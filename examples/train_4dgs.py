@@ -105,7 +105,8 @@ def run(args, dist) -> dict:
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: the box places the --init-random "
                          "points, and --init-random is 0, so it would change nothing; give --init-random N too")
     try:  # a static NeRF-layout scene, before it is read (and its points triangulated)
-        static = (args.data / "transforms_train.json").is_file() and not is_dynamic(args.data)
+        static = ((args.data / "transforms_train.json").is_file() or (args.data / "transforms.json").is_file()) \
+            and not is_dynamic(args.data)
     except ValueError as err:  # a malformed transforms_train.json, named
         raise UsageError(f"--data {args.data}: {err}") from err
     if static:

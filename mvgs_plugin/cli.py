@@ -135,13 +135,16 @@ def scene_from_args(args, dynamic_model: bool = False):
     cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
-                           background_points=args.background_points)
+                           background_points=args.background_points, background=getattr(args, "background", "auto"))
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
         if args.init_cache is not None and str(args.init_cache) in str(err):
             raise UsageError(f"--init-cache {args.init_cache}: {err}") from err
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
     check_renders_spare_images(Path(args.out), scene)
+    if scene.background_origin.startswith("the training images have no alpha"):  # found, not told: say so
+        print(f"{Path(sys.argv[0]).name}: note: background: {scene.background_origin}: the Gaussians are trained "
+              "in front of it (--background to choose another)", file=sys.stderr)
     timed = sum(c.time is not None for c in scene.train_cameras)
     if timed and not dynamic_model:
         print(f"{Path(sys.argv[0]).name}: note: {timed} of the {len(scene.train_cameras)} training frames of --data "
@@ -219,6 +222,22 @@ def float_above(low: float, inclusive: bool = False, high: float = math.inf) -> 
                                              f"got {text!r}")
         return value
     return parse
+
+
+def background_colour(text: str):
+    """An argparse type for --background: "auto", "black", "white" or "R,G,B" (floats in [0, 1])."""
+    named = {"auto": "auto", "black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+    if text.strip().lower() in named:
+        return named[text.strip().lower()]
+    parts = text.split(",")
+    try:
+        rgb = tuple(float(p) for p in parts)
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in rgb):
+        raise argparse.ArgumentTypeError(f"expected auto, black, white or R,G,B with each in [0, 1] "
+                                         f"(e.g. 0.5,0.5,0.5), got {text!r}")
+    return rgb
 
 
 def check_device(args) -> None:
@@ -349,6 +368,11 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="N more initial points on a sphere twice the rig's radius for the far background (sky, "
                          "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
                          "(3DGS's init). A forward-facing rig gets none")
+    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|R,G,B",
+                    help="the colour behind the Gaussians, and the one RGBA images are composited on. auto: a "
+                         "NeRF-style scene's RGBA images on white; images without alpha on the colour their borders "
+                         "show when it is one colour (they were composited on it), else white; a COLMAP scene black "
+                         "(alpha dropped). Default: auto")
     ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
                     help="folder the triangulation (features and points) is kept in and read back from by the next "
                          "run (default: OUT/init; the scene folder is never written unless DIR is in it)")
@@ -456,6 +480,8 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
                  "budget_initial_share"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
+    if getattr(args, "background", "auto") != "auto":  # the colour the scene's images were composited on
+        preset_overrides = {**preset_overrides, "background": args.background}
     if getattr(args, "view_cost", None) is not None:
         preset_overrides = {**preset_overrides, "view_cost": (args.view_cost, 1.0 - args.view_cost)}
     config = MVGSConfig.from_preset(args.preset, seed=args.seed, **preset_overrides)
@@ -696,6 +722,9 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "work": trainer.schedule.work_done,
         "num_gaussians": trainer.adapter.num_primitives(),
         "init": getattr(trainer.scene, "points_origin", None),
+        "background": {"colour": list(trainer.schedule.background_value()),
+                       "origin": ("--background" if getattr(args, "background", "auto") != "auto"
+                                  else getattr(trainer.scene, "background_origin", None))},
         **extra,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "preset": args.preset,

@@ -65,6 +65,8 @@ def test_help_states_every_default(script):
     ("examples/train_3dgs.py", ["--budget", "nan"], "--budget"),
     ("examples/train_3dgs.py", ["--stages", "8:x:100"], "--stages"),
     ("examples/train_3dgs.py", ["--preset", "fast"], "--preset"),
+    ("examples/train_3dgs.py", ["--background", "0.5,0.5"], "--background"),
+    ("examples/train_scaffold.py", ["--background", "1.2,0,0"], "--background"),
     ("examples/train_4dgs.py", ["--data", str(ROOT / "README.md")], "--data"),
     ("examples/train_4dgs.py", ["--data", str(ROOT), "--coarse-fraction", "1.5"], "--coarse-fraction"),
     ("examples/train_4dgs.py", ["--data", str(ROOT), "--export-times", "2"], "--export-times"),

@@ -31,7 +31,8 @@ def write_model(root, n=10, fmt="bin", model="PINHOLE", seed=0, nan_image=None):
     ``nan_image``: index of an image whose translation is written as NaN."""
     rng = np.random.default_rng(seed)
     rec = pycolmap.Reconstruction()
-    params = {"PINHOLE": [50.0, 52.0, 19.5, 15.2], "SIMPLE_RADIAL": [50.0, 20.0, 15.0, 0.01]}[model]
+    params = {"PINHOLE": [50.0, 52.0, 19.5, 15.2], "SIMPLE_RADIAL": [50.0, 20.0, 15.0, 0.01],
+              "OPENCV_FISHEYE": [50.0, 52.0, 19.5, 15.2, 0.01, 0.0, 0.0, 0.0]}[model]
     rec.add_camera_with_trivial_rig(
         pycolmap.Camera(camera_id=1, model=model, width=W, height=H, params=params))
     rec.add_camera_with_trivial_rig(
@@ -225,9 +226,10 @@ def test_images_dir_and_model_folder_given_directly(scene_dir):
 
 # ---- bad input: one clear error each -----------------------------------------------------
 
-def test_distorted_camera_model_is_refused(tmp_path):
-    write_model(tmp_path, model="SIMPLE_RADIAL")
-    with pytest.raises(ValueError, match="SIMPLE_RADIAL.*image_undistorter"):
+def test_a_fisheye_camera_model_is_refused(tmp_path):
+    """Radial and OpenCV lenses are undistorted when read (test_data_distortion.py); a fisheye is not."""
+    write_model(tmp_path, model="OPENCV_FISHEYE")
+    with pytest.raises(ValueError, match="OPENCV_FISHEYE: supported are .*image_undistorter"):
         load_colmap(tmp_path)
 
 

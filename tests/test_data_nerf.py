@@ -207,10 +207,17 @@ def test_scene_pyramid_size_and_geometry():
 
 # ---- bad input: one clear error each -----------------------------------------------------
 
-def test_missing_test_json(tmp_path):
-    write_blender(tmp_path)
+def test_missing_test_json_holds_out_every_eighth_training_frame(tmp_path):
+    write_blender(tmp_path, counts=(("train", 17), ("test", 2)))
     (tmp_path / "transforms_test.json").unlink()
-    with pytest.raises(FileNotFoundError, match="transforms_test.json"):
+    with pytest.warns(UserWarning, match=r"transforms_test.json is missing: .* every 8th from the first \(3 of 17\)"):
+        scene = load_nerf_synthetic(tmp_path)
+    assert [c.name for c in scene.test_cameras] == [f"train/r_{k:03d}.png" for k in (0, 8, 16)]
+    assert len(scene.train_cameras) == 14 and not {c.name for c in scene.train_cameras} & {"train/r_008.png"}
+
+
+def test_no_json_at_all(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"transforms_train.json \(or one .*transforms.json\)"):
         load_nerf_synthetic(tmp_path)
 
 

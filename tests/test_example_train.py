@@ -39,12 +39,44 @@ def test_train_3dgs_writes_metrics_renders_and_ply(tmp_path, preset, layout):
         assert key in saved, key
     assert saved["steps"] == 4 and saved["preset"] == preset and saved == json.loads(json.dumps(metrics))
     assert 0 < saved["psnr"] < 60 and 0 < saved["ssim"] <= 1
+    # the bundled images have no alpha and a border of many colours: white, the NeRF loader's default;
+    # COLMAP drops alpha and has no background: black
+    assert saved["background"]["colour"] == ([1.0, 1.0, 1.0] if layout == "nerf" else [0.0, 0.0, 0.0])
     renders = sorted((out / "test").glob("*.png"))
     assert len(renders) == len(saved["per_view"]) > 0
     ply = PlyData.read(str(out / "point_cloud.ply"))
     assert ply["vertex"].count == saved["num_gaussians"]
     names = [p.name for p in ply["vertex"].properties]
     assert names[:6] == ["x", "y", "z", "nx", "ny", "nz"] and names[-4:] == ["rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def test_a_nerfstudio_folder_composited_on_black_trains_in_front_of_black(tmp_path, capsys):
+    """One transforms.json (nerfstudio's keys, with a lens distortion k1), RGB images of an object
+    on black: the run holds out every 8th view, trains on the undistorted images, finds the black
+    backdrop in their borders, says so and trains in front of it; --background overrides it."""
+    import warnings
+
+    from test_data_transforms import _frames, _object_on, _write
+
+    frames, _ = _frames(9, tmp_path / "scene", paint=_object_on((0, 0, 0)))
+    _write(tmp_path / "scene", frames, k1=-0.05)
+    example = load_example()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the random init's
+        saved = example.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "3",
+                              "--init", "random", "--out", str(tmp_path / "auto"), "--no-progress"])
+        assert "note: background: the training images have no alpha and their borders are one colour, " \
+               "(0.000, 0.000, 0.000)" in capsys.readouterr().err
+        assert saved["background"]["colour"] == [0.0, 0.0, 0.0] and len(saved["per_view"]) == 2
+        example.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "3",
+                             "--init", "random", "--background", "0.2,0.4,0.6", "--out", str(tmp_path / "told"),
+                             "--no-progress"])
+    told = json.loads((tmp_path / "told" / "metrics.json").read_text())
+    from PIL import Image
+    with Image.open(tmp_path / "told" / "test" / "frame_00000.png") as render:  # the undistorted camera's size
+        assert render.size != (48, 36) and abs(render.size[0] - 48) <= 4
+    assert told["background"] == {"colour": [0.2, 0.4, 0.6], "origin": "--background"}
+    assert told["config"]["background"] == [0.2, 0.4, 0.6]
 
 
 def test_bad_data_folder_is_named(tmp_path):

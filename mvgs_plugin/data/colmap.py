@@ -18,6 +18,7 @@ import torch
 
 from ..checks import check_int
 from ..camera import Camera
+from .distortion import Distortion, UndistortedImage, Undistortion
 from .scene import PointCloud, Scene
 
 __all__ = ["load_colmap", "find_colmap_model", "normalize_name", "check_inside"]
@@ -228,22 +229,39 @@ def _read_model(pycolmap, model_dir: Path):
         raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
 
 
-def _intrinsics(cam) -> np.ndarray:
-    """K [3,3] of a PINHOLE or SIMPLE_PINHOLE pycolmap camera; other models are refused."""
+def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
+    """K [3,3] and the lens distortion of a pycolmap camera: the pinhole models, and SIMPLE_RADIAL,
+    RADIAL, OPENCV and FULL_OPENCV without its rational terms (k4 = k5 = k6 = 0), whose images are
+    undistorted when read; other models are refused."""
     model = getattr(cam, "model_name", None) or cam.model.name
     p = [float(v) for v in cam.params]
+    dist = Distortion()
     if model == "PINHOLE":
         fx, fy, cx, cy = p
     elif model == "SIMPLE_PINHOLE":
         fx, cx, cy = p
         fy = fx
+    elif model == "SIMPLE_RADIAL":
+        fx, cx, cy, k = p
+        fy, dist = fx, Distortion(k1=k)
+    elif model == "RADIAL":
+        fx, cx, cy, k1, k2 = p
+        fy, dist = fx, Distortion(k1=k1, k2=k2)
+    elif model == "OPENCV":
+        fx, fy, cx, cy, k1, k2, p1, p2 = p
+        dist = Distortion(k1=k1, k2=k2, p1=p1, p2=p2)
+    elif model == "FULL_OPENCV" and not any(p[9:12]):
+        fx, fy, cx, cy, k1, k2, p1, p2, k3 = p[:9]
+        dist = Distortion(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
     else:
-        # Splatting renders an ideal pinhole; distorted images would be fit with wrong rays.
+        # Splatting renders an ideal pinhole; a fisheye or rational lens is not resampled here.
+        why = " with rational terms k4..k6" if model == "FULL_OPENCV" else ""
         raise ValueError(
-            f"camera model {model}: only PINHOLE and SIMPLE_PINHOLE are supported. Undistort the images first: colmap image_undistorter "
+            f"camera model {model}{why}: supported are PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL, OPENCV "
+            "(undistorted when read). Undistort the images first: colmap image_undistorter "
             "--image_path <images> --input_path <sparse/0> --output_path <out> "
             "(then load <out>, which has images/ and sparse/)")
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist
 
 
 def _world_to_camera(image) -> np.ndarray:
@@ -328,7 +346,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     check_binary_counts(model_dir)
     rec = _read_model(pycolmap, model_dir)
 
-    records = []
+    records, undistortions = [], {}
     for image_id, image in rec.images.items():
         # unregistered images have no pose to train with ("registered" before pycolmap 3.12)
         if not getattr(image, "has_pose", getattr(image, "registered", True)):
@@ -336,9 +354,16 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         name = check_inside(normalize_name(image.name), images_dir, f"{model_dir}: image {image_id}")
         cam = rec.cameras[image.camera_id]
         try:
-            camera = Camera(uid=int(image_id), name=name, K=_intrinsics(cam),
-                            world_to_camera=_world_to_camera(image), width=int(cam.width),
-                            height=int(cam.height))
+            K, dist = _intrinsics(cam)
+            width, height = int(cam.width), int(cam.height)
+            if dist:  # one resampling per COLMAP camera, shared by its images
+                if image.camera_id not in undistortions:
+                    undistortions[image.camera_id] = Undistortion(K, width, height, dist,
+                                                                  f"{model_dir}: camera {image.camera_id}")
+                und = undistortions[image.camera_id]
+                K, width, height = und.K_out, und.width_out, und.height_out
+            camera = Camera(uid=int(image_id), name=name, K=K, world_to_camera=_world_to_camera(image),
+                            width=width, height=height)
         except ValueError as err:
             raise ValueError(f"{model_dir}: image {name!r}: {err}") from None
         records.append(camera)
@@ -368,5 +393,8 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
             raise FileNotFoundError(f"image {c.name!r} of {model_dir} not found at {files[c.uid]} "
                                     "(the model's image names are read relative to the scene's images/ folder, or to the scene "
                                     "folder when it has none; from Python, load_colmap(images_dir=...) names another)")
-    return Scene(train_cams, test_cams, files, points=_points(rec, model_dir), background=background,
+    camera_of = {int(i): image.camera_id for i, image in rec.images.items()}
+    sources = {uid: (UndistortedImage(f, undistortions[camera_of[uid]]) if camera_of[uid] in undistortions else f)
+               for uid, f in files.items()}
+    return Scene(train_cams, test_cams, sources, points=_points(rec, model_dir), background=background,
                  source=path)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "downsample", "downsample_batch", "check_background"]
+__all__ = ["image_size", "read_rgb", "downsample", "downsample_batch", "check_background", "may_have_alpha",
+           "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8, CC are not frames.
@@ -132,6 +133,55 @@ def check_background(background) -> Optional[tuple[float, float, float]]:
     if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
         raise ValueError(f"background must be 3 floats in [0,1] or None, got {background!r}")
     return bg
+
+
+def may_have_alpha(path: Path) -> bool:
+    """Whether an image file may carry alpha, from its name and header (PNG colour types 4 and 6,
+    or a tRNS chunk); JPEG never does, any other format counts as 'may'."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        return False
+    if suffix != ".png":
+        return True
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)  # the header chunks; tRNS comes before the first IDAT
+    end = head.find(b"IDAT")
+    return len(head) < 26 or head[25] in (4, 6) or b"tRNS" in head[:end if end >= 0 else None]
+
+
+# A rendered backdrop is one colour up to 8-bit rounding and JPEG's ringing (a few levels): a
+# border pixel within this of the border's median colour (each channel) is the backdrop ...
+BORDER_TOLERANCE = 8.0 / 255.0
+# ... and the border is uniform when this share of its pixels is (an object may reach the edge
+# in some views; a photograph's border is many colours)
+BORDER_SHARE = 0.9
+
+
+def uniform_border(images: Iterable[torch.Tensor]) -> Optional[tuple[float, float, float]]:
+    """The colour of the images' one-pixel border when it is one colour, else None.
+
+    ``images``: [H, W, 3] tensors. The per-channel median of every border pixel of every image,
+    when at least BORDER_SHARE of those pixels lie within BORDER_TOLERANCE of it in every channel:
+    the backdrop a synthetic scene without alpha was rendered or composited on. A photograph's
+    border (sky, floor, walls) fails the test."""
+    rings = []
+    for img in images:
+        img = torch.as_tensor(img, dtype=torch.float32)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"uniform_border needs [H, W, 3] images, got {list(img.shape)}")
+        if img.shape[0] < 3 or img.shape[1] < 3:
+            rings.append(img.reshape(-1, 3))
+            continue
+        rings.append(torch.cat([img[0], img[-1], img[1:-1, 0], img[1:-1, -1]]))
+    if not rings:
+        return None
+    ring = torch.cat(rings)
+    median = ring.median(dim=0).values
+    close = ((ring - median).abs() <= BORDER_TOLERANCE).all(dim=1).float().mean()
+    if float(close) < BORDER_SHARE:
+        return None
+    return tuple(float(c) for c in median.clamp(0.0, 1.0))
 
 
 def read_rgb(path: Path, background: Optional[Sequence[float]] = None) -> torch.Tensor:

@@ -9,6 +9,7 @@ from typing import Optional
 import torch
 
 from .colmap import load_colmap
+from .images import check_background
 from .nerf import is_dynamic, load_dnerf, load_nerf_synthetic
 from .scene import Scene
 
@@ -16,11 +17,17 @@ LOG = logging.getLogger("mvgs_plugin")
 
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
-               init_cache=None, threads: Optional[int] = None, background_points: int = 0) -> Scene:
+               init_cache=None, threads: Optional[int] = None, background_points: int = 0,
+               background="auto") -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
-    (transforms_train.json; D-NeRF when its frames carry a time) or COLMAP (sparse/, sparse/0, or
-    cameras.bin / cameras.txt at the top). Raises ValueError naming the folder when it does not
-    exist or holds neither.
+    (transforms_train.json, or one transforms.json as instant-ngp and nerfstudio write it; D-NeRF
+    when its frames carry a time) or COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
+    the top). Raises ValueError naming the folder when it does not exist or holds neither.
+
+    ``background``: "auto" (the NeRF loaders' rule, see :func:`load_nerf_synthetic`: RGBA on
+    white, images without alpha on the colour their borders show; a COLMAP scene drops alpha and
+    has none), or an RGB colour in [0, 1] that RGBA images are composited on and that is the
+    scene's background (``scene.background``, ``scene.background_origin``).
 
     A scene without a point file (points3d.ply beside the jsons, COLMAP's points3D) gets initial
     points by ``init`` (:func:`~mvgs_plugin.data.triangulate.initial_points`): "triangulate"
@@ -45,12 +52,19 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         raise ValueError(f"scene folder {path} does not exist")
     if not path.is_dir():
         raise ValueError(f"scene path {path} is a file, expected a folder (COLMAP or NeRF-synthetic)")
-    if (path / "transforms_train.json").exists():
-        scene = load_dnerf(path) if is_dynamic(path) else load_nerf_synthetic(path)
-    elif (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists():
-        scene = load_colmap(path)
+    if not (isinstance(background, str) and background == "auto"):
+        background = check_background(background)  # a ValueError naming the value
+        if background is None:
+            raise ValueError("background must be 'auto' or 3 floats in [0,1], got None")
+    colmap = (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists()
+    if (path / "transforms_train.json").exists() or (not colmap and (path / "transforms.json").exists()):
+        scene = (load_dnerf if is_dynamic(path) else load_nerf_synthetic)(path, background=background)
+    elif colmap:
+        scene = load_colmap(path, background=None if background == "auto" else background)
     else:
-        raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json)")
+        raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json, "
+                         "or one transforms.json)")
+    LOG.info("%s: background %s", path, scene.background_origin)
     if scene.points is None and init is not None:
         from .triangulate import initial_points
 

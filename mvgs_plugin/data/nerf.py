@@ -1,32 +1,44 @@
-"""NeRF-synthetic (Blender) and D-NeRF scenes: transforms_{train,test}.json + images."""
+"""NeRF-synthetic (Blender) and D-NeRF scenes: transforms_{train,test}.json + images; or one
+transforms.json (instant-ngp, nerfstudio) split as the COLMAP loader splits."""
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import warnings
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
 
 from ..camera import Camera
 from .colmap import check_inside, normalize_name
-from .images import check_background, image_size
+from .distortion import Distortion, UndistortedImage, Undistortion
+from .images import check_background, image_size, may_have_alpha, uniform_border
 from .scene import PointCloud, Scene
 
-__all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "OPENGL_TO_OPENCV"]
+__all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "transforms_files", "OPENGL_TO_OPENCV"]
 
 # Blender/OpenGL cameras look down -z with y up; OpenCV looks down +z with y down. Flipping the
 # camera's y and z axes (right-multiplying camera-to-world) converts one into the other.
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
+LOG = logging.getLogger("mvgs_plugin")
+
 _SPLITS = ("train", "test")  # transforms_val.json, when present, is not used (as the original 3DGS)
+# a folder with one transforms.json (or no test json) holds out every 8th frame of the name-sorted
+# frames, indices 0, 8, 16, ... (the original 3DGS's "llffhold", as load_colmap's test_every)
+TEST_EVERY = 8
+# lens distortion keys (nerfstudio, instant-ngp): images with them are resampled to a pinhole
+_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 
 
-def _read_json(file: Path) -> list[dict]:
-    """The frames of one transforms json, with top-level camera keys copied into each frame."""
+def _read_json(file: Path) -> tuple[list[dict], dict]:
+    """The frames of one transforms json, with top-level camera keys copied into each frame, and
+    the top-level keys."""
     if not file.is_file():
         raise FileNotFoundError(f"missing {file}")
     try:
@@ -47,7 +59,7 @@ def _read_json(file: Path) -> list[dict]:
             raise ValueError(f"{file}: frame {i} must be an object, got {type(frame).__name__}")
         # per-frame keys (fl_x, w, ...) win over top-level ones; _OWN remembers which were the frame's
         out.append({**shared, **frame, _OWN: frozenset(frame)})
-    return out
+    return out, shared
 
 
 def _number(frame: dict, key: str, where: str) -> Optional[float]:
@@ -88,6 +100,21 @@ def _focal(frame: dict, axis: str, size: int, where: str) -> Optional[float]:
     return fl if fl is not None else from_angle
 
 
+def _distortion(frame: dict, where: str) -> Distortion:
+    """The frame's lens distortion (k1..k4, p1, p2; 0 when absent); ValueError for a
+    camera_model this loader cannot resample (nerfstudio's OPENCV_FISHEYE, EQUIRECTANGULAR)."""
+    model = frame.get("camera_model")
+    if model is not None and model not in _PINHOLE_MODELS:
+        raise ValueError(f"{where}: camera_model {model!r}: supported are {', '.join(_PINHOLE_MODELS)} (the last "
+                         "with lens distortion k1..k4, p1, p2, undistorted when read); convert the capture to one, "
+                         "e.g. with COLMAP's image_undistorter")
+    if frame.get("is_fisheye"):  # instant-ngp's flag
+        raise ValueError(f"{where}: is_fisheye is set: a fisheye lens is not resampled here; convert the capture to a "
+                         "pinhole one, e.g. with COLMAP's image_undistorter")
+    values = {k: _number(frame, k, where) for k in _DISTORTION}
+    return Distortion(**{k: v for k, v in values.items() if v is not None})
+
+
 def _intrinsics(frame: dict, width: int, height: int, where: str) -> np.ndarray:
     """K [3,3] from fl_x/fl_y/cx/cy or camera_angle_x/_y; cx, cy default to W/2, H/2. Values
     that cannot belong to an image of this size (a principal point outside it, fl_x against
@@ -119,8 +146,10 @@ def _world_to_camera(frame: dict, where: str) -> np.ndarray:
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{where}: 'transform_matrix' must be a numeric 4x4 matrix") from None
+    if c2w.shape == (3, 4):  # the last row left out
+        c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
     if c2w.shape != (4, 4):
-        raise ValueError(f"{where}: 'transform_matrix' must be 4x4, got {list(c2w.shape)}")
+        raise ValueError(f"{where}: 'transform_matrix' must be 4x4 (or 3x4), got {list(c2w.shape)}")
     if not np.isfinite(c2w).all():
         raise ValueError(f"{where}: 'transform_matrix' is not finite: {c2w.tolist()}")
     try:
@@ -129,8 +158,8 @@ def _world_to_camera(frame: dict, where: str) -> np.ndarray:
         raise ValueError(f"{where}: 'transform_matrix' is singular: {c2w.tolist()}") from None
 
 
-def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool,
-                  where: str) -> tuple[Camera, Path]:
+def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str,
+                  undistortions: dict) -> tuple[Camera, Union[Path, UndistortedImage]]:
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
         raise ValueError(f"{where}: missing 'file_path'")
@@ -157,14 +186,22 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool,
         time = _number(frame, "time", where)
         if not 0.0 <= time <= 1.0:
             raise ValueError(f"{where}: 'time' must be in [0,1], got {time}")
+    source = file
     try:
-        cam = Camera(uid=uid, name=name, K=_intrinsics(frame, width, height, where),
-                     world_to_camera=_world_to_camera(frame, where), width=width,
+        K = _intrinsics(frame, width, height, where)
+        dist = _distortion(frame, where)
+        if dist:  # one resampling per distinct camera, shared by its frames
+            key = (K.tobytes(), width, height, dist)
+            if key not in undistortions:
+                undistortions[key] = Undistortion(K, width, height, dist, where)
+            und = undistortions[key]
+            K, width, height, source = und.K_out, und.width_out, und.height_out, UndistortedImage(file, und)
+        cam = Camera(uid=uid, name=name, K=K, world_to_camera=_world_to_camera(frame, where), width=width,
                      height=height, time=time)
     except ValueError as err:
         msg = str(err)
         raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None
-    return cam, file
+    return cam, source
 
 
 def read_points_ply(file: Path) -> PointCloud:
@@ -196,34 +233,115 @@ def read_points_ply(file: Path) -> PointCloud:
         raise ValueError(f"{file}: {err}") from None
 
 
+def transforms_files(path) -> tuple[Path, Optional[Path]]:
+    """(train json, test json or None) of a NeRF-style folder: transforms_train.json with its
+    transforms_test.json (None when absent), else transforms.json (instant-ngp, nerfstudio) with
+    None; FileNotFoundError when the folder holds neither."""
+    root = Path(path)
+    train = root / "transforms_train.json"
+    if train.is_file():
+        test = root / "transforms_test.json"
+        return train, (test if test.is_file() else None)
+    single = root / "transforms.json"
+    if single.is_file():
+        return single, None
+    raise FileNotFoundError(f"missing {train} (or one {single})")
+
+
+def _held_out(frames: list, jfile: Path, where_test: str) -> tuple[list, list]:
+    """(train frames, test frames): every TEST_EVERY-th frame of the frames sorted by file_path
+    is a test frame, starting with the first."""
+    def name(item):
+        fp = item[1].get("file_path")
+        return normalize_name(fp) if isinstance(fp, str) else ""
+
+    ordered = sorted(enumerate(frames), key=name)
+    test = [f for k, (_, f) in enumerate(ordered) if k % TEST_EVERY == 0]
+    train = [f for k, (_, f) in enumerate(ordered) if k % TEST_EVERY != 0]
+    if not train:
+        raise ValueError(f"{jfile}: {len(frames)} frame(s): {where_test} holds out every {TEST_EVERY}th frame "
+                         "(the first included) for testing, which leaves none to train on")
+    return train, test
+
+
+def _points_file(root: Path, shared: dict, jfile: Path) -> Optional[Path]:
+    """points3d.ply beside the jsons, else the ply a transforms.json names (nerfstudio's
+    ply_file_path)."""
+    ply = root / "points3d.ply"
+    if ply.is_file():
+        return ply
+    named = shared.get("ply_file_path")
+    if named is None:
+        return None
+    if not isinstance(named, str) or not named.strip():
+        raise ValueError(f"{jfile}: 'ply_file_path' must be a file name, got {named!r}")
+    file = root / check_inside(normalize_name(named), root, f"{jfile}: ply_file_path")
+    if not file.is_file():
+        raise FileNotFoundError(f"{jfile}: its ply_file_path {named!r} names {file}, which does not exist")
+    return file
+
+
 def _load_blender(path, background, with_time: bool) -> Scene:
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"scene folder not found: {root}")
-    bg = check_background(background)
+    auto = isinstance(background, str)
+    if auto and background != "auto":
+        raise ValueError(f"background must be 'auto', 3 floats in [0,1] or None, got {background!r}")
+    bg = (1.0, 1.0, 1.0) if auto else check_background(background)
+    train_json, test_json = transforms_files(root)
+    frames, shared = _read_json(train_json)
+    if test_json is not None:
+        by_split = {"train": frames, "test": _read_json(test_json)[0]}
+        where = {"train": train_json, "test": test_json}
+    else:
+        how = ("this folder has one transforms.json" if train_json.name == "transforms.json"
+               else f"{root / 'transforms_test.json'} is missing")
+        train, test = _held_out(frames, train_json, how)
+        by_split, where = {"train": train, "test": test}, {"train": train_json, "test": train_json}
+        said = (f"{root}: {how}: its frames sorted by file_path, every {TEST_EVERY}th from the first "
+                f"({len(test)} of {len(frames)}) are held out as test views, the rest ({len(train)}) train")
+        if test_json is None and train_json.name == "transforms.json":
+            LOG.info("%s", said)  # the layout's split, as a COLMAP scene's
+        else:
+            warnings.warn(said, stacklevel=3)  # a test json that may have been lost
     splits: dict[str, list[Camera]] = {}
-    files: dict[int, Path] = {}
+    files: dict[int, Union[Path, UndistortedImage]] = {}
+    undistortions: dict = {}
     uid = 0
     for split in _SPLITS:
-        jfile = root / f"transforms_{split}.json"
         cams = []
-        for i, frame in enumerate(_read_json(jfile)):
-            cam, file = _frame_camera(frame, uid, root, with_time, f"{jfile}: frame {i}")
+        for i, frame in enumerate(by_split[split]):
+            cam, file = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions)
             cams.append(cam)
             files[uid] = file
             uid += 1
         splits[split] = cams
     _warn_repeated(splits, root)
-    ply = root / "points3d.ply"
-    points = read_points_ply(ply) if ply.is_file() else None
+    ply = _points_file(root, shared, train_json)
+    points = read_points_ply(ply) if ply is not None else None
     if points is not None and len(points) == 0:
         warnings.warn(f"{ply} holds 0 points: the scene has no point cloud (the examples' "
                       "--init makes one, by default triangulated from the training views; an adapter given none "
                       "initialises randomly, where the cameras look)", stacklevel=3)
         points = None
     # sizes were read from the headers above, so the Scene need not read them again
-    return Scene(splits["train"], splits["test"], files, points=points, background=bg,
-                 check_sizes=False, source=root)
+    scene = Scene(splits["train"], splits["test"], files, points=points, background=bg,
+                  check_sizes=False, source=root)
+    if not auto:
+        scene.background_origin = "given" if bg is not None else "none (alpha dropped)"
+    elif any(may_have_alpha(scene.image_file(cam)) for cam in scene.train_cameras):
+        scene.background_origin = "white: RGBA images composited on it (the default)"
+    else:  # already composited on something: the colour their borders show, if they show one
+        found = uniform_border(scene.image(cam) for cam in scene.train_cameras)
+        if found is not None:
+            scene.background = found
+            scene.background_origin = ("the training images have no alpha and their borders are one colour, "
+                                       f"({found[0]:.3f}, {found[1]:.3f}, {found[2]:.3f})")
+        else:
+            scene.background_origin = ("white (the default): the training images have no alpha and their "
+                                       "borders are not one colour")
+    return scene
 
 
 def _warn_repeated(splits: dict, root: Path) -> None:
@@ -247,27 +365,39 @@ def _warn_repeated(splits: dict, root: Path) -> None:
 
 def is_dynamic(path) -> bool:
     """Whether the NeRF-synthetic layout in ``path`` is a D-NeRF scene (its train frames carry a
-    'time'); a malformed transforms_train.json is named in a ValueError."""
-    return "time" in _read_json(Path(path) / "transforms_train.json")[0]
+    'time'); a malformed transforms_train.json (or transforms.json) is named in a ValueError."""
+    return "time" in _read_json(transforms_files(path)[0])[0][0]
 
 
-def load_nerf_synthetic(path, background: Optional[Sequence[float]] = (1.0, 1.0, 1.0)) -> Scene:
-    """Load a NeRF-synthetic (Blender) scene.
+def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "auto") -> Scene:
+    """Load a NeRF-synthetic (Blender) scene, or a folder with one ``transforms.json``
+    (instant-ngp, nerfstudio).
 
     Reads ``transforms_train.json`` and ``transforms_test.json`` in ``path`` (the val split is
-    not used). Per frame: ``file_path`` relative to the json's folder, ".png" appended when it
-    has no extension; ``transform_matrix`` an OpenGL camera-to-world, converted to an OpenCV
-    world-to-camera. Intrinsics, per frame or top-level (per frame wins): ``fl_x``/``fl_y``, else
-    fx = W / (2 tan(camera_angle_x / 2)) and fy from ``camera_angle_y`` or fy = fx; ``cx``/``cy``
-    default to W/2, H/2; ``w``/``h``, when given, must match the image. RGBA images are
-    composited on ``background`` (None drops alpha). An optional ``points3d.ply`` next to the
-    jsons becomes ``scene.points``. Uids count train frames then test frames from 0; names are
-    the image paths relative to ``path`` (e.g. "train/r_000.png").
+    not used). Without ``transforms_test.json``, or with one ``transforms.json`` instead, the
+    frames sorted by ``file_path`` are split as :func:`load_colmap` splits: every 8th, from the
+    first, is a test frame (with a warning saying so). Per frame: ``file_path`` relative to the
+    json's folder, ".png" appended when it has no extension; ``transform_matrix`` an OpenGL
+    camera-to-world (4x4, or 3x4 without the last row), converted to an OpenCV world-to-camera.
+    Intrinsics, per frame or top-level (per frame wins): ``fl_x``/``fl_y``, else fx = W / (2
+    tan(camera_angle_x / 2)) and fy from ``camera_angle_y`` or fy = fx; ``cx``/``cy`` default to
+    W/2, H/2; ``w``/``h``, when given, must match the image; lens distortion (``k1``..``k4``,
+    ``p1``, ``p2`` not 0) or a non-pinhole ``camera_model`` is refused. ``points3d.ply`` next to
+    the jsons, else the ply a transforms.json names in ``ply_file_path`` (nerfstudio), becomes
+    ``scene.points``. Uids count train frames then test frames from 0; names are the image paths
+    relative to ``path`` (e.g. "train/r_000.png").
+
+    ``background``: "auto" (default) composites RGBA images on white, as the Blender scenes are
+    evaluated; when no training image has alpha, the images were composited already, and the
+    colour their one-pixel borders show, when it is one colour
+    (:func:`~mvgs_plugin.data.images.uniform_border`), is the scene's background (white when it
+    is not: a photograph's border). A colour composites RGBA images on it and is the scene's
+    background whatever the images hold; None drops alpha. ``scene.background_origin`` says which.
     """
     return _load_blender(path, background, with_time=False)
 
 
-def load_dnerf(path, background: Optional[Sequence[float]] = (1.0, 1.0, 1.0)) -> Scene:
+def load_dnerf(path, background: Union[str, Sequence[float], None] = "auto") -> Scene:
     """Load a D-NeRF scene: as :func:`load_nerf_synthetic`, plus every frame's ``time`` in [0,1]
     (required) on ``Camera.time``."""
     return _load_blender(path, background, with_time=True)

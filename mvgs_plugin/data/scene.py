@@ -10,11 +10,13 @@ from typing import Mapping, Optional, Sequence, Union
 import torch
 
 from ..camera import Camera, _check_factor
+from .distortion import UndistortedImage
 from .images import check_background, downsample, image_size, read_rgb
 
 __all__ = ["Scene", "PointCloud", "camera_normalization"]
 
-ImageSource = Union[str, Path, torch.Tensor]
+# a file, a loaded [H, W, 3] tensor, or a file resampled for a camera with lens distortion
+ImageSource = Union[str, Path, torch.Tensor, UndistortedImage]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -79,8 +81,10 @@ class Scene:
 
     Args:
         train_cameras, test_cameras: lists of :class:`Camera` (uids unique across both).
-        images: per camera uid, an image file path (decoded lazily on first use, then cached)
-            or an already loaded float [H, W, 3] tensor in [0, 1].
+        images: per camera uid, an image file path (decoded lazily on first use, then cached),
+            an already loaded float [H, W, 3] tensor in [0, 1], or an
+            :class:`~mvgs_plugin.data.distortion.UndistortedImage` (a file taken with lens
+            distortion, resampled for the camera given here, its undistorted pinhole).
         points: optional initial :class:`PointCloud`.
         background: RGB in [0, 1] that images with alpha were composited on, or None (alpha
             dropped / no alpha). Renderers should use the same colour behind the Gaussians.
@@ -91,6 +95,8 @@ class Scene:
         center: [3] float64 and extent (float): see :func:`camera_normalization`.
         points_origin: where ``points`` came from, for logs and metrics.json ("N points given
             with the scene", or what :func:`~mvgs_plugin.data.load_scene` made for a scene without).
+        background_origin: how ``background`` was chosen ("given", "none", or what the NeRF
+            loaders found in the images).
     """
 
     def __init__(self, train_cameras: Sequence[Camera], test_cameras: Sequence[Camera],
@@ -103,6 +109,8 @@ class Scene:
         # how the initial points came to be (load_scene sets it when it made them)
         self.points_origin = "no points" if points is None else f"{len(points)} points given with the scene"
         self.background = check_background(background)
+        # how the background came to be (the NeRF loaders say more; logged and in metrics.json)
+        self.background_origin = "given" if self.background is not None else "none"
         self.source = None if source is None else Path(source)
         if not self.train_cameras:
             where = f" {self.source}" if self.source is not None else ""
@@ -132,6 +140,16 @@ class Scene:
             if not (bool(torch.isfinite(img).all()) and img.min() >= 0 and img.max() <= 1):
                 raise ValueError(f"image for camera {cam.name!r} must be finite and in [0,1]")
             self._cache[(cam.uid, 1.0)] = img
+        elif isinstance(src, UndistortedImage):
+            und = src.undistortion
+            if (cam.width, cam.height) != (und.width_out, und.height_out):
+                raise ValueError(f"camera {cam.name!r} is {cam.width}x{cam.height} but its undistorted image is "
+                                 f"{und.width_out}x{und.height_out}")
+            if check_size:
+                w, h = image_size(src.path)
+                if (w, h) != (und.width, und.height):
+                    raise ValueError(f"image {src.path} is {w}x{h} but its camera {cam.name!r} expects "
+                                     f"{und.width}x{und.height}")
         else:
             src = Path(src)
             if check_size:
@@ -180,7 +198,8 @@ class Scene:
     def _full(self, cam: Camera) -> torch.Tensor:
         key = (cam.uid, 1.0)
         if key not in self._cache:
-            img = read_rgb(self._sources[cam.uid], self.background)
+            src = self._sources[cam.uid]
+            img = src.read(self.background) if isinstance(src, UndistortedImage) else read_rgb(src, self.background)
             if tuple(img.shape) != (cam.height, cam.width, 3):
                 raise ValueError(f"image {self._sources[cam.uid]} is {img.shape[1]}x{img.shape[0]} "
                                  f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
@@ -188,12 +207,25 @@ class Scene:
         return self._cache[key]
 
     def image_file(self, cam: Camera) -> Optional[Path]:
-        """The file the image of ``cam`` is read from, or None for an image given as a tensor."""
+        """The file the image of ``cam`` is read from, or None for an image given as a tensor (a
+        file taken with lens distortion holds the distorted image: see :meth:`undistortion`)."""
         base = self._by_uid.get(getattr(cam, "uid", None))
         if base is None:
             raise KeyError(f"camera {cam!r} is not part of this scene")
         src = self._sources[base.uid]
+        if isinstance(src, UndistortedImage):
+            return src.path
         return None if isinstance(src, torch.Tensor) else Path(src)
+
+    def undistortion(self, cam: Camera):
+        """The :class:`~mvgs_plugin.data.distortion.Undistortion` the image of ``cam`` is
+        resampled with (its file holds the distorted image), or None when the file is the
+        camera's image as it is."""
+        base = self._by_uid.get(getattr(cam, "uid", None))
+        if base is None:
+            raise KeyError(f"camera {cam!r} is not part of this scene")
+        src = self._sources[base.uid]
+        return src.undistortion if isinstance(src, UndistortedImage) else None
 
     def clear_cache(self) -> None:
         """Forget decoded images loaded from files (in-memory images are kept)."""

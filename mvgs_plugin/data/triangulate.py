@@ -41,6 +41,7 @@ import torch
 
 from ..camera import Camera
 from ..densify.mvad import camera_axes
+from .images import may_have_alpha
 from .init import CANDIDATES_PER_POINT, init_region, photo_consistent, random_init_points
 from .scene import PointCloud, Scene
 
@@ -130,20 +131,6 @@ def view_pairs(cameras: Sequence[Camera], exhaustive_max: int = EXHAUSTIVE_MAX,
     return sorted(pairs)
 
 
-def _has_alpha(path: Path) -> bool:
-    """Whether an image file may carry alpha (PNG colour types 4 and 6, or a tRNS chunk; any
-    format other than PNG and JPEG counts as 'may')."""
-    suffix = path.suffix.lower()
-    if suffix in (".jpg", ".jpeg"):
-        return False
-    if suffix != ".png":
-        return True
-    with open(path, "rb") as f:
-        head = f.read(1 << 16)  # the header chunks; tRNS comes before the first IDAT
-    end = head.find(b"IDAT")
-    return len(head) < 26 or head[25] in (4, 6) or b"tRNS" in head[:end if end >= 0 else None]
-
-
 def _stage_images(scene: Scene, cameras: Sequence[Camera], folder: Path) -> list[str]:
     """The training images as pycolmap reads them, under short names in ``folder``: a link to
     the file when it holds no alpha, else the image the model trains on (alpha composited on
@@ -154,7 +141,7 @@ def _stage_images(scene: Scene, cameras: Sequence[Camera], folder: Path) -> list
     names = []
     for k, cam in enumerate(cameras):
         src = scene.image_file(cam)
-        if src is not None and not (_has_alpha(src) and scene.background is not None):
+        if src is not None and scene.undistortion(cam) is None and not (may_have_alpha(src) and scene.background is not None):
             name = f"{k:05d}{src.suffix.lower()}"
             try:
                 os.symlink(src.resolve(), folder / name)
@@ -342,6 +329,9 @@ def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:
         else:
             st = src.stat()
             h.update(f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+            und = scene.undistortion(cam)
+            if und is not None:  # the pixels are the file resampled through the lens model
+                h.update(repr((und.K.tolist(), und.distortion)).encode())
     return h.hexdigest()[:16]
 
 

@@ -1,0 +1,177 @@
+"""Lens distortion: an ideal pinhole camera, and its images, from a distorted one.
+
+Splatting renders an ideal pinhole. A capture whose camera model has lens distortion (COLMAP's
+SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV without its rational terms; nerfstudio's
+``k1``..``k4``, ``p1``, ``p2``) is loaded as the pinhole camera with the same focal lengths whose
+image is the largest axis-aligned rectangle every pixel of which the distorted image saw, and
+each image is resampled onto it (bilinear) when it is read. COLMAP's image_undistorter does the
+same with its default settings; here it happens in memory, so the scene folder stays as it is
+and nothing is written.
+
+The model, in normalised camera coordinates (x, y) = (X / Z, Y / Z), r² = x² + y²:
+
+    radial = 1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸
+    x_d = x radial + 2 p1 x y + p2 (r² + 2 x²)
+    y_d = y radial + p1 (r² + 2 y²) + 2 p2 x y
+
+and the pixel is (fx x_d + cx, fy y_d + cy), pixel centres at +0.5 (COLMAP's, and this
+package's, convention).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["Distortion", "Undistortion", "UndistortedImage"]
+
+_NEWTON_STEPS = 50
+_INVERSE_TOLERANCE = 1e-10  # in normalised coordinates: 1e-7 px at a focal length of 1000 px
+# an output larger than this many times the input per axis is refused (a pincushion lens whose
+# inverse runs away, or coefficients in the wrong units)
+_MAX_GROWTH = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Distortion:
+    """Radial (k1..k4) and tangential (p1, p2) lens distortion coefficients."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"distortion coefficient {f.name} must be a finite number, got {v!r}")
+
+    def __bool__(self) -> bool:
+        return any(getattr(self, f.name) != 0.0 for f in dataclasses.fields(self))
+
+    def describe(self) -> str:
+        return ", ".join(f"{f.name}={getattr(self, f.name):g}" for f in dataclasses.fields(self)
+                         if getattr(self, f.name) != 0.0) or "none"
+
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted normalised coordinates of undistorted ones (float64 arrays)."""
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * (self.k3 + r2 * self.k4)))
+        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        return xd, yd
+
+    def _jacobian(self, x: np.ndarray, y: np.ndarray):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * (self.k3 + r2 * self.k4)))
+        dradial = self.k1 + r2 * (2.0 * self.k2 + r2 * (3.0 * self.k3 + r2 * 4.0 * self.k4))  # d radial / d r²
+        xx = radial + 2.0 * x * x * dradial + 2.0 * self.p1 * y + 6.0 * self.p2 * x
+        xy = 2.0 * x * y * dradial + 2.0 * self.p1 * x + 2.0 * self.p2 * y
+        yy = radial + 2.0 * y * y * dradial + 6.0 * self.p1 * y + 2.0 * self.p2 * x
+        return xx, xy, xy, yy  # d xd/dx, d xd/dy, d yd/dx, d yd/dy
+
+    def undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted normalised coordinates of distorted ones, by Newton's method from
+        (xd, yd); ValueError when it does not converge (a lens model that folds over itself
+        inside the image)."""
+        x, y = np.array(xd, dtype=np.float64), np.array(yd, dtype=np.float64)
+        for _ in range(_NEWTON_STEPS):
+            fx, fy = self.distort(x, y)
+            ex, ey = fx - xd, fy - yd
+            if np.abs(ex).max(initial=0.0) < _INVERSE_TOLERANCE and np.abs(ey).max(initial=0.0) < _INVERSE_TOLERANCE:
+                return x, y
+            a, b, c, d = self._jacobian(x, y)
+            det = a * d - b * c
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x, y = x - (d * ex - b * ey) / det, y - (a * ey - c * ex) / det
+            if not (np.isfinite(x).all() and np.isfinite(y).all()):
+                break
+        raise ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
+                         "folds over itself there, or its coefficients are not in normalised units)")
+
+
+class Undistortion:
+    """The pinhole camera a distorted one becomes, and the resampling of its images.
+
+    ``K``, ``width``, ``height``: the distorted camera. ``K_out``, ``width_out``,
+    ``height_out``: the pinhole camera, with K's focal lengths and the largest rectangle whose
+    pixels all lie inside the distorted image. Shared by every image of one camera; the sampling
+    grid is made on first use.
+    """
+
+    def __init__(self, K: np.ndarray, width: int, height: int, distortion: Distortion, where: str = "") -> None:
+        self.K = np.asarray(K, dtype=np.float64)
+        self.width, self.height, self.distortion = int(width), int(height), distortion
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        prefix = f"{where}: " if where else ""
+        # the outer ring of pixel centres, undistorted; the inner rectangle of what they enclose
+        u = np.arange(self.width, dtype=np.float64) + 0.5
+        v = np.arange(self.height, dtype=np.float64) + 0.5
+        edges = {"left": (np.full_like(v, u[0]), v), "right": (np.full_like(v, u[-1]), v),
+                 "top": (u, np.full_like(u, v[0])), "bottom": (u, np.full_like(u, v[-1]))}
+        try:
+            inner = {k: distortion.undistort((pu - cx) / fx, (pv - cy) / fy) for k, (pu, pv) in edges.items()}
+        except ValueError as err:
+            raise ValueError(f"{prefix}{err}") from None
+        x0, x1 = inner["left"][0].max(), inner["right"][0].min()
+        y0, y1 = inner["top"][1].max(), inner["bottom"][1].min()
+        w_out, h_out = math.floor((x1 - x0) * fx), math.floor((y1 - y0) * fy)
+        if not (0 < w_out <= _MAX_GROWTH * self.width and 0 < h_out <= _MAX_GROWTH * self.height):
+            raise ValueError(f"{prefix}lens distortion {distortion.describe()}: the undistorted image would be "
+                             f"{w_out}x{h_out} px for a {self.width}x{self.height} px capture; are the coefficients "
+                             "in normalised units (as COLMAP and OpenCV write them)?")
+        self.width_out, self.height_out = w_out, h_out
+        # centred in the rectangle: a half-pixel margin left over splits between both sides
+        self.K_out = np.array([[fx, 0.0, -(x0 + 0.5 * (x1 - x0 - w_out / fx)) * fx],
+                               [0.0, fy, -(y0 + 0.5 * (y1 - y0 - h_out / fy)) * fy],
+                               [0.0, 0.0, 1.0]])
+        self._grid: Optional[torch.Tensor] = None
+
+    def source_pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """[H_out, W_out] pixel coordinates in the distorted image of every output pixel centre."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        i = np.arange(self.width_out, dtype=np.float64) + 0.5
+        j = np.arange(self.height_out, dtype=np.float64) + 0.5
+        x = (i[None, :] - self.K_out[0, 2]) / fx
+        y = (j[:, None] - self.K_out[1, 2]) / fy
+        xd, yd = self.distortion.distort(*np.broadcast_arrays(x, y))
+        return fx * xd + cx, fy * yd + cy
+
+    def grid(self) -> torch.Tensor:
+        """[1, H_out, W_out, 2] sampling grid for ``torch.nn.functional.grid_sample``
+        (align_corners=False: -1 and 1 are the image's outer edges)."""
+        if self._grid is None:
+            su, sv = self.source_pixels()
+            g = np.stack([2.0 * su / self.width - 1.0, 2.0 * sv / self.height - 1.0], axis=-1)
+            self._grid = torch.from_numpy(g).to(torch.float32)[None]
+        return self._grid
+
+    def apply(self, image: torch.Tensor) -> torch.Tensor:
+        """The pinhole image [H_out, W_out, 3] of a distorted one [H, W, 3] (bilinear)."""
+        if tuple(image.shape) != (self.height, self.width, 3):
+            raise ValueError(f"an image for this camera must be [{self.height}, {self.width}, 3], got {list(image.shape)}")
+        out = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None].to(torch.float32), self.grid(),
+                                              mode="bilinear", padding_mode="border", align_corners=False)
+        return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+
+
+@dataclasses.dataclass(frozen=True)
+class UndistortedImage:
+    """A :class:`~mvgs_plugin.data.Scene` image source: the file as the pinhole camera of
+    ``undistortion`` sees it."""
+
+    path: Path
+    undistortion: Undistortion
+
+    def read(self, background: Optional[Sequence[float]]) -> torch.Tensor:
+        from .images import read_rgb
+
+        return self.undistortion.apply(read_rgb(self.path, background))
