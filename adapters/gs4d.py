@@ -59,7 +59,7 @@ from torch import Tensor
 
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.checks import check_float, check_int
-from mvgs_plugin.data.init import random_init_points
+from mvgs_plugin.data.init import init_region, random_init_points
 from mvgs_plugin.data.scene import PointCloud
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.io import save_atomic
@@ -67,6 +67,9 @@ from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 
 from .gs3d import GS3DAdapter, GS3DConfig
 from .ops import log_linear, make_adam, scale_for_views
+
+# points drawn where the cameras look to size a deformation box when the initial points span nothing
+_REGION_SAMPLES = 4096
 
 LOG = logging.getLogger("mvgs_plugin")
 
@@ -407,6 +410,17 @@ class GS4DAdapter(GS3DAdapter):
             if len(own) and float((own.max(0).values - own.min(0).values).max()) > 0:
                 box = bounds_from_points(own, config.min_bounds_fraction)
                 config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
+        means = base.params["means"].detach().double()
+        if config.bounds is None and not (len(means) and float((means.max(0).values - means.min(0).values).max()) > 0):
+            # points that span nothing (one point, a repeated one): the box where the cameras look
+            region = init_region(scene.train_cameras, scene.center, float(scene.extent))
+            gen = torch.Generator().manual_seed(config.canonical.seed + 3)
+            box = bounds_from_points(torch.cat([region.sample(_REGION_SAMPLES, gen), means]), config.min_bounds_fraction)
+            warnings.warn(f"the {len(means)} initial point(s) span no volume (all at {means[0].tolist() if len(means) else '-'}): "
+                          f"the deformation box is where the cameras look instead ({region.description}): "
+                          f"{[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}; "
+                          "GS4DConfig.bounds sets it", stacklevel=2)
+            config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
         return cls.from_canonical(base, config)
 
     @staticmethod

@@ -135,10 +135,13 @@ def scene_from_args(args, dynamic_model: bool = False):
     cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
-                           background_points=args.background_points, background=getattr(args, "background", "auto"))
+                           background_points=args.background_points, background=getattr(args, "background", "auto"),
+                           images=getattr(args, "images", None))
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
         if args.init_cache is not None and str(args.init_cache) in str(err):
             raise UsageError(f"--init-cache {args.init_cache}: {err}") from err
+        if getattr(args, "images", None) is not None and f"images={args.images!r}" in str(err):
+            raise UsageError(f"--images {args.images}: {err}") from err
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
     check_renders_spare_images(Path(args.out), scene)
@@ -373,6 +376,10 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "NeRF-style scene's RGBA images on white; images without alpha on the colour their borders "
                          "show when it is one colour (they were composited on it), else white; a COLMAP scene black "
                          "(alpha dropped). Default: auto")
+    ap.add_argument("--images", type=str, default=None, metavar="DIR",
+                    help="a COLMAP scene's image folder, relative to --data: a copy downscaled by one factor, such "
+                         "as Mip-NeRF 360's images_4, scales the cameras to it (default: --data/images when there is "
+                         "one, else --data)")
     ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
                     help="folder the triangulation (features and points) is kept in and read back from by the next "
                          "run (default: OUT/init; the scene folder is never written unless DIR is in it)")

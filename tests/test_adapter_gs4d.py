@@ -478,3 +478,24 @@ def test_train_4dgs_example_writes_metrics_renders_plys_and_field(tmp_path):
     assert (out / "point_cloud_t0.250.ply").exists() and len(list((out / "test").glob("*.png"))) == 2
     with pytest.raises(SystemExit):
         example.parse_args(["--data", str(data), "--coarse-fraction", "1.5"])
+
+
+def test_initial_points_that_span_nothing_get_the_box_where_the_cameras_look():
+    """One initial point (or one repeated), no shell: the deformation box used to be refused with a
+    traceback asking for GS4DConfig.bounds, which no example exposes. It is now the box of the
+    region random init uses (for this ring of cameras, the 3DGS cube: the cameras' centre +- the
+    scene extent), with a warning; the adapter trains a step through the deformation."""
+    from mvgs_plugin.data import PointCloud
+
+    scene = synthetic_scene(time=True)
+    scene.points = PointCloud(xyz=torch.tensor([[0.1, -0.2, 0.05]] * 3), rgb=torch.full((3, 3), 0.5))
+    with pytest.warns(UserWarning, match=r"the 3 initial point\(s\) span no volume .* where the cameras look"):
+        adapter = GS4DAdapter.from_scene(scene, tiny_config())
+    c, e = scene.center.double(), float(scene.extent)
+    box = adapter.field.bounds.double()
+    # uniform samples of the cube c +- e: their box is within a few % of the cube's
+    assert torch.allclose(box[0], c - e, atol=0.05 * e) and torch.allclose(box[1], c + e, atol=0.05 * e)
+    adapter = fine(adapter)
+    out = adapter.render([scene.train_cameras[0]], torch.zeros(1, 3))
+    out.images.sum().backward()
+    assert all(torch.isfinite(p.grad).all() for p in adapter.field.parameters() if p.grad is not None)

@@ -171,3 +171,39 @@ def test_a_budget_below_one_step_per_stage_is_refused_not_overspent(tmp_path):
         cli.config_from_args(ap.parse_args(["--preset", "multiview", "--budget", "1"]), scene)
     config = cli.config_from_args(ap.parse_args(["--preset", "multiview", "--budget", "40"]), scene)
     assert config.total_work <= 1.5 * 40
+
+
+def test_images_names_a_downscaled_colmap_folder(tmp_path):
+    """--images images_2 on a COLMAP scene: cameras at the copies' size; on a NeRF-style scene, or
+    a folder that is not there, a usage error naming --images."""
+    import argparse
+
+    import numpy as np
+    from PIL import Image
+    from skimage.transform import resize
+
+    from mvgs_plugin import cli
+    from test_data_colmap import H, W, write_model
+
+    write_model(tmp_path / "s")
+    for f in (tmp_path / "s" / "images").rglob("*.png"):
+        out = tmp_path / "s" / "images_2" / f.parent.name / f.name
+        out.parent.mkdir(parents=True, exist_ok=True)
+        # by 1.5 (27 x 20): the scene's 40 x 30 halved would fall below the examples' 16 px
+        Image.fromarray((resize(np.asarray(Image.open(f)), (20, 27)) * 255).astype(np.uint8)).save(out)
+    ap = cli.common_args(argparse.ArgumentParser(), "out")
+    ap.add_argument("--data", type=cli.scene_folder)
+
+    def scene(*argv):
+        return cli.scene_from_args(ap.parse_args(["--data", str(tmp_path / "s"), "--init", "random",
+                                                  "--out", str(tmp_path / "o"), *argv]))
+    cams = scene("--images", "images_2").cameras
+    assert {(c.width, c.height) for c in cams} == {(27, 20)} and (W, H) == (40, 30)
+    assert {round(c.fx, 9) for c in cams} == {round(27 / 40 * 50.0, 9), round(27 / 40 * 45.0, 9)}  # the two cameras
+    with pytest.raises(cli.UsageError, match=r"--images images_9: images folder .*images_9 does not exist"):
+        scene("--images", "images_9")
+    ap2 = cli.common_args(argparse.ArgumentParser(), "out")
+    ap2.add_argument("--data", type=cli.scene_folder)
+    with pytest.raises(cli.UsageError, match=r"--images images_2: images='images_2' is for COLMAP scenes"):
+        cli.scene_from_args(ap2.parse_args(["--data", str(cli.BUNDLED), "--images", "images_2",
+                                            "--out", str(tmp_path / "o2")]))

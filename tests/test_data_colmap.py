@@ -2,6 +2,7 @@
 own projection, hand-computed splits and normalisation, and one bad input per test."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -249,8 +250,38 @@ def test_image_size_disagrees_with_camera(scene_dir):
     root, _ = scene_dir
     skimage.io.imsave(root / "images" / "views" / "r_002.png",
                       np.zeros((H, W + 1, 3), np.uint8), check_contrast=False)
-    with pytest.raises(ValueError, match=r"r_002.png is 41x30 .* expects 40x30"):
+    with pytest.raises(ValueError, match=r"r_002.png is 41x30 but its camera \d is 40x30, and it is not a copy "
+                                         r"downscaled alike on both axes"):
         load_colmap(root)
+
+
+@pytest.mark.parametrize("factor", [2, 4])
+def test_a_downscaled_image_folder_scales_the_intrinsics(tmp_path, factor):
+    """Mip-NeRF 360's layout: images_N/ beside images/, the model at full size. Each camera is the
+    model's scaled to its image (pycolmap's projection times the size ratio); the pixels are the
+    copies'."""
+    from skimage.transform import resize
+
+    info = write_model(tmp_path)
+    small = tmp_path / f"images_{factor}"
+    sizes = {}
+    for f in (tmp_path / "images").rglob("*.png"):
+        img = skimage.io.imread(f)
+        w, h = math.floor(W / factor + 0.5), math.floor(H / factor + 0.5)
+        out = (resize(img, (h, w), anti_aliasing=True) * 255).round().astype(np.uint8)
+        (small / f.parent.name).mkdir(parents=True, exist_ok=True)
+        skimage.io.imsave(small / f.parent.name / f.name, out, check_contrast=False)
+        sizes[f.name] = out
+    scene = load_colmap(tmp_path, images_dir=small)
+    rec = pycolmap.Reconstruction(str(info["model_dir"]))
+    for cam in scene.cameras:
+        image = rec.images[cam.uid]
+        assert (cam.width, cam.height) == (w, h)
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        theirs = rec.cameras[image.camera_id].img_from_cam(pose * info["xyz"]) * np.array([w / W, h / H])
+        ours, _ = cam.project(torch.from_numpy(info["xyz"]))
+        assert np.allclose(ours.numpy(), theirs, atol=1e-6)
+        assert np.allclose(scene.image(cam).numpy(), sizes[Path(cam.name).name] / 255.0, atol=1e-6)
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its plugins

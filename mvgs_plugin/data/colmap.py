@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import logging
 import math
 import os
 import posixpath
@@ -19,7 +20,10 @@ import torch
 from ..checks import check_int
 from ..camera import Camera
 from .distortion import Distortion, UndistortedImage, Undistortion
+from .images import image_size
 from .scene import PointCloud, Scene
+
+LOG = logging.getLogger("mvgs_plugin")
 
 __all__ = ["load_colmap", "find_colmap_model", "normalize_name", "check_inside"]
 
@@ -264,6 +268,20 @@ def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist
 
 
+def _downscaled(K: np.ndarray, width: int, height: int, size: tuple, file: Path, camera_id) -> tuple:
+    """(K, width, height) of a camera for its image at ``size``, a copy of the camera's image
+    downscaled alike on both axes (Mip-NeRF 360's images_2/4/8: the rounded size of each side over
+    one factor); each row of K scales with its axis, as Camera.scaled does. ValueError otherwise."""
+    w, h = size
+    sx, sy = w / width, h / height
+    # one factor s for both sides, each rounded or cut to whole pixels: each within a pixel of side / s
+    if w <= width and h <= height and abs(sy * width - w) <= 1.0 and abs(sx * height - h) <= 1.0:
+        return np.diag([sx, sy, 1.0]) @ K, w, h
+    raise ValueError(f"image {file} is {w}x{h} but its camera {camera_id} is {width}x{height}, and it is not a copy "
+                     f"downscaled alike on both axes (x {sx:.4g}, y {sy:.4g}); give the folder of full-size images, or "
+                     "one downscaled by one factor (e.g. images_4)")
+
+
 def _world_to_camera(image) -> np.ndarray:
     rigid = image.cam_from_world
     if callable(rigid):  # a method since pycolmap 3.12 (rigs/frames), a property before
@@ -346,7 +364,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     check_binary_counts(model_dir)
     rec = _read_model(pycolmap, model_dir)
 
-    records, undistortions = [], {}
+    records, undistortions, sources, resized = [], {}, {}, {}
     for image_id, image in rec.images.items():
         # unregistered images have no pose to train with ("registered" before pycolmap 3.12)
         if not getattr(image, "has_pose", getattr(image, "registered", True)):
@@ -356,12 +374,19 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         try:
             K, dist = _intrinsics(cam)
             width, height = int(cam.width), int(cam.height)
-            if dist:  # one resampling per COLMAP camera, shared by its images
-                if image.camera_id not in undistortions:
-                    undistortions[image.camera_id] = Undistortion(K, width, height, dist,
-                                                                  f"{model_dir}: camera {image.camera_id}")
-                und = undistortions[image.camera_id]
+            file = images_dir / name
+            if file.is_file():  # a missing one is named below
+                size = image_size(file)
+                if size != (width, height):  # a downscaled copy (images_4/): its intrinsics
+                    K, width, height = _downscaled(K, width, height, size, file, image.camera_id)
+                    resized[image.camera_id] = (cam.width, cam.height, width, height)
+            if dist:  # one resampling per COLMAP camera and image size, shared by its images
+                key = (image.camera_id, width, height)
+                if key not in undistortions:
+                    undistortions[key] = Undistortion(K, width, height, dist, f"{model_dir}: camera {image.camera_id}")
+                und = undistortions[key]
                 K, width, height = und.K_out, und.width_out, und.height_out
+                sources[int(image_id)] = und
             camera = Camera(uid=int(image_id), name=name, K=K, world_to_camera=_world_to_camera(image),
                             width=width, height=height)
         except ValueError as err:
@@ -393,8 +418,9 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
             raise FileNotFoundError(f"image {c.name!r} of {model_dir} not found at {files[c.uid]} "
                                     "(the model's image names are read relative to the scene's images/ folder, or to the scene "
                                     "folder when it has none; from Python, load_colmap(images_dir=...) names another)")
-    camera_of = {int(i): image.camera_id for i, image in rec.images.items()}
-    sources = {uid: (UndistortedImage(f, undistortions[camera_of[uid]]) if camera_of[uid] in undistortions else f)
-               for uid, f in files.items()}
+    if resized:
+        LOG.info("%s: images in %s are downscaled copies: %s", model_dir, images_dir, "; ".join(
+            f"camera {i} {w}x{h} -> {w2}x{h2}, its intrinsics scaled alike" for i, (w, h, w2, h2) in sorted(resized.items())))
+    sources = {uid: (UndistortedImage(f, sources[uid]) if uid in sources else f) for uid, f in files.items()}
     return Scene(train_cams, test_cams, sources, points=_points(rec, model_dir), background=background,
                  source=path)

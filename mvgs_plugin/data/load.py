@@ -18,7 +18,7 @@ LOG = logging.getLogger("mvgs_plugin")
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
                init_cache=None, threads: Optional[int] = None, background_points: int = 0,
-               background="auto") -> Scene:
+               background="auto", images=None) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json, or one transforms.json as instant-ngp and nerfstudio write it; D-NeRF
     when its frames carry a time) or COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
@@ -28,6 +28,11 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     white, images without alpha on the colour their borders show; a COLMAP scene drops alpha and
     has none), or an RGB colour in [0, 1] that RGBA images are composited on and that is the
     scene's background (``scene.background``, ``scene.background_origin``).
+
+    ``images``: a COLMAP scene's image folder, relative to ``path`` or absolute (default:
+    ``path/images`` when it exists, else ``path``); a copy downscaled by one factor (Mip-NeRF
+    360's ``images_4``) scales the cameras to it (:func:`load_colmap`). NeRF-style scenes name
+    their images in their jsons, and are refused an ``images``.
 
     A scene without a point file (points3d.ply beside the jsons, COLMAP's points3D) gets initial
     points by ``init`` (:func:`~mvgs_plugin.data.triangulate.initial_points`): "triangulate"
@@ -58,9 +63,15 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
             raise ValueError("background must be 'auto' or 3 floats in [0,1], got None")
     colmap = (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists()
     if (path / "transforms_train.json").exists() or (not colmap and (path / "transforms.json").exists()):
+        if images is not None:
+            raise ValueError(f"images={str(images)!r} is for COLMAP scenes; {path} is NeRF-style, its jsons name each "
+                             "frame's image (file_path)")
         scene = (load_dnerf if is_dynamic(path) else load_nerf_synthetic)(path, background=background)
     elif colmap:
-        scene = load_colmap(path, background=None if background == "auto" else background)
+        folder = None if images is None else path / images  # an absolute one stays itself
+        if folder is not None and not folder.is_dir():
+            raise ValueError(f"images folder {folder} does not exist (images={str(images)!r}, relative to {path})")
+        scene = load_colmap(path, images_dir=folder, background=None if background == "auto" else background)
     else:
         raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json, "
                          "or one transforms.json)")
