@@ -145,7 +145,7 @@ def scene_from_args(args, dynamic_model: bool = False):
         raise UsageError(f"--data: {err}" if str(args.data) in str(err) else f"--data {args.data}: {err}") from err
     check_resolution(scene, args.resolution_scale)
     check_renders_spare_images(Path(args.out), scene)
-    if scene.background_origin.startswith("the training images have no alpha"):  # found, not told: say so
+    if scene.background_origin.startswith("the training images have no transparent pixel"):  # found, not told: say so
         print(f"{Path(sys.argv[0]).name}: note: background: {scene.background_origin}: the Gaussians are trained "
               "in front of it (--background to choose another)", file=sys.stderr)
     timed = sum(c.time is not None for c in scene.train_cameras)

@@ -20,7 +20,8 @@ from mvgs_plugin.data.distortion import Distortion, Undistortion
 from test_data_colmap import look_at
 from test_data_nerf import gl_camera_to_world
 
-pytestmark = pytest.mark.filterwarnings("ignore:the COLMAP model .* holds 0 3D points")
+pytestmark = [pytest.mark.filterwarnings("ignore:the COLMAP model .* holds 0 3D points"),
+              pytest.mark.filterwarnings("ignore:.*held out as test views")]
 
 W, H = 96, 72
 FX, FY, CX, CY = 80.0, 82.0, 47.3, 36.4

@@ -6,9 +6,8 @@ Cameras are checked against the Blender pinhole formula applied to the written O
 """
 
 import json
-import logging
 import math
-import re
+import warnings
 
 import numpy as np
 import pytest
@@ -19,6 +18,8 @@ from plyfile import PlyData, PlyElement
 from mvgs_plugin.data import load_dnerf, load_nerf_synthetic, load_scene
 from mvgs_plugin.data.images import BORDER_SHARE, BORDER_TOLERANCE, uniform_border
 from test_data_nerf import POINTS, blender_project, gl_camera_to_world
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*held out as test views")
 
 W, H = 48, 36
 
@@ -51,12 +52,11 @@ def _write(root, frames, **top):
     (root / "transforms.json").write_text(json.dumps({**NERFSTUDIO, **top, "frames": frames}))
 
 
-def test_one_transforms_json_is_split_every_eighth_and_projects_as_blender(tmp_path, caplog):
+def test_one_transforms_json_is_split_every_eighth_and_projects_as_blender(tmp_path):
     frames, c2ws = _frames(20, tmp_path)
     _write(tmp_path, list(reversed(frames)))  # the split follows file names, not the file's order
-    with caplog.at_level(logging.INFO, logger="mvgs_plugin"):
+    with pytest.warns(UserWarning, match=r"one transforms.json: .* \(3 of 20\) are held out"):
         scene = load_scene(tmp_path, init=None)
-    assert re.search(r"one transforms.json: .* \(3 of 20\) are held out", caplog.text), caplog.text
     assert [c.name for c in scene.test_cameras] == [f"images/frame_{k:05d}.png" for k in (0, 8, 16)]
     assert len(scene.train_cameras) == 17 and len({c.uid for c in scene.cameras}) == 20
     for cam in scene.cameras:
@@ -90,7 +90,26 @@ def test_lenses_that_cannot_be_resampled_are_refused(tmp_path, extra, match):
     _write(tmp_path, frames, **extra)
     with pytest.raises(ValueError, match=match) as err:
         load_nerf_synthetic(tmp_path)
-    assert "transforms.json: frame 0" in str(err.value)
+    assert "transforms.json: frame 1 (images/frame_00001.png)" in str(err.value)  # frame 0 is held out
+
+
+def test_an_error_names_the_frame_by_its_place_in_the_json(tmp_path):
+    """The split sorts and holds out frames; an error still counts frames as the json lists them."""
+    frames, _ = _frames(12, tmp_path)
+    frames[10]["cx"] = -5.0
+    _write(tmp_path, list(reversed(frames)))  # frame_00010 is the json's frame 1
+    with pytest.raises(ValueError, match=r"transforms.json: frame 1 \(images/frame_00010.png\): cx=-5 lies outside"):
+        load_nerf_synthetic(tmp_path)
+
+
+def test_a_file_path_with_a_dot_and_no_extension_gets_png(tmp_path):
+    frames, _ = _frames(3, tmp_path)
+    for k, f in enumerate(frames):
+        dotted = tmp_path / "images" / f"r.{k}.png"
+        (tmp_path / f["file_path"]).rename(dotted)
+        f["file_path"] = f"./images/r.{k}"
+    _write(tmp_path, frames)
+    assert sorted(c.name for c in load_nerf_synthetic(tmp_path).cameras) == [f"images/r.{k}.png" for k in range(3)]
 
 
 def test_nerfstudio_ply_file_path_gives_the_points(tmp_path):
@@ -133,7 +152,7 @@ def test_images_without_alpha_get_the_colour_their_borders_show(tmp_path, colour
     _write(tmp_path, frames)
     scene = load_nerf_synthetic(tmp_path)
     assert np.allclose(scene.background, np.asarray(colour) / 255.0, atol=1e-6)
-    assert "no alpha and their borders are one colour" in scene.background_origin
+    assert "no transparent pixel and their borders are one colour" in scene.background_origin
     assert load_nerf_synthetic(tmp_path, background=(0.5, 0.5, 0.5)).background == (0.5, 0.5, 0.5)
 
 
@@ -177,3 +196,62 @@ def test_uniform_border_share_and_tolerance():
     assert uniform_border([img]) is None
     with pytest.raises(ValueError, match=r"\[H, W, 3\] images, got \[10, 10\]"):
         uniform_border([torch.zeros(10, 10)])
+
+
+def test_opaque_rgba_images_are_read_as_the_backdrop_they_show(tmp_path):
+    """RGBA files whose alpha is 255 everywhere (many exporters write them) are composited already:
+    the border rule applies, as for RGB."""
+    paint = _object_on((0, 0, 0))
+    opaque = lambda k: np.concatenate([paint(k), np.full((H, W, 1), 255, np.uint8)], -1)  # noqa: E731
+    frames, _ = _frames(9, tmp_path, paint=opaque)
+    _write(tmp_path, frames)
+    scene = load_nerf_synthetic(tmp_path)
+    assert scene.background == (0.0, 0.0, 0.0) and "no transparent pixel" in scene.background_origin
+
+
+def test_rgba_images_beside_opaque_ones_on_another_backdrop_are_warned_about(tmp_path):
+    """Training images of which some are RGBA with transparency (composited on white) and some are
+    RGB on black: two backdrops for one model, said in a warning naming one of the RGB images."""
+    paint = _object_on((0, 0, 0))
+
+    def mixed(k):
+        if k % 2:
+            return paint(k)
+        alpha = np.zeros((H, W, 1), np.uint8)
+        alpha[8:28, 10:38] = 255
+        return np.concatenate([paint(k), alpha], -1)
+    frames, _ = _frames(9, tmp_path, paint=mixed)
+    _write(tmp_path, frames)
+    with pytest.warns(UserWarning, match=r"4 of the 7 training images have no transparent pixel and their borders "
+                                         r"show \(0.000, 0.000, 0.000\), not the white .* 'images/frame_00001.png'"):
+        scene = load_nerf_synthetic(tmp_path)
+    assert scene.background == (1.0, 1.0, 1.0)
+
+
+def _png16(path, arr):
+    """A 16-bit RGB(A) PNG written by hand (zlib, filter 0): Pillow writes none."""
+    import struct
+    import zlib
+
+    h, w, c = arr.shape
+    raw = b"".join(b"\x00" + arr[y].astype(">u2").tobytes() for y in range(h))
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    header = struct.pack(">IIBBBBB", w, h, 16, {3: 2, 4: 6}[c], 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def test_a_16_bit_colour_png_is_read_to_within_8_bits_and_said_once(tmp_path, monkeypatch):
+    from mvgs_plugin.data import images
+
+    monkeypatch.setattr(images, "_WARNED_16_BIT", False)
+    values = np.array([1000, 30000, 65535], np.uint16)
+    _png16(tmp_path / "a.png", np.broadcast_to(values, (4, 5, 3)).copy())
+    _png16(tmp_path / "b.png", np.broadcast_to(values, (4, 5, 3)).copy())
+    with pytest.warns(UserWarning, match=r"a.png is a 16-bit colour PNG: it is read at 8 bits per channel"):
+        got = images.read_rgb(tmp_path / "a.png")
+    assert np.abs(got[0, 0].numpy() - values / 65535.0).max() <= 1 / 255 + 1e-6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        images.read_rgb(tmp_path / "b.png")  # said once

@@ -65,7 +65,7 @@ def test_a_nerfstudio_folder_composited_on_black_trains_in_front_of_black(tmp_pa
         warnings.simplefilter("ignore")  # the random init's
         saved = example.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "3",
                               "--init", "random", "--out", str(tmp_path / "auto"), "--no-progress"])
-        assert "note: background: the training images have no alpha and their borders are one colour, " \
+        assert "note: background: the training images have no transparent pixel and their borders are one colour, " \
                "(0.000, 0.000, 0.000)" in capsys.readouterr().err
         assert saved["background"]["colour"] == [0.0, 0.0, 0.0] and len(saved["per_view"]) == 2
         example.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "3",

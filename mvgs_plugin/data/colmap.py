@@ -261,8 +261,8 @@ def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
         # Splatting renders an ideal pinhole; a fisheye or rational lens is not resampled here.
         why = " with rational terms k4..k6" if model == "FULL_OPENCV" else ""
         raise ValueError(
-            f"camera model {model}{why}: supported are PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL, OPENCV "
-            "(undistorted when read). Undistort the images first: colmap image_undistorter "
+            f"camera model {model}{why}: supported are PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL, OPENCV, "
+            "FULL_OPENCV with k4 = k5 = k6 = 0 (undistorted when read). Undistort the images first: colmap image_undistorter "
             "--image_path <images> --input_path <sparse/0> --output_path <out> "
             "(then load <out>, which has images/ and sparse/)")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist
@@ -274,8 +274,9 @@ def _downscaled(K: np.ndarray, width: int, height: int, size: tuple, file: Path,
     one factor); each row of K scales with its axis, as Camera.scaled does. ValueError otherwise."""
     w, h = size
     sx, sy = w / width, h / height
-    # one factor s for both sides, each rounded or cut to whole pixels: each within a pixel of side / s
-    if w <= width and h <= height and abs(sy * width - w) <= 1.0 and abs(sx * height - h) <= 1.0:
+    # one factor s for both sides, each rounded or cut to whole pixels: |width / s - w| <= 1 and
+    # |height / s - h| <= 1, i.e. the ranges of 1 / s the two sides allow overlap
+    if w <= width and h <= height and max((w - 1) / width, (h - 1) / height) <= min((w + 1) / width, (h + 1) / height):
         return np.diag([sx, sy, 1.0]) @ K, w, h
     raise ValueError(f"image {file} is {w}x{h} but its camera {camera_id} is {width}x{height}, and it is not a copy "
                      f"downscaled alike on both axes (x {sx:.4g}, y {sy:.4g}); give the folder of full-size images, or "
@@ -379,7 +380,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
                 size = image_size(file)
                 if size != (width, height):  # a downscaled copy (images_4/): its intrinsics
                     K, width, height = _downscaled(K, width, height, size, file, image.camera_id)
-                    resized[image.camera_id] = (cam.width, cam.height, width, height)
+                    resized.setdefault((image.camera_id, cam.width, cam.height), set()).add((width, height))
             if dist:  # one resampling per COLMAP camera and image size, shared by its images
                 key = (image.camera_id, width, height)
                 if key not in undistortions:
@@ -419,8 +420,9 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
                                     "(the model's image names are read relative to the scene's images/ folder, or to the scene "
                                     "folder when it has none; from Python, load_colmap(images_dir=...) names another)")
     if resized:
-        LOG.info("%s: images in %s are downscaled copies: %s", model_dir, images_dir, "; ".join(
-            f"camera {i} {w}x{h} -> {w2}x{h2}, its intrinsics scaled alike" for i, (w, h, w2, h2) in sorted(resized.items())))
+        LOG.info("%s: images in %s are downscaled copies, each camera scaled to its images: %s", model_dir, images_dir,
+                 "; ".join(f"camera {i} {w}x{h} -> " + ", ".join(f"{a}x{b}" for a, b in sorted(to))
+                           for (i, w, h), to in sorted(resized.items())))
     sources = {uid: (UndistortedImage(f, sources[uid]) if uid in sources else f) for uid, f in files.items()}
     return Scene(train_cams, test_cams, sources, points=_points(rec, model_dir), background=background,
                  source=path)

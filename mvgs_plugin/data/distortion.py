@@ -32,8 +32,9 @@ __all__ = ["Distortion", "Undistortion", "UndistortedImage"]
 
 _NEWTON_STEPS = 50
 _INVERSE_TOLERANCE = 1e-10  # in normalised coordinates: 1e-7 px at a focal length of 1000 px
-# an output larger than this many times the input per axis is refused (a pincushion lens whose
-# inverse runs away, or coefficients in the wrong units)
+# an output larger, or smaller, than this many times the input per axis is refused (a lens whose
+# inverse runs away, or coefficients in the wrong units: k1 = 100 in pixels would keep 6 % of a
+# 96 px image); COLMAP's undistorter bounds its scale alike (0.2 to 2 by default)
 _MAX_GROWTH = 2.0
 
 
@@ -124,7 +125,8 @@ class Undistortion:
         x0, x1 = inner["left"][0].max(), inner["right"][0].min()
         y0, y1 = inner["top"][1].max(), inner["bottom"][1].min()
         w_out, h_out = math.floor((x1 - x0) * fx), math.floor((y1 - y0) * fy)
-        if not (0 < w_out <= _MAX_GROWTH * self.width and 0 < h_out <= _MAX_GROWTH * self.height):
+        if not (self.width / _MAX_GROWTH <= w_out <= _MAX_GROWTH * self.width
+                and self.height / _MAX_GROWTH <= h_out <= _MAX_GROWTH * self.height):
             raise ValueError(f"{prefix}lens distortion {distortion.describe()}: the undistorted image would be "
                              f"{w_out}x{h_out} px for a {self.width}x{self.height} px capture; are the coefficients "
                              "in normalised units (as COLMAP and OpenCV write them)?")

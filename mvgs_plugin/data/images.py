@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+import warnings
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -10,7 +11,7 @@ import numpy as np
 import torch
 
 __all__ = ["image_size", "read_rgb", "downsample", "downsample_batch", "check_background", "may_have_alpha",
-           "uniform_border"]
+           "has_transparency", "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8, CC are not frames.
@@ -74,8 +75,27 @@ def image_size(path: Path) -> tuple[int, int]:
     return arr.shape[1], arr.shape[0]
 
 
+_WARNED_16_BIT = False
+
+
+def _warn_16_bit_colour(path: Path) -> None:
+    """Pillow, which skimage.io reads PNGs with, keeps 8 of the 16 bits of a colour PNG's
+    channels (16-bit greyscale it reads whole): said once per process."""
+    global _WARNED_16_BIT
+    if _WARNED_16_BIT or path.suffix.lower() != ".png":
+        return
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if len(head) == 26 and head[:8] == _PNG_SIGNATURE and head[24] == 16 and head[25] in (2, 4, 6):
+        _WARNED_16_BIT = True
+        warnings.warn(f"{path} is a 16-bit colour PNG: it is read at 8 bits per channel (the image reader's limit; "
+                      "a 1/255 step, below what training resolves); further such images are not mentioned", stacklevel=4)
+
+
 def _decode(path: Path) -> np.ndarray:
     import skimage.io
+
+    _warn_16_bit_colour(path)
 
     try:
         arr = skimage.io.imread(str(path))
@@ -148,6 +168,18 @@ def may_have_alpha(path: Path) -> bool:
         head = f.read(1 << 16)  # the header chunks; tRNS comes before the first IDAT
     end = head.find(b"IDAT")
     return len(head) < 26 or head[25] in (4, 6) or b"tRNS" in head[:end if end >= 0 else None]
+
+
+def has_transparency(path: Path) -> bool:
+    """Whether an image file has an alpha channel with a pixel below fully opaque (a file that
+    only may carry alpha, by its header, is decoded to tell)."""
+    path = Path(path)
+    if not may_have_alpha(path):
+        return False
+    arr = _to_unit_float(_decode(path), path)
+    if arr.ndim != 3 or arr.shape[2] not in (2, 4):
+        return False
+    return bool(arr[:, :, -1].min() < 1.0)
 
 
 # A rendered backdrop is one colour up to 8-bit rounding and JPEG's ringing (a few levels): a

@@ -16,7 +16,7 @@ import torch
 from ..camera import Camera
 from .colmap import check_inside, normalize_name
 from .distortion import Distortion, UndistortedImage, Undistortion
-from .images import check_background, image_size, may_have_alpha, uniform_border
+from .images import BORDER_TOLERANCE, check_background, has_transparency, image_size, uniform_border
 from .scene import PointCloud, Scene
 
 __all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "transforms_files", "OPENGL_TO_OPENCV"]
@@ -164,6 +164,8 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
     if not isinstance(fp, str) or not fp.strip():
         raise ValueError(f"{where}: missing 'file_path'")
     rel = fp if Path(fp).suffix else fp + ".png"  # Blender scenes omit the extension
+    if rel == fp and not (root / normalize_name(fp)).is_file() and (root / normalize_name(fp + ".png")).is_file():
+        rel = fp + ".png"  # a name with a dot and no extension ("r.0"), the extension omitted as above
     name = check_inside(normalize_name(rel), root, where)
     file = root / name
     where = f"{where} ({name})"
@@ -249,15 +251,15 @@ def transforms_files(path) -> tuple[Path, Optional[Path]]:
 
 
 def _held_out(frames: list, jfile: Path, where_test: str) -> tuple[list, list]:
-    """(train frames, test frames): every TEST_EVERY-th frame of the frames sorted by file_path
-    is a test frame, starting with the first."""
+    """(train, test) lists of (index in the json, frame): every TEST_EVERY-th frame of the frames
+    sorted by file_path is a test frame, starting with the first."""
     def name(item):
         fp = item[1].get("file_path")
         return normalize_name(fp) if isinstance(fp, str) else ""
 
-    ordered = sorted(enumerate(frames), key=name)
-    test = [f for k, (_, f) in enumerate(ordered) if k % TEST_EVERY == 0]
-    train = [f for k, (_, f) in enumerate(ordered) if k % TEST_EVERY != 0]
+    ordered = sorted(enumerate(frames), key=name)  # (index in the json, frame)
+    test = [item for k, item in enumerate(ordered) if k % TEST_EVERY == 0]
+    train = [item for k, item in enumerate(ordered) if k % TEST_EVERY != 0]
     if not train:
         raise ValueError(f"{jfile}: {len(frames)} frame(s): {where_test} holds out every {TEST_EVERY}th frame "
                          "(the first included) for testing, which leaves none to train on")
@@ -292,7 +294,7 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     train_json, test_json = transforms_files(root)
     frames, shared = _read_json(train_json)
     if test_json is not None:
-        by_split = {"train": frames, "test": _read_json(test_json)[0]}
+        by_split = {"train": list(enumerate(frames)), "test": list(enumerate(_read_json(test_json)[0]))}
         where = {"train": train_json, "test": test_json}
     else:
         how = ("this folder has one transforms.json" if train_json.name == "transforms.json"
@@ -301,17 +303,14 @@ def _load_blender(path, background, with_time: bool) -> Scene:
         by_split, where = {"train": train, "test": test}, {"train": train_json, "test": train_json}
         said = (f"{root}: {how}: its frames sorted by file_path, every {TEST_EVERY}th from the first "
                 f"({len(test)} of {len(frames)}) are held out as test views, the rest ({len(train)}) train")
-        if test_json is None and train_json.name == "transforms.json":
-            LOG.info("%s", said)  # the layout's split, as a COLMAP scene's
-        else:
-            warnings.warn(said, stacklevel=3)  # a test json that may have been lost
+        warnings.warn(said, stacklevel=3)
     splits: dict[str, list[Camera]] = {}
     files: dict[int, Union[Path, UndistortedImage]] = {}
     undistortions: dict = {}
     uid = 0
     for split in _SPLITS:
         cams = []
-        for i, frame in enumerate(by_split[split]):
+        for i, frame in by_split[split]:  # i: the frame's index in its json
             cam, file = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions)
             cams.append(cam)
             files[uid] = file
@@ -330,17 +329,27 @@ def _load_blender(path, background, with_time: bool) -> Scene:
                   check_sizes=False, source=root)
     if not auto:
         scene.background_origin = "given" if bg is not None else "none (alpha dropped)"
-    elif any(may_have_alpha(scene.image_file(cam)) for cam in scene.train_cameras):
+        return scene
+    seethrough = {cam.uid for cam in scene.train_cameras if has_transparency(scene.image_file(cam))}
+    if seethrough:
         scene.background_origin = "white: RGBA images composited on it (the default)"
-    else:  # already composited on something: the colour their borders show, if they show one
+        opaque = [cam for cam in scene.train_cameras if cam.uid not in seethrough]
+        shown = uniform_border(scene.image(cam) for cam in opaque) if opaque else None
+        if shown is not None and max(abs(c - 1.0) for c in shown) > BORDER_TOLERANCE:
+            warnings.warn(f"{root}: {len(opaque)} of the {len(scene.train_cameras)} training images have no transparent "
+                          f"pixel and their borders show ({shown[0]:.3f}, {shown[1]:.3f}, {shown[2]:.3f}), not the white "
+                          f"the other, RGBA, images are composited on (e.g. {opaque[0].name!r}): the Gaussians would be "
+                          "trained against two backdrops; composite them alike, or give the background they share",
+                          stacklevel=3)
+    else:  # opaque images, composited already: the colour their borders show, if they show one
         found = uniform_border(scene.image(cam) for cam in scene.train_cameras)
         if found is not None:
             scene.background = found
-            scene.background_origin = ("the training images have no alpha and their borders are one colour, "
+            scene.background_origin = ("the training images have no transparent pixel and their borders are one colour, "
                                        f"({found[0]:.3f}, {found[1]:.3f}, {found[2]:.3f})")
         else:
-            scene.background_origin = ("white (the default): the training images have no alpha and their "
-                                       "borders are not one colour")
+            scene.background_origin = ("white (the default): the training images have no transparent pixel and "
+                                       "their borders are not one colour")
     return scene
 
 
