@@ -851,3 +851,29 @@ def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward
         assert torch.equal(sp["means"].detach(), splats["means"].detach()[kept])
         assert torch.equal(st["grad2d"], grad2d[kept]) and len(st["mvgs_coverage"]) == n - want
     assert strategy._swap_out(splats, optimizers, dict(state), threshold, int(cand.sum()), n, 0.5) == 0  # room enough
+
+
+def test_the_parser_reads_gsplats_data_factor_as_the_images_folder(tmp_path):
+    """Parser(factor=2) reads a COLMAP scene's images_2/ (gsplat's convention): every K is the
+    full-size model's with each row times its axis's size ratio (pycolmap's model, read here
+    directly); a NeRF-style scene has no such folder and is refused naming it."""
+    import numpy as np
+    import pycolmap
+    from PIL import Image
+
+    from test_data_colmap import H, W, write_model
+
+    info = write_model(tmp_path / "s")
+    for f in (tmp_path / "s" / "images").rglob("*.png"):
+        out = tmp_path / "s" / "images_2" / f.parent.name / f.name
+        out.parent.mkdir(parents=True, exist_ok=True)
+        Image.open(f).resize((27, 20)).save(out)  # one factor, 40 x 30 / 1.48
+    parser = common.Parser(tmp_path / "s", factor=2)
+    rec = pycolmap.Reconstruction(str(info["model_dir"]))
+    for i, cam in enumerate(parser.cameras):
+        model = rec.cameras[rec.images[cam.uid].camera_id]
+        full = model.calibration_matrix()
+        want = np.diag([27 / W, 20 / H, 1.0]) @ full
+        assert parser.imsize_dict[i] == (27, 20) and np.allclose(parser.Ks_dict[i], want, atol=1e-5)
+    with pytest.raises(ValueError, match="images='images_2' is for COLMAP scenes"):
+        common.Parser(ROOT / "examples" / "scenes" / "tabletop", factor=2)

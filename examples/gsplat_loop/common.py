@@ -55,6 +55,7 @@ class Config:
     for a 30k-step run; adjust_steps() rescales)."""
 
     data_dir: Path = BUNDLED
+    data_factor: int = 1  # a COLMAP scene's images_<factor>/ (gsplat's data_factor)
     result_dir: Path = Path("out/gsplat_loop")
     mvgs_preset: Any = "default"  # the MVGS recipe: a preset name or an MVGSConfig (the chunked loop passes one)
     batch_size: int = 1
@@ -115,9 +116,10 @@ class Parser:
     unless the scene names its test views. Built on mvgs_plugin.data.load_scene."""
 
     def __init__(self, data_dir, factor: int = 1, normalize: bool = False, test_every: int = 8):
-        if factor != 1 or normalize:
-            raise ValueError("this port reads scenes at their own size and coordinates (factor 1, no normalize)")
-        self.scene = scene = load_scene(data_dir)
+        if normalize:
+            raise ValueError("this port reads scenes in their own coordinates (no normalize)")
+        # gsplat's factor: a COLMAP scene's images_<factor>/ copies, each camera scaled to them
+        self.scene = scene = load_scene(data_dir, images=None if factor == 1 else f"images_{factor}")
         cams = scene.train_cameras + scene.test_cameras
         self.n_train = len(scene.train_cameras)
         self.camtoworlds = np.stack([c.camera_to_world.numpy() for c in cams])
@@ -344,6 +346,9 @@ def evaluate(splats, cfg: Config, parser: Parser) -> Dict:
 def parse_config(argv=None, doc: str = "") -> Config:
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
+    ap.add_argument("--data-factor", type=int_at_least(1), default=1,
+                    help="gsplat's data_factor: a COLMAP scene's images_<factor>/ folder, the cameras scaled to it "
+                         "(default: %(default)s, the full-size images)")
     ap.add_argument("--steps", type=int_at_least(2, MAX_STEPS), default=1000, help="training steps (default: %(default)s)")
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
@@ -381,7 +386,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
                                 ("pixels_per_gaussian", args.pixels_per_gaussian)) if v is not None}
     preset = MVGSConfig.from_preset(args.preset, **budget) if budget else args.preset
-    cfg = Config(data_dir=args.data, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
+    cfg = Config(data_dir=args.data, data_factor=args.data_factor, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
                  grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size)
     cfg.adjust_steps(args.steps)
