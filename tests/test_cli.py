@@ -73,6 +73,7 @@ def test_help_states_every_default(script):
     ("examples/train_scaffold.py", ["--voxel-size", "-1"], "--voxel-size"),
     ("examples/ablation.py", ["--steps", "many"], "--steps"),
     ("examples/graphdeco_loop/train_mvgs.py", ["--data", "/nonexistent/scene"], "--data"),
+    ("examples/graphdeco_loop/train_mvgs.py", ["--background", "grey"], "--background"),
     ("examples/three_line_wrap/mvgs.py", ["--steps", "-3"], "--steps"),
 ])
 def test_bad_arguments_are_usage_errors(script, argv, flag, tmp_path):

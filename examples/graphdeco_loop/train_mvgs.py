@@ -36,7 +36,7 @@ from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-from mvgs_plugin.cli import BUNDLED, MAX_STEPS, HelpFormatter, int_at_least, scene_folder  # noqa: E402
+from mvgs_plugin.cli import BUNDLED, MAX_STEPS, HelpFormatter, background_colour, int_at_least, scene_folder  # noqa: E402
 
 
 def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
@@ -145,8 +145,17 @@ if __name__ == "__main__":
                     help="the MVGS recipe (MVGSConfig.from_preset)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "
                     "the preset's)")
+    ap.add_argument("--images", type=str, default=None, metavar="DIR",
+                    help="3DGS's -i: a COLMAP scene's image folder, relative to --data; a downscaled copy (images_4) "
+                         "scales the cameras to it (default: images/, else --data)")
+    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|R,G,B",
+                    help="3DGS's -w is white: the colour behind the Gaussians and the one RGBA images are composited "
+                         "on (default: auto, the scene's: see docs/data.md)")
     args = ap.parse_args()
-    scene = load_scene(args.data)  # a scene without points gets them (triangulated, else drawn where the cameras look)
+    try:  # a scene without points gets them (triangulated, else drawn where the cameras look)
+        scene = load_scene(args.data, images=args.images, background=args.background)
+    except (ValueError, OSError) as err:
+        ap.error(f"--data {args.data}: {err}")
     model, log = training(scene, args.steps, args.preset, views=args.views)
     print(f"PSNR {evaluate(model, scene):.2f} dB, {model.get_xyz.shape[0]} Gaussians, densified at "
           f"{len(log['densify'])} steps, opacity resets at {log['reset']}, {log['from_boxes']} cloned from boxes")
