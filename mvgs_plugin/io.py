@@ -71,9 +71,27 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: 
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except Exception as err:
+        # Ctrl-C inside a writer that turns it into its own error (torch.save's zip writer raises
+        # RuntimeError "unexpected pos" with the KeyboardInterrupt as its context): an interrupt,
+        # which callers handle as one (the CLI's "interrupted at step N" note), not a crash
+        if _interrupted(err):
+            raise KeyboardInterrupt from None
+        raise
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _interrupted(err: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among the exceptions `err` was raised during or from."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def atomic_write_text(path, text: str) -> None:

@@ -37,3 +37,44 @@ def test_atomic_writers_use_the_plain_new_file_mode(tmp_path):
     assert (tmp_path / "a.md").read_text() == "hello"
     assert json.loads((tmp_path / "d.json").read_text()) == {"psnr": 1.0}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.md", "b.pt", "c.ply", "d.json", "plain.txt"]
+
+
+def test_ctrl_c_inside_torch_save_is_an_interrupt_and_the_previous_file_survives(tmp_path, monkeypatch):
+    """torch.save turns a KeyboardInterrupt raised inside its writes into RuntimeError "unexpected
+    pos" (the interrupt as its context): the CLI's interrupt handler missed it and printed two
+    tracebacks. save_atomic raises the KeyboardInterrupt; the earlier file and no partial remain."""
+    import pytest
+
+    from mvgs_plugin import io as mio
+
+    path = tmp_path / "checkpoint.pt"
+    save_atomic({"step": 1}, str(path))
+    real_fdopen = os.fdopen
+
+    class Interrupting:
+        def __init__(self, f):
+            self.f, self.calls = f, 0
+
+        def write(self, b):
+            self.calls += 1
+            if self.calls == 3:
+                raise KeyboardInterrupt
+            return self.f.write(b)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    monkeypatch.setattr(mio.os, "fdopen", lambda fd, mode: Interrupting(real_fdopen(fd, mode)))
+    with pytest.raises(KeyboardInterrupt):
+        save_atomic({"step": 2, "w": torch.zeros(1000)}, str(path))
+    monkeypatch.setattr(mio.os, "fdopen", real_fdopen)
+    assert torch.load(path, weights_only=True) == {"step": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
+    with pytest.raises(RuntimeError, match="boom"):  # other errors pass through as they were
+        mio.write_atomic(tmp_path / "x.txt", lambda f: (_ for _ in ()).throw(RuntimeError("boom")), binary=False)
