@@ -117,6 +117,12 @@ def run(args, dist) -> dict:
     if untimed:
         raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene (D-NeRF frames with 'time'); "
                          f"{len(untimed)} cameras have none, e.g. {untimed[0]!r}")
+    lo, hi = min(c.time for c in scene.train_cameras), max(c.time for c in scene.train_cameras)
+    beyond = [c for c in scene.test_cameras if not lo <= c.time <= hi]
+    if beyond:  # the deformation field is fitted on [lo, hi] only
+        print(f"{Path(sys.argv[0]).name}: note: {len(beyond)} of the {len(scene.test_cameras)} test views lie outside the "
+              f"training views' times [{lo:g}, {hi:g}] (e.g. {beyond[0].name!r} at {beyond[0].time:g}): the deformation "
+              "is extrapolated there, and their metrics measure that", file=sys.stderr)
     config = config_from_args(args, scene, time_spread=args.time_spread)
     adapter = build_adapter(args, scene, config)
     if args.init_random:  # metrics.json's "init" says where every initial point came from

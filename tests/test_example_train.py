@@ -209,3 +209,25 @@ def test_every_example_refuses_cuda_flags_this_machine_cannot_run(tmp_path, scri
             module.main(flags + ["--data", str(tmp_path / "empty"), "--steps", "3", "--no-progress",
                                  "--out", str(tmp_path / "out"), "--debug"])
     assert not (tmp_path / "out").exists()
+
+
+def test_4dgs_says_when_test_views_lie_outside_the_training_times(tmp_path, capsys):
+    """One transforms.json whose frames carry times k/8: the held-out frames 0 and 8 are at times
+    0 and 1, outside the training views' [1/8, 7/8]; the run says so before training."""
+    import warnings
+
+    from test_data_transforms import _frames, _object_on, _write
+
+    frames, _ = _frames(9, tmp_path / "scene", paint=_object_on((0, 0, 0)))
+    for k, f in enumerate(frames):
+        f["time"] = k / 8
+    _write(tmp_path / "scene", frames)
+    spec = importlib.util.spec_from_file_location("train_4dgs", EXAMPLE.parent / "train_4dgs.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        module.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "20", "--init", "random",
+                     "--out", str(tmp_path / "out"), "--no-progress"])
+    assert ("note: 2 of the 2 test views lie outside the training views' times [0.125, 0.875] "
+            "(e.g. 'images/frame_00000.png' at 0)") in capsys.readouterr().err
