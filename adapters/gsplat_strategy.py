@@ -48,7 +48,9 @@ What reaches the wrapped strategy, and how:
   opacities are reset; the loop's ``step`` only labels log lines.
 - **MVAD.** The strategy's ``grow_grad2d`` is β; each refine runs with the schedule's threshold
   for that step (β scaled to the image width when the preset says so, halved when the step's
-  cameras are far apart).
+  cameras are far apart). The width-scaled presets (default, multiview, compact) read β as meant
+  for 800-px images: β × 800 / W at W-px views; a β tuned for your full width W_full keeps its
+  meaning with ``grad_threshold_width=W_full`` in the config, and ``None`` uses it as given.
 - **CRD.** With ``renders=`` given to ``step_post_backward``, the step's per-view loss maps give
   cross-ray boxes; before the strategy refines, every Gaussian inside a box (at most
   ``crd_max_new`` of the count, largest mean gradient first) is copied with gsplat's

@@ -21,6 +21,7 @@ import math
 import os
 import resource
 import sys
+import warnings
 import tempfile
 import time
 from pathlib import Path
@@ -35,7 +36,7 @@ from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text, load_checked
-from mvgs_plugin.schedule import densifies_at_some_step
+from mvgs_plugin.schedule import NoDensificationWarning, densifies_at_some_step
 
 __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
@@ -665,7 +666,9 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     The seconds cover the steps this process ran (after a resume, the rest of the run). Returns
     (trainer, training wall seconds, test result), the result None on the other ranks: the
     model is the same on every rank."""
-    trainer = MVGS(adapter, scene, config, distributed=dist)
+    with warnings.catch_warnings():  # config_from_args said so in its own note
+        warnings.simplefilter("ignore", NoDensificationWarning)
+        trainer = MVGS(adapter, scene, config, distributed=dist)
     if getattr(args, "resume", None) is not None:
         asked = model_settings(adapter)
         try:

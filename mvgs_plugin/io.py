@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import pickle
 import secrets
 from typing import Any, Callable
 
@@ -123,7 +124,11 @@ def load_checked(path: str) -> Any:
     """Load a save_checked() file with torch.load(weights_only=True) (no code runs on load) and
     verify its checksum; a file without the wrapper (older checkpoints) loads as it is. Raises
     ValueError naming the file when the checksum does not match."""
-    outer = torch.load(path, weights_only=True)
+    try:
+        outer = torch.load(path, weights_only=True)
+    except pickle.UnpicklingError:  # not a torch.save file (a text file), or one with objects that run code
+        raise ValueError(f"{path}: not a file torch.save wrote with tensors and plain values only (a text file, another "
+                         "format, or objects that would run code when loaded, which is never done here)") from None
     if not (isinstance(outer, dict) and outer.get("format") == CHECKED_FORMAT):
         return outer
     payload = outer.get("payload")

@@ -126,7 +126,18 @@ class StepPlan:
         detached and [H', W'] each, so recording costs no graph memory; on steps that do not
         densify with CRD (wants_maps False) nothing is computed or kept."""
         if self.wants_maps:
-            self.recorded.extend(loss_map(img, gt) for img, gt in zip(images, targets))
+            for img, gt in zip(images, targets):
+                k = len(self.recorded)
+                if k >= len(self.cameras):
+                    raise ValueError(f"plan.record: view {k + 1} recorded, but this step has {len(self.cameras)}: "
+                                     "record each chunk's images once, in the order the plan gives them")
+                m = loss_map(img, gt)
+                cam = self.cameras[k]
+                if tuple(m.shape) != (cam.height, cam.width):
+                    raise ValueError(f"plan.record: view {k} ({cam.name!r}) gave a {m.shape[1]}x{m.shape[0]} loss map, "
+                                     f"its camera at this level is {cam.width}x{cam.height}: record the images rendered "
+                                     "for the plan's cameras, in its order")
+                self.recorded.append(m)
 
     def __iter__(self) -> Iterator[Tuple[List[Camera], List[Tensor], Tensor, bool]]:
         """Per chunk: (cameras, target images, backgrounds [C, 3], collect statistics?)."""
@@ -143,6 +154,10 @@ def densifies_at_some_step(config: MVGSConfig) -> bool:
     return first < config.densify_until
 
 
+class NoDensificationWarning(UserWarning):
+    """A run whose densification window holds no call (the CLI prints its own note instead)."""
+
+
 class ViewSchedule:
     """The sequence of StepPlans of a run: sampler + stage plan + densification clock.
 
@@ -156,6 +171,13 @@ class ViewSchedule:
     """
 
     def __init__(self, scene, config: MVGSConfig, load_images: bool = True):
+        if not hasattr(scene, "train_cameras"):
+            raise TypeError(f"scene must be a mvgs_plugin.data.Scene (e.g. load_scene(folder)), got "
+                            f"{type(scene).__name__}")
+        if isinstance(config, str):  # a preset name, as MVGSStrategy takes
+            config = MVGSConfig.from_preset(config)
+        if not isinstance(config, MVGSConfig):
+            raise TypeError(f"config must be an MVGSConfig or a preset name, got {type(config).__name__}")
         if not scene.train_cameras:
             raise ValueError("scene has no training cameras")
         self.scene = scene
@@ -167,6 +189,11 @@ class ViewSchedule:
                           f"{config.total_steps}; for {config.total_steps} steps resolve the recipe first, "
                           f"config.for_scene(scene).with_total_steps(N), as the examples' --steps does", stacklevel=3)
         self.config = config = resolved
+        if not densifies_at_some_step(config):
+            warnings.warn(f"this run densifies at no step: its densification window, after {config.densify_from} and "
+                          f"before {config.densify_until} on the run's clock (every {config.densify_every}), holds no "
+                          "call; a longer run densifies (with_total_steps keeps the first call >= 50 steps in)",
+                          NoDensificationWarning, stacklevel=2)
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
@@ -408,7 +435,13 @@ class ViewSchedule:
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
                 "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
-                "views": self._views}
+                "views": self._views, "plan": self._plan_key()}
+
+    def _plan_key(self) -> Dict:
+        """What a state's step count means: the stage plan and the densification clock."""
+        c = self.config
+        return {"stages": [[float(st.factor), int(st.views), int(st.steps)] for st in c.stages],
+                "clock": [c.densify_from, c.densify_until, c.densify_every, c.opacity_reset_every]}
 
     def check_views_of(self, state: Dict) -> None:
         """ValueError unless a state_dict() was saved on these training views (check_same_views;
@@ -420,9 +453,18 @@ class ViewSchedule:
     def load_state_dict(self, state: Dict) -> None:
         """Restore a state_dict(). A state saved on other training views (names, sizes,
         intrinsics, poses, times) is refused with a ValueError naming the first view that
-        differs, before anything is changed; states saved before views were recorded load
-        without that check."""
+        differs, before anything is changed; so is a state saved by another stage plan or
+        densification clock (another preset, step count or views per step); states saved before
+        these were recorded load without those checks."""
         self.check_views_of(state)
+        saved = state.get("plan") if isinstance(state, dict) else None
+        if saved is not None and saved != self._plan_key():  # absent in states saved before it was recorded
+            mine = self._plan_key()
+            what = "stage plan (factor, views, steps)" if saved["stages"] != mine["stages"] else \
+                "densification clock (densify_from, densify_until, densify_every, opacity_reset_every)"
+            key = "stages" if saved["stages"] != mine["stages"] else "clock"
+            raise ValueError(f"this state was saved by a schedule with another {what}: {saved[key]}, this one has "
+                             f"{mine[key]}; resume with the config (preset, steps, views) it was saved with")
         self.step_count = int(state["step"])
         self.sampler.load_state_dict(state["sampler"])
         self._bg_gen.set_state(state["background_rng"])

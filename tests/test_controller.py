@@ -16,6 +16,7 @@ import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
 from mvgs_plugin import CRDConfig, MVADConfig, MVGS, MVGSConfig, Stage, ViewSchedule
+from mvgs_plugin.schedule import NoDensificationWarning
 from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data import Scene
@@ -163,6 +164,7 @@ def test_every_bundled_model_warns_when_its_schedules_are_on_another_clock_and_f
             MVGS(kind.from_scene(on, cfg_type()), on, config)
         with warnings.catch_warnings():
             warnings.simplefilter("error")
+            warnings.simplefilter("ignore", NoDensificationWarning)  # these runs are too short to densify
             MVGS(kind.from_scene(on, cfg_type.for_run(config)), on, config)
     spec = importlib.util.spec_from_file_location("train_4dgs_for_run", EXAMPLES / "train_4dgs.py")
     example = importlib.util.module_from_spec(spec)
@@ -924,8 +926,69 @@ def test_a_stage_asking_for_more_views_than_the_scene_has_is_said_and_renders_th
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # said once, when the schedule is built: not again at the first draw
+        warnings.simplefilter("ignore", NoDensificationWarning)  # these runs are too short to densify
         plan = schedule.next()
     assert sorted(plan.views) == list(range(n))  # every view once, not n + 3 draws
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        warnings.simplefilter("ignore", NoDensificationWarning)  # these runs are too short to densify
         ViewSchedule(scene, dataclasses.replace(config, stages=(Stage(factor=1, views=n, steps=20),)))
+
+
+def test_a_view_schedule_says_when_its_run_densifies_at_no_step_and_names_wrong_arguments(scene):
+    """A hand-written loop on ViewSchedule is told, as the CLI tells its user, when the run is too
+    short to densify (the window's first call is judged by the schedule's own clock, stepped
+    through here); a preset name is taken, other arguments are named."""
+    def calls(schedule):
+        return sum(plan.densify for plan in schedule)
+
+    with pytest.warns(NoDensificationWarning, match=r"densifies at no step: its densification window, after 50 and before \d+ "):
+        short = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(100), load_images=False)
+    assert calls(short) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NoDensificationWarning)
+        longer = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(400), load_images=False)
+    assert calls(longer) > 0
+    with pytest.raises(TypeError, match=r"scene must be a mvgs_plugin.data.Scene .* got list"):
+        ViewSchedule(scene.train_cameras, MVGSConfig.default())
+    with pytest.raises(TypeError, match=r"config must be an MVGSConfig or a preset name, got int"):
+        ViewSchedule(scene, 3)
+    assert ViewSchedule(scene, "baseline", load_images=False).config.grad_threshold_width is None
+
+
+def test_plan_record_refuses_loss_maps_that_are_not_the_plans_views(scene):
+    """Recorded maps of another size (or too many) used to be accepted and gave cross-ray boxes
+    from the wrong pixels; now they are refused naming the view and both sizes."""
+    config = MVGSConfig.paper().for_scene(scene).with_total_steps(300)
+    schedule = ViewSchedule(scene, config, load_images=False)
+    plan = next(p for p in schedule if p.wants_maps)
+    cam = plan.cameras[0]
+    with pytest.raises(ValueError, match=rf"view 0 \({re.escape(repr(cam.name))}\) gave a 9x7 loss map, its camera at "
+                                         rf"this level is {cam.width}x{cam.height}"):
+        plan.record([torch.rand(7, 9, 3)], [torch.rand(7, 9, 3)])
+    right = [torch.rand(c.height, c.width, 3) for c in plan.cameras]
+    plan.record(right, right)
+    assert len(plan.recorded) == len(plan.cameras)
+    with pytest.raises(ValueError, match=rf"view {len(plan.cameras) + 1} recorded, but this step has {len(plan.cameras)}"):
+        plan.record(right[:1], right[:1])
+
+
+def test_a_schedule_state_from_another_plan_is_refused(scene):
+    """A 300-step default state loaded into a multiview schedule continued at its step with
+    8-view plans, and into a 100-step one with nothing left: both refused, nothing changed."""
+    a = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(300), load_images=False)
+    for _ in range(121):
+        a.next()
+    state = a.state_dict()
+    b = ViewSchedule(scene, MVGSConfig.multiview().for_scene(scene).with_total_steps(300), load_images=False)
+    with pytest.raises(ValueError, match=r"another stage plan \(factor, views, steps\)"):
+        b.load_state_dict(state)
+    assert b.step_count == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoDensificationWarning)
+        c = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(100), load_images=False)
+    with pytest.raises(ValueError, match="another stage plan"):
+        c.load_state_dict(state)
+    same = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(300), load_images=False)
+    same.load_state_dict(state)
+    assert same.step_count == 121 and [v.name for v in same.next().cameras] == [v.name for v in a.next().cameras]

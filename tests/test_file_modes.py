@@ -78,3 +78,13 @@ def test_ctrl_c_inside_torch_save_is_an_interrupt_and_the_previous_file_survives
     assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
     with pytest.raises(RuntimeError, match="boom"):  # other errors pass through as they were
         mio.write_atomic(tmp_path / "x.txt", lambda f: (_ for _ in ()).throw(RuntimeError("boom")), binary=False)
+
+
+def test_a_file_that_is_not_a_checkpoint_is_named_not_unpickled(tmp_path):
+    import pytest
+
+    from mvgs_plugin.io import load_checked
+
+    (tmp_path / "notes.txt").write_text("not a checkpoint")
+    with pytest.raises(ValueError, match=r"notes.txt: not a file torch.save wrote with tensors and plain values only"):
+        load_checked(str(tmp_path / "notes.txt"))

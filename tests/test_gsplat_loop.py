@@ -877,3 +877,13 @@ def test_the_parser_reads_gsplats_data_factor_as_the_images_folder(tmp_path):
         assert parser.imsize_dict[i] == (27, 20) and np.allclose(parser.Ks_dict[i], want, atol=1e-5)
     with pytest.raises(ValueError, match="images='images_2' is for COLMAP scenes"):
         common.Parser(ROOT / "examples" / "scenes" / "tabletop", factor=2)
+
+
+def test_a_data_factor_without_its_folder_is_one_line_naming_the_flag(tmp_path):
+    import subprocess
+
+    r = subprocess.run([sys.executable, str(LOOP / "simple_trainer_mvgs.py"), "--data-factor", "2", "--steps", "10",
+                        "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-800:]
+    assert "simple_trainer_mvgs.py: error: --data-factor 2: images='images_2' is for COLMAP scenes" in r.stderr
+    assert not (tmp_path / "o").exists()

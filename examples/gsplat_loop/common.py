@@ -355,7 +355,9 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--out", type=out_folder, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
     ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0, help="seed (default: %(default)s)")
     ap.add_argument("--grow-grad2d", type=float_above(0.0), default=2e-4,
-                    help="DefaultStrategy.grow_grad2d, the densification threshold (default: %(default)s, gsplat's)")
+                    help="DefaultStrategy.grow_grad2d, the densification threshold; the MVGS loops' width-scaled presets "
+                         "read it as meant for 800-px images, x 800 / W at W-px views (docs/gsplat_loop.md; default: "
+                         "%(default)s, gsplat's)")
     ap.add_argument("--save-steps", type=int_at_least(1), nargs="*", default=[],
                     help="write OUT/ckpt_<step>.pt after these steps (1-based; default: none)")
     ap.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint this script wrote (default: start fresh)")
@@ -403,7 +405,14 @@ def run(runner_class, cfg: Config) -> Dict:
     _RUN_SETTINGS.update(seed=cfg.seed)
     made = not cfg.result_dir.exists()
     cfg.result_dir.mkdir(parents=True, exist_ok=True)
-    runner = runner_class(cfg)
+    try:
+        runner = runner_class(cfg)
+    except (ValueError, OSError) as err:  # the scene folder's content (--data, --data-factor): a usage error
+        if made and not any(cfg.result_dir.iterdir()):
+            cfg.result_dir.rmdir()
+        flag = f"--data-factor {cfg.data_factor}" if f"images_{cfg.data_factor}" in str(err) else f"--data {cfg.data_dir}"
+        print(f"{Path(sys.argv[0]).name}: error: {flag}: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     cuda = str(cfg.device).startswith("cuda")
     if cuda:
         torch.cuda.synchronize()
