@@ -887,3 +887,11 @@ def test_a_data_factor_without_its_folder_is_one_line_naming_the_flag(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-800:]
     assert "simple_trainer_mvgs.py: error: --data-factor 2: images='images_2' is for COLMAP scenes" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_save_steps_beyond_the_run_are_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as err:
+        common.parse_config(["--steps", "60", "--save-steps", "60", "100", "--out", str(tmp_path / "o")])
+    assert err.value.code == 2
+    assert "--save-steps 100: beyond the run's --steps 60" in capsys.readouterr().err
+    assert common.parse_config(["--steps", "60", "--save-steps", "60", "--out", str(tmp_path / "o")]).save_steps == [60]

@@ -381,6 +381,10 @@ def parse_config(argv=None, doc: str = "") -> Config:
         check_device(args)
     except ValueError as err:
         ap.error(str(err))
+    beyond = sorted(k for k in set(args.save_steps) if k > args.steps)
+    if beyond:  # they would never be written
+        ap.error(f"--save-steps {' '.join(map(str, beyond))}: beyond the run's --steps {args.steps} (checkpoints are "
+                 "written after steps 1..N)")
     if args.resume is not None and not args.resume.is_file():
         ap.error(f"--resume {args.resume}: no such checkpoint file")
     if args.threads:
