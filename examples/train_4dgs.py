@@ -36,6 +36,7 @@ from mvgs_plugin.cli import (
     metrics_record, model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
     scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
+from mvgs_plugin.data.load import scene_layout
 from mvgs_plugin.data.nerf import is_dynamic
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
@@ -105,8 +106,7 @@ def run(args, dist) -> dict:
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: the box places the --init-random "
                          "points, and --init-random is 0, so it would change nothing; give --init-random N too")
     try:  # a static NeRF-layout scene, before it is read (and its points triangulated)
-        static = ((args.data / "transforms_train.json").is_file() or (args.data / "transforms.json").is_file()) \
-            and not is_dynamic(args.data)
+        static = scene_layout(args.data) == "nerf" and not is_dynamic(args.data)
     except ValueError as err:  # a malformed transforms_train.json, named
         raise UsageError(f"--data {args.data}: {err}") from err
     if static:

@@ -21,9 +21,9 @@ import math
 import os
 import resource
 import sys
-import warnings
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -36,7 +36,7 @@ from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text, load_checked
-from mvgs_plugin.schedule import NoDensificationWarning, densifies_at_some_step
+from mvgs_plugin.schedule import NoDensificationWarning, densifies_at_some_step, no_densification_message
 
 __all__ = [
     "UsageError", "MIN_IMAGE_SIDE", "check_resolution", "repo_path", "without_machine_paths", "ROOT",
@@ -545,11 +545,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         config = dataclasses.replace(config, grad_threshold_width=args.threshold_width or None)
     if not densifies_at_some_step(config):
         length = f"--budget {args.budget:g}" if args.budget is not None else f"--steps {args.steps}"
-        print(f"{Path(sys.argv[0]).name}: note: {length}: this run densifies at no step: its densification window, "
-              f"after {config.densify_from} and before {config.densify_until} on the run's clock (every "
-              f"{config.densify_every}), holds no call (a short run waits {min(50, config.densify_from)} before its "
-              "first, so that densification does not act on a model that has fitted nothing yet); a longer run "
-              "densifies", file=sys.stderr)
+        print(f"{Path(sys.argv[0]).name}: note: {length}: {no_densification_message(config)}", file=sys.stderr)
     return config
 
 

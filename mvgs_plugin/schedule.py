@@ -145,6 +145,15 @@ class StepPlan:
             yield [self.cameras[i] for i in chunk], [self.images[i] for i in chunk], self.backgrounds[chunk], collect
 
 
+def no_densification_message(config: MVGSConfig) -> str:
+    """What a run whose densification window holds no call (densifies_at_some_step False) is
+    told: by ViewSchedule's NoDensificationWarning, and by the CLI's note."""
+    return (f"this run densifies at no step: its densification window, after {config.densify_from} and before "
+            f"{config.densify_until} on the run's clock (every {config.densify_every}), holds no call (a short run "
+            f"waits {min(50, config.densify_from)} before its first, so that densification does not act on a model "
+            "that has fitted nothing yet); a longer run densifies")
+
+
 def densifies_at_some_step(config: MVGSConfig) -> bool:
     """Whether the config's densification window (clock > densify_from and < densify_until,
     where the clock crosses a multiple of densify_every: ViewSchedule.next's rule) holds a call.
@@ -190,10 +199,7 @@ class ViewSchedule:
                           f"config.for_scene(scene).with_total_steps(N), as the examples' --steps does", stacklevel=3)
         self.config = config = resolved
         if not densifies_at_some_step(config):
-            warnings.warn(f"this run densifies at no step: its densification window, after {config.densify_from} and "
-                          f"before {config.densify_until} on the run's clock (every {config.densify_every}), holds no "
-                          "call; a longer run densifies (with_total_steps keeps the first call >= 50 steps in)",
-                          NoDensificationWarning, stacklevel=2)
+            warnings.warn(no_densification_message(config), NoDensificationWarning, stacklevel=2)
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
         times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
@@ -457,12 +463,11 @@ class ViewSchedule:
         densification clock (another preset, step count or views per step); states saved before
         these were recorded load without those checks."""
         self.check_views_of(state)
-        saved = state.get("plan") if isinstance(state, dict) else None
-        if saved is not None and saved != self._plan_key():  # absent in states saved before it was recorded
-            mine = self._plan_key()
-            what = "stage plan (factor, views, steps)" if saved["stages"] != mine["stages"] else \
-                "densification clock (densify_from, densify_until, densify_every, opacity_reset_every)"
+        saved, mine = (state.get("plan") if isinstance(state, dict) else None), self._plan_key()
+        if saved is not None and saved != mine:  # absent in states saved before it was recorded
             key = "stages" if saved["stages"] != mine["stages"] else "clock"
+            what = {"stages": "stage plan (factor, views, steps)",
+                    "clock": "densification clock (densify_from, densify_until, densify_every, opacity_reset_every)"}[key]
             raise ValueError(f"this state was saved by a schedule with another {what}: {saved[key]}, this one has "
                              f"{mine[key]}; resume with the config (preset, steps, views) it was saved with")
         self.step_count = int(state["step"])

@@ -19,7 +19,7 @@ import torch
 
 from ..checks import check_int
 from ..camera import Camera
-from .distortion import Distortion, UndistortedImage, Undistortion
+from .distortion import Distortion, UndistortedImage, shared_undistortion
 from .images import image_size
 from .scene import PointCloud, Scene
 
@@ -381,13 +381,10 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
                 if size != (width, height):  # a downscaled copy (images_4/): its intrinsics
                     K, width, height = _downscaled(K, width, height, size, file, image.camera_id)
                     resized.setdefault((image.camera_id, cam.width, cam.height), set()).add((width, height))
-            if dist:  # one resampling per COLMAP camera and image size, shared by its images
-                key = (image.camera_id, width, height)
-                if key not in undistortions:
-                    undistortions[key] = Undistortion(K, width, height, dist, f"{model_dir}: camera {image.camera_id}")
-                und = undistortions[key]
+            if dist:
+                und = shared_undistortion(undistortions, K, width, height, dist, f"{model_dir}: camera {image.camera_id}")
                 K, width, height = und.K_out, und.width_out, und.height_out
-                sources[int(image_id)] = und
+                sources[int(image_id)] = UndistortedImage(file, und)
             camera = Camera(uid=int(image_id), name=name, K=K, world_to_camera=_world_to_camera(image),
                             width=width, height=height)
         except ValueError as err:
@@ -423,6 +420,5 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         LOG.info("%s: images in %s are downscaled copies, each camera scaled to its images: %s", model_dir, images_dir,
                  "; ".join(f"camera {i} {w}x{h} -> " + ", ".join(f"{a}x{b}" for a, b in sorted(to))
                            for (i, w, h), to in sorted(resized.items())))
-    sources = {uid: (UndistortedImage(f, sources[uid]) if uid in sources else f) for uid, f in files.items()}
-    return Scene(train_cams, test_cams, sources, points=_points(rec, model_dir), background=background,
+    return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()}, points=_points(rec, model_dir), background=background,
                  source=path)

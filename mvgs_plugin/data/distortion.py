@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["Distortion", "Undistortion", "UndistortedImage"]
+__all__ = ["Distortion", "Undistortion", "UndistortedImage", "shared_undistortion"]
 
 _NEWTON_STEPS = 50
 _INVERSE_TOLERANCE = 1e-10  # in normalised coordinates: 1e-7 px at a focal length of 1000 px
@@ -163,6 +163,16 @@ class Undistortion:
         out = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None].to(torch.float32), self.grid(),
                                               mode="bilinear", padding_mode="border", align_corners=False)
         return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+
+
+def shared_undistortion(cache: dict, K: np.ndarray, width: int, height: int, distortion: Distortion,
+                        where: str = "") -> Undistortion:
+    """The Undistortion of a camera from ``cache``, made on its first image: one resampling grid
+    per distinct camera (intrinsics, size, lens), shared by all its images."""
+    key = (np.asarray(K, dtype=np.float64).tobytes(), int(width), int(height), distortion)
+    if key not in cache:
+        cache[key] = Undistortion(K, width, height, distortion, where)
+    return cache[key]
 
 
 @dataclasses.dataclass(frozen=True)

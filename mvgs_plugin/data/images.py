@@ -171,11 +171,9 @@ def may_have_alpha(path: Path) -> bool:
 
 
 def has_transparency(path: Path) -> bool:
-    """Whether an image file has an alpha channel with a pixel below fully opaque (a file that
-    only may carry alpha, by its header, is decoded to tell)."""
+    """Whether an image file has an alpha channel with a pixel below fully opaque (decoded to
+    tell; call may_have_alpha first to skip files whose header has none)."""
     path = Path(path)
-    if not may_have_alpha(path):
-        return False
     arr = _to_unit_float(_decode(path), path)
     if arr.ndim != 3 or arr.shape[2] not in (2, 4):
         return False

@@ -16,6 +16,17 @@ from .scene import Scene
 LOG = logging.getLogger("mvgs_plugin")
 
 
+def scene_layout(path) -> Optional[str]:
+    """The layout load_scene reads a folder as: "nerf" (transforms_train.json, or one
+    transforms.json in a folder without a COLMAP model), "colmap" (sparse/, or cameras.bin /
+    cameras.txt at the top), or None."""
+    path = Path(path)
+    colmap = (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists()
+    if (path / "transforms_train.json").exists() or (not colmap and (path / "transforms.json").exists()):
+        return "nerf"
+    return "colmap" if colmap else None
+
+
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
                init_cache=None, threads: Optional[int] = None, background_points: int = 0,
                background="auto", images=None) -> Scene:
@@ -61,13 +72,13 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         background = check_background(background)  # a ValueError naming the value
         if background is None:
             raise ValueError("background must be 'auto' or 3 floats in [0,1], got None")
-    colmap = (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists()
-    if (path / "transforms_train.json").exists() or (not colmap and (path / "transforms.json").exists()):
+    layout = scene_layout(path)
+    if layout == "nerf":
         if images is not None:
             raise ValueError(f"images={str(images)!r} is for COLMAP scenes; {path} is NeRF-style, its jsons name each "
                              "frame's image (file_path)")
         scene = (load_dnerf if is_dynamic(path) else load_nerf_synthetic)(path, background=background)
-    elif colmap:
+    elif layout == "colmap":
         folder = None if images is None else path / images  # an absolute one stays itself
         if folder is not None and not folder.is_dir():
             raise ValueError(f"images folder {folder} does not exist (images={str(images)!r}, relative to {path})")

@@ -15,8 +15,8 @@ import torch
 
 from ..camera import Camera
 from .colmap import check_inside, normalize_name
-from .distortion import Distortion, UndistortedImage, Undistortion
-from .images import BORDER_TOLERANCE, check_background, has_transparency, image_size, uniform_border
+from .distortion import Distortion, UndistortedImage, shared_undistortion
+from .images import BORDER_TOLERANCE, check_background, has_transparency, image_size, may_have_alpha, uniform_border
 from .scene import PointCloud, Scene
 
 __all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "transforms_files", "OPENGL_TO_OPENCV"]
@@ -192,11 +192,8 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
     try:
         K = _intrinsics(frame, width, height, where)
         dist = _distortion(frame, where)
-        if dist:  # one resampling per distinct camera, shared by its frames
-            key = (K.tobytes(), width, height, dist)
-            if key not in undistortions:
-                undistortions[key] = Undistortion(K, width, height, dist, where)
-            und = undistortions[key]
+        if dist:
+            und = shared_undistortion(undistortions, K, width, height, dist, where)
             K, width, height, source = und.K_out, und.width_out, und.height_out, UndistortedImage(file, und)
         cam = Camera(uid=uid, name=name, K=K, world_to_camera=_world_to_camera(frame, where), width=width,
                      height=height, time=time)
@@ -330,10 +327,12 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     if not auto:
         scene.background_origin = "given" if bg is not None else "none (alpha dropped)"
         return scene
-    seethrough = {cam.uid for cam in scene.train_cameras if has_transparency(scene.image_file(cam))}
-    if seethrough:
+    alpha = {cam.uid: may_have_alpha(scene.image_file(cam)) for cam in scene.train_cameras}  # headers only
+    # decoded up to the first image with a see-through pixel (usually the first): RGBA captures
+    # are not read twice at start-up; files without an alpha channel are opaque unread
+    if any(has_transparency(scene.image_file(cam)) for cam in scene.train_cameras if alpha[cam.uid]):
         scene.background_origin = "white: RGBA images composited on it (the default)"
-        opaque = [cam for cam in scene.train_cameras if cam.uid not in seethrough]
+        opaque = [cam for cam in scene.train_cameras if not alpha[cam.uid]]
         shown = uniform_border(scene.image(cam) for cam in opaque) if opaque else None
         if shown is not None and max(abs(c - 1.0) for c in shown) > BORDER_TOLERANCE:
             warnings.warn(f"{root}: {len(opaque)} of the {len(scene.train_cameras)} training images have no transparent "
@@ -391,14 +390,15 @@ def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "a
     Intrinsics, per frame or top-level (per frame wins): ``fl_x``/``fl_y``, else fx = W / (2
     tan(camera_angle_x / 2)) and fy from ``camera_angle_y`` or fy = fx; ``cx``/``cy`` default to
     W/2, H/2; ``w``/``h``, when given, must match the image; lens distortion (``k1``..``k4``,
-    ``p1``, ``p2`` not 0) or a non-pinhole ``camera_model`` is refused. ``points3d.ply`` next to
+    ``p1``, ``p2``) is undistorted when the images are read (:mod:`~mvgs_plugin.data.distortion`),
+    and a fisheye ``camera_model`` (or ``is_fisheye``) is refused. ``points3d.ply`` next to
     the jsons, else the ply a transforms.json names in ``ply_file_path`` (nerfstudio), becomes
     ``scene.points``. Uids count train frames then test frames from 0; names are the image paths
     relative to ``path`` (e.g. "train/r_000.png").
 
     ``background``: "auto" (default) composites RGBA images on white, as the Blender scenes are
-    evaluated; when no training image has alpha, the images were composited already, and the
-    colour their one-pixel borders show, when it is one colour
+    evaluated; when no training image has a transparent pixel, the images were composited
+    already, and the colour their one-pixel borders show, when it is one colour
     (:func:`~mvgs_plugin.data.images.uniform_border`), is the scene's background (white when it
     is not: a photograph's border). A colour composites RGBA images on it and is the scene's
     background whatever the images hold; None drops alpha. ``scene.background_origin`` says which.
