@@ -33,10 +33,11 @@ ROOT = Path(__file__).resolve().parents[1]
 LOOP = ROOT / "examples" / "gsplat_loop"
 
 
-def run(script: str, steps: int, out: Path, data, device: str, preset: str = "default", seed: int = 0,
+def run(script: str, steps: int, out: Path, data, device: str, preset=None, seed: int = 0,
         extra=()) -> dict:
-    cmd = [sys.executable, str(LOOP / script), "--steps", str(steps), "--out", str(out), "--preset", preset,
-           "--seed", str(seed), *extra]
+    """One run of a loop; `preset` only for the MVGS loops (the single-view loop refuses it)."""
+    cmd = [sys.executable, str(LOOP / script), "--steps", str(steps), "--out", str(out),
+           *(["--preset", preset] if preset else []), "--seed", str(seed), *extra]
     if device == "cuda":
         cmd += ["--device", "cuda", "--rasterizer", "gsplat"]
     else:

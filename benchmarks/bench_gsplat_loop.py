@@ -30,9 +30,10 @@ ROOT = Path(__file__).resolve().parents[1]
 LOOP = ROOT / "examples" / "gsplat_loop"
 
 
-def run(script: str, steps: int, out: Path, data, preset: str = "default", seed: int = 0, extra=()) -> dict:
+def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, extra=()) -> dict:
+    """One run of a loop; `preset` only for the MVGS loops (the single-view loop refuses it)."""
     cmd = [sys.executable, str(LOOP / script), "--steps", str(steps), "--out", str(out), "--threads", "1",
-           "--preset", preset, "--seed", str(seed), *extra]
+           *(["--preset", preset] if preset else []), "--seed", str(seed), *extra]
     if data is not None:
         cmd += ["--data", str(data)]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
@@ -60,9 +61,9 @@ def main(argv=None) -> str:
 
     width = load_scene(args.data or ROOT / "examples" / "scenes" / "tabletop").train_cameras[0].width
     scaled = ["--grow-grad2d", f"{2e-4 * 800 / width:.6g}"]
-    jobs = {"single": ("simple_trainer.py", n, "default", ()),
+    jobs = {"single": ("simple_trainer.py", n, None, ()),
             "single-mvgs-clock": ("simple_trainer_mvgs.py", n, "baseline", ()),
-            "single-scaled": ("simple_trainer.py", n, "default", scaled)}
+            "single-scaled": ("simple_trainer.py", n, None, scaled)}
     jobs.update({p: ("simple_trainer_mvgs.py", n, p, ()) for p in args.presets})
     with ThreadPoolExecutor(args.parallel) as pool:
         futures = {k: pool.submit(run, s, steps, out / k, args.data, p, args.seed, x)
@@ -73,13 +74,13 @@ def main(argv=None) -> str:
         for p in args.presets:
             ratio = first[p]["cpu_seconds"] / single["cpu_seconds"]
             second[f"single@{p}"] = pool.submit(run, "simple_trainer.py", max(2, round(n * ratio)), out / f"single_at_{p}",
-                                                args.data, "default", args.seed)
+                                                args.data, None, args.seed)
             second[f"{p}@single"] = pool.submit(run, "simple_trainer_mvgs.py", max(2, round(n / ratio)), out / f"{p}_at_single",
                                                 args.data, p, args.seed)
             ratio_scaled = first[p]["cpu_seconds"] / first["single-scaled"]["cpu_seconds"]
             if ratio_scaled > 1.05:  # the scaled single view is cheaper: give it the preset's CPU time
                 second[f"scaled@{p}"] = pool.submit(run, "simple_trainer.py", max(2, round(n * ratio_scaled)),
-                                                    out / f"single_scaled_at_{p}", args.data, "default", args.seed,
+                                                    out / f"single_scaled_at_{p}", args.data, None, args.seed,
                                                     scaled)
             elif ratio_scaled < 0.95:  # the preset is cheaper: give it the scaled single view's CPU time
                 second[f"{p}@scaled"] = pool.submit(run, "simple_trainer_mvgs.py", max(2, round(n / ratio_scaled)),

@@ -254,9 +254,12 @@ def test_the_strategy_clock_becomes_the_schedule_clock(forward):
     kept = MVGSStrategy(s, forward, "multiview", steps=300, clock="config").config
     assert kept == MVGSConfig.multiview().with_total_steps(300)
     # gsplat's defaults (refine from step 500) on a 300-step run: said, not a run that never densifies in silence
-    with pytest.warns(UserWarning, match="the strategy's refine window starts at step 500, at or after the run's 300 "
-                                         "steps: this run never densifies"):
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
         MVGSStrategy(DefaultStrategy(), forward, "default", steps=300)
+    assert len(said) == 1, [str(w.message) for w in said]  # once: not again as the schedule's NoDensificationWarning
+    assert str(said[0].message).startswith("the strategy's refine window starts at step 500, at or after the run's "
+                                           "300 steps: this run never densifies")
 
 
 def mvad_expected(scene, data, base, width):
@@ -707,6 +710,31 @@ def test_a_refused_resume_is_one_line_and_exit_2(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "bad.pt", "controller.pt"]  # refused runs leave no folder
     cfg = common.parse_config(base + ["--out", str(tmp_path / "a"), "--max-gaussians", "400", "--resume", str(ckpt)])
     assert common.run(simple_trainer_mvgs.Runner, cfg)["seed"] == 0  # the same seed resumes, and says its seed
+
+
+def test_a_flag_the_loop_does_not_read_is_refused_by_name(tmp_path, capsys):
+    """--preset, --max-gaussians, --pixels-per-gaussian mean nothing to gsplat's single-view loop
+    and --chunk-size only to the chunked one: a run given one it would ignore stops with one
+    line naming it (exit 2, no folder left), where it used to train without them."""
+    base = ["--data", str(FORWARD), "--steps", "2", "--threads", "1"]
+    cases = [(simple_trainer, ["--preset", "default"], "--preset"),
+             (simple_trainer, ["--max-gaussians", "300"], "--max-gaussians"),
+             (simple_trainer, ["--pixels-per-gaussian", "50", "--chunk-size", "2"], "--pixels-per-gaussian --chunk-size"),
+             (simple_trainer_mvgs, ["--chunk-size", "2"], "--chunk-size")]
+    for k, (module, flags, named) in enumerate(cases):
+        cfg = common.parse_config(base + ["--out", str(tmp_path / f"r{k}"), *flags])
+        with pytest.raises(SystemExit) as err:
+            common.run(module.Runner, cfg)
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert err.value.code == 2 and len(lines) == 1 and f"error: {named}: not read by this loop" in lines[0], lines
+    assert list(tmp_path.iterdir()) == []
+    # the flags each loop reads still run: the chunked loop with its chunk size, the MVGS loop with
+    # a budget, the single-view loop with neither
+    for module, flags in [(simple_trainer_chunked, ["--chunk-size", "2", "--preset", "multiview"]),
+                          (simple_trainer_mvgs, ["--max-gaussians", "300"]), (simple_trainer, [])]:
+        cfg = common.parse_config(base[:-4] + ["--steps", "8", "--threads", "1", "--out", str(tmp_path / module.__name__),
+                                               *flags])
+        assert common.run(module.Runner, cfg)["steps"] == 8
 
 
 def test_the_example_cli_takes_a_budget_from_the_data(tmp_path, forward):

@@ -58,6 +58,15 @@ Variants (``--variant``):
   within 0.35 of the room's centre at 0.95-1.25 high and look outwards, their azimuths spread
   round the full circle, slightly downwards. The cameras surround nothing: what they see lies
   around them, 1-3.5 away, the rig kind no other variant has.
+* ``arc``: the clutter scene's primitives, materials, sun and sky seen by a handheld sweep round
+  its front: 48 train + 12 test views in order along a 120 degree arc of azimuth, 8-40 degrees
+  high, 2.4-4.2 from the scene (close-ups and wide views alternate), in **4:3 landscape images**
+  (width ``--size``, height 3/4 of it, the same horizontal field). The back of the scene is never
+  seen: a partial orbit, the rig of most handheld object captures, with non-square images.
+* ``aerial``: the clutter scene seen from above by a drone survey: 48 train + 12 test cameras
+  flown row by row over a jittered grid 3 x 2 wide, 3.6-4.4 above the ground, each tilted 0-20
+  degrees from straight down towards the scene's middle, in **3:4 portrait images** (height
+  ``--size``, width 3/4 of it). Nearly parallel axes like a forward rig's, looking down.
 * ``room-walk``: the same room seen by cameras that walk a loop of radius ROOM_WALK_RADIUS about
   its middle, each looking ahead along the loop (yaw jittered by up to 30 degrees either way):
   the axes spread every way and meet nowhere, as for the room, but the objects near the walls
@@ -80,13 +89,15 @@ import os
 import sys
 import time
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
-            "room", "room-walk")
+            "room", "room-walk", "arc", "aerial")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 ROOM_VARIANTS = ("room", "room-walk")
+CLUTTER_CONTENT = ("clutter", "forward-clutter", "arc", "aerial")  # the clutter scene's primitives and light
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
 FOV_X_DEG = 45.0
@@ -119,6 +130,19 @@ ROOM_LAMP_HALF, ROOM_LAMP_RADIANCE = 0.8, (9.0, 8.4, 7.6)
 ROOM_EYE_RADIUS, ROOM_EYE_Z = 0.35, (0.95, 1.25)
 ROOM_WALK_RADIUS = 1.2
 
+# arc: a sweep round the front of the clutter scene (azimuth span and centre, degrees), the
+# cameras' distance range from TARGET, and the images' height over width (landscape 4:3)
+ARC_SPAN_DEG, ARC_CENTRE_DEG = 120.0, 30.0
+ARC_DIST = (2.4, 4.2)
+ARC_ASPECT = 0.75
+
+# aerial: a survey grid over the clutter scene (columns x rows, its half extents in x and y, the
+# cameras' heights above the ground) in portrait images (width over height)
+AERIAL_GRID = (10, 6)
+AERIAL_HALF = (1.5, 1.0)
+AERIAL_Z = (3.6, 4.4)
+AERIAL_ASPECT = 0.75
+
 # clutter: primitive layout seed and the sun (azimuth, elevation) in radians
 CLUTTER_SEED = 2024
 CLUTTER_SUN = (math.radians(-132.0), math.radians(35.0))
@@ -146,10 +170,12 @@ class View:
         return np.linalg.inv(self.w2c)
 
 
-def intrinsics(size: int, fov_x_deg: float = FOV_X_DEG) -> np.ndarray:
-    """Square pixels, principal point at the image centre (pixel centres at +0.5)."""
+def intrinsics(size: int, fov_x_deg: float = FOV_X_DEG, height: Optional[int] = None) -> np.ndarray:
+    """Square pixels, principal point at the image centre (pixel centres at +0.5); ``size`` is the
+    width, ``height`` (None: the width) the image's height."""
     fx = 0.5 * size / math.tan(0.5 * math.radians(fov_x_deg))
-    return np.array([[fx, 0.0, 0.5 * size], [0.0, fx, 0.5 * size], [0.0, 0.0, 1.0]])
+    h = size if height is None else height
+    return np.array([[fx, 0.0, 0.5 * size], [0.0, fx, 0.5 * h], [0.0, 0.0, 1.0]])
 
 
 def look_at_w2c(centre: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -323,8 +349,59 @@ def rig_room_walk(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return rig
 
 
+def rig_arc(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, look-at) pairs of a handheld sweep round the front of the scene: azimuths in order
+    over ARC_SPAN_DEG about ARC_CENTRE_DEG (jittered by a fifth of a step), elevations 8-40
+    degrees and distances over ARC_DIST from TARGET (radical-inverse sequences, so close-ups and
+    wide views alternate), each looking at a point within 0.25 of TARGET. The back of the
+    scene is never seen and the views converge only over the arc's third of the circle."""
+    rng = np.random.default_rng(RIG_SEED + 5)
+    rig = []
+    step = math.radians(ARC_SPAN_DEG) / max(n_total - 1, 1)
+    for k in range(n_total):
+        az = math.radians(ARC_CENTRE_DEG - 0.5 * ARC_SPAN_DEG) + k * step + rng.uniform(-0.2, 0.2) * step
+        elev = math.radians(8.0 + 32.0 * radical_inverse(k, 3))
+        dist = ARC_DIST[0] + (ARC_DIST[1] - ARC_DIST[0]) * radical_inverse(k, 5)
+        centre = TARGET + dist * np.array([math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az),
+                                           math.sin(elev)])
+        rig.append((centre, TARGET + rng.uniform(-0.25, 0.25, 3)))
+    return rig
+
+
+def rig_aerial(n_total: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, look-at) pairs of a drone survey: n_total cameras in rows over a jittered
+    AERIAL_GRID-like lattice covering +-AERIAL_HALF, at heights AERIAL_Z, flown row by row;
+    each looks down at the ground point halfway between the point below it and the scene's
+    centre, plus a jitter (tilts of 0-20 degrees off nadir, towards the middle): the axes nearly
+    share a direction, as a forward rig's do, but they look down and converge a little."""
+    rng = np.random.default_rng(RIG_SEED + 6)
+    cols = max(2, round(math.sqrt(n_total * AERIAL_GRID[0] / AERIAL_GRID[1])))
+    rows = -(-n_total // cols)
+    rig = []
+    for k in range(n_total):
+        r, c = divmod(k, cols)
+        c = c if r % 2 == 0 else cols - 1 - c  # boustrophedon, as a survey flies
+        x = AERIAL_HALF[0] * (2 * (c + 0.5) / cols - 1) + rng.uniform(-0.1, 0.1)
+        y = AERIAL_HALF[1] * (2 * (r + 0.5) / rows - 1) + rng.uniform(-0.1, 0.1)
+        z = AERIAL_Z[0] + (AERIAL_Z[1] - AERIAL_Z[0]) * rng.random()
+        look = np.array([0.5 * x, 0.5 * y, 0.0]) + np.append(rng.uniform(-0.15, 0.15, 2), 0.0)
+        rig.append((np.array([x, y, z]), look))
+    return rig
+
+
+def image_size(variant: str, size: int) -> tuple[int, int]:
+    """(width, height) of the variant's images: ``size`` wide and square but for arc (landscape
+    4:3, ``size`` wide) and aerial (portrait 3:4, ``size`` high)."""
+    if variant == "arc":
+        return size, max(8, round(ARC_ASPECT * size))
+    if variant == "aerial":
+        return max(8, round(AERIAL_ASPECT * size)), size
+    return size, size
+
+
 def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
-    K = intrinsics(size)
+    width, height = image_size(variant, size)
+    K = intrinsics(width, height=height)
     views: list[View] = []
     if variant == "sparse":
         train, test = rig_sparse(n_train, n_test)
@@ -346,14 +423,20 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
         rig = rig_room(n_total)
     elif variant == "room-walk":
         rig = rig_room_walk(n_total)
+    elif variant == "arc":
+        rig = rig_arc(n_total)
+    elif variant == "aerial":
+        rig = rig_aerial(n_total)
     else:
         rig = [(c, TARGET) for c in rig_dense(n_total)]
+    # a camera looking (nearly) straight down takes "up" in its image from the world's +y
+    up = (0.0, 1.0, 0.0) if variant == "aerial" else (0.0, 0.0, 1.0)
     for k, (c, look) in enumerate(rig):
         split = "test" if k in slots else "train"
         # Moving scene: time runs along the rig, so a test view gets a time between the times
         # of its train neighbours, at a camera no train view has: an unseen (camera, time) pair.
         t = k / max(n_total - 1, 1) if variant == "moving" else 0.0
-        views.append(View(split, counts[split], look_at_w2c(c, look), K, size, size, t))
+        views.append(View(split, counts[split], look_at_w2c(c, look, up=up), K, width, height, t))
         counts[split] += 1
     return views
 
@@ -661,7 +744,7 @@ class SceneBuilder:
         self.ground_tex = mi.Bitmap(ground_texture())
         self.box_tex = mi.Bitmap(box_texture())
         self._cache: dict[float, object] = {}
-        if variant in ("clutter", "forward-clutter", "corridor") + ROOM_VARIANTS:
+        if variant in CLUTTER_CONTENT + ("corridor",) + ROOM_VARIANTS:
             # the sky's glow follows the sun: world azimuth = pi/2 - envmap longitude
             self.sky = mi.Bitmap(sky_texture(glow_phi=math.pi / 2 - CLUTTER_SUN[0]))
             self.clutter_tex = {
@@ -837,7 +920,7 @@ class SceneBuilder:
         return self._cache[key]
 
     def scene_dict(self, t: float) -> dict:
-        if self.variant in ("clutter", "forward-clutter"):
+        if self.variant in CLUTTER_CONTENT:
             return self.clutter_dict()
         if self.variant == "corridor":
             return self.corridor_dict()
@@ -1019,7 +1102,7 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
     """
     if variant == "moving":
         return sample_ground(n, rng)
-    if variant in ("clutter", "forward-clutter"):
+    if variant in CLUTTER_CONTENT:
         return sample_clutter(n, rng)
     if variant == "corridor":
         return sample_corridor(n, rng)
@@ -1292,7 +1375,7 @@ def parse_args(argv=None):
     ap.add_argument("--n-test", type=int, default=None,
                     help="test views, interleaved with train; None means 12, or 8 for "
                          "the forward-facing variants")
-    ap.add_argument("--size", type=int, default=128, help="image width = height in pixels")
+    ap.add_argument("--size", type=int, default=128, help="image width = height in pixels (arc: the width of its 4:3 images; aerial: the height of its 3:4 ones)")
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel")
     ap.add_argument("--seed", type=int, default=0, help="Monte Carlo and point-sampling seed")
     ap.add_argument("--n-points", type=int, default=4000, help="sparse surface points (max)")

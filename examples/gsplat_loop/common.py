@@ -61,6 +61,7 @@ class Config:
     batch_size: int = 1
     num_workers: int = 0  # gsplat's trainer uses 4 (a GPU machine); here the CPU trains
     chunk_size: Optional[int] = None  # views per render call of simple_trainer_chunked.py (None: the memory bound)
+    mvgs_flags: Tuple[str, ...] = ()  # the MVGS-only flags the command line gave (run() refuses them where unread)
     max_steps: int = 30_000
     save_steps: List[int] = field(default_factory=list)
     resume: Optional[Path] = None
@@ -350,8 +351,8 @@ def parse_config(argv=None, doc: str = "") -> Config:
                     help="gsplat's data_factor: a COLMAP scene's images_<factor>/ folder, the cameras scaled to it "
                          "(default: %(default)s, the full-size images)")
     ap.add_argument("--steps", type=int_at_least(2, MAX_STEPS), default=1000, help="training steps (default: %(default)s)")
-    ap.add_argument("--preset", choices=PRESETS, default="default",
-                    help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: %(default)s)")
+    ap.add_argument("--preset", choices=PRESETS, default=None,
+                    help="MVGS recipe of simple_trainer_mvgs.py / simple_trainer_chunked.py (default: default)")
     ap.add_argument("--out", type=out_folder, default=Path("out/gsplat_loop"), help="output folder (default: %(default)s)")
     ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0, help="seed (default: %(default)s)")
     ap.add_argument("--grow-grad2d", type=float_above(0.0), default=2e-4,
@@ -389,14 +390,29 @@ def parse_config(argv=None, doc: str = "") -> Config:
         ap.error(f"--resume {args.resume}: no such checkpoint file")
     if args.threads:
         torch.set_num_threads(args.threads)
+    given = tuple(flag for flag, value in (("--preset", args.preset), ("--max-gaussians", args.max_gaussians),
+                                           ("--pixels-per-gaussian", args.pixels_per_gaussian),
+                                           ("--chunk-size", args.chunk_size)) if value is not None)
+    args.preset = args.preset or "default"
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
                                 ("pixels_per_gaussian", args.pixels_per_gaussian)) if v is not None}
     preset = MVGSConfig.from_preset(args.preset, **budget) if budget else args.preset
     cfg = Config(data_dir=args.data, data_factor=args.data_factor, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
-                 grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size)
+                 grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size,
+                 mvgs_flags=given)
     cfg.adjust_steps(args.steps)
     return cfg
+
+
+def unread_flags(runner, cfg: Config) -> List[str]:
+    """The MVGS-only flags of cfg.mvgs_flags that `runner` does not read: all of them where its
+    strategy is not MVGS (gsplat's single-view loop), --chunk-size where its MVGS config did not
+    take the chunk size (only the chunked loop passes it on)."""
+    mvgs = getattr(runner.cfg.strategy, "config", None)
+    if mvgs is None:
+        return list(cfg.mvgs_flags)
+    return [f for f in cfg.mvgs_flags if f == "--chunk-size" and mvgs.chunk_size != cfg.chunk_size]
 
 
 def run(runner_class, cfg: Config) -> Dict:
@@ -417,6 +433,16 @@ def run(runner_class, cfg: Config) -> Dict:
         flag = f"--data-factor {cfg.data_factor}" if f"images_{cfg.data_factor}" in str(err) else f"--data {cfg.data_dir}"
         print(f"{Path(sys.argv[0]).name}: error: {flag}: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    unread = unread_flags(runner, cfg)
+    if unread:  # a flag this loop does not read would change nothing, without a word
+        if made and not any(cfg.result_dir.iterdir()):
+            cfg.result_dir.rmdir()
+        script = Path(sys.argv[0]).name
+        print(f"{script}: error: {' '.join(unread)}: not read by this loop ({script}, "
+              f"{type(runner.cfg.strategy).__name__}); --preset, --max-gaussians and --pixels-per-gaussian are "
+              "read by simple_trainer_mvgs.py and simple_trainer_chunked.py, --chunk-size by "
+              "simple_trainer_chunked.py", file=sys.stderr)
+        raise SystemExit(2)
     cuda = str(cfg.device).startswith("cuda")
     if cuda:
         torch.cuda.synchronize()

@@ -1,0 +1,86 @@
+"""The generator's ``arc`` rig (a handheld sweep round the front of a scene, in 4:3 landscape
+images) and ``aerial`` rig (a drone survey looking down, in 3:4 portrait images): checked against
+their definitions with plain geometry, and their cameras through the rig classifiers the presets
+use (an arc is neither forward-facing nor inside-out; a survey is forward-facing)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mvgs_plugin.data.init import CONVERGING_COSINE, CONVERGING_SPREAD, axis_spread, look_convergence
+from test_inside_out import cameras_of, load_make_scene
+
+
+def test_the_arc_rig_sweeps_its_arc_in_order_at_its_distances_in_landscape_images():
+    ms = load_make_scene()
+    views = ms.make_views("arc", 48, 12, 128)
+    assert sum(v.split == "train" for v in views) == 48 and sum(v.split == "test" for v in views) == 12
+    step = math.radians(ms.ARC_SPAN_DEG) / 59
+    lo = math.radians(ms.ARC_CENTRE_DEG - 0.5 * ms.ARC_SPAN_DEG)
+    for k, v in enumerate(views_in_rig_order(views)):
+        assert (v.width, v.height) == (128, 96)
+        # square pixels, the principal point at the centre of the non-square image
+        assert v.K[0, 0] == v.K[1, 1] and (v.K[0, 2], v.K[1, 2]) == (64.0, 48.0)
+        c = v.c2w[:3, 3] - ms.TARGET
+        assert ms.ARC_DIST[0] - 1e-9 <= np.linalg.norm(c) <= ms.ARC_DIST[1] + 1e-9
+        az = math.atan2(c[1], c[0])
+        assert abs(az - (lo + k * step)) <= 0.2 * step + 1e-9  # in order along the arc
+        elev = math.degrees(math.asin(c[2] / np.linalg.norm(c)))
+        assert 8.0 - 1e-9 <= elev <= 40.0 + 1e-9
+        # looking at a point near the target: it projects inside the image
+        x = v.w2c[:3, :3] @ ms.TARGET + v.w2c[:3, 3]
+        u, w = (v.K @ x)[:2] / x[2]
+        assert x[2] > 0 and 0 < u < 128 and 0 < w < 96
+    # the sweep spans its 120 degrees; the horizontal field is the other variants' 45 degrees
+    assert math.degrees(2 * math.atan(64.0 / views[0].K[0, 0])) == pytest.approx(ms.FOV_X_DEG)
+
+
+def views_in_rig_order(views):
+    """The views in the order the rig made them (make_views interleaves the splits)."""
+    ms = load_make_scene()
+    slots = ms.pick_test_slots(len(views), sum(v.split == "test" for v in views))
+    train = iter(v for v in views if v.split == "train")
+    test = iter(v for v in views if v.split == "test")
+    return [next(test) if k in slots else next(train) for k in range(len(views))]
+
+
+def test_the_arc_rig_converges_like_an_orbit_although_it_covers_a_third_of_one():
+    ms = load_make_scene()
+    cams = cameras_of([v for v in ms.make_views("arc", 48, 12, 64) if v.split == "train"])
+    # the presets' classifier: not forward-facing (the pyramid and the extent step rule apply)
+    assert axis_spread(cams) >= CONVERGING_SPREAD
+    # and not inside-out: the axes meet in front of the cameras
+    assert look_convergence(cams) >= CONVERGING_COSINE
+    # near the analytic spread of directions uniform over +-60 degrees in one plane,
+    # 1 - E[cos^2] = 0.29 (the rig's elevations and look-at jitter move it a little)
+    half = math.radians(ms.ARC_SPAN_DEG / 2)
+    planar = 1.0 - (0.5 + math.sin(2 * half) / (4 * half))
+    assert abs(axis_spread(cams) - planar) < 0.05
+
+
+def test_the_aerial_rig_flies_its_grid_looking_down_in_portrait_images():
+    ms = load_make_scene()
+    views = ms.make_views("aerial", 48, 12, 128)
+    for v in views:
+        assert (v.width, v.height) == (96, 128)
+        assert v.K[0, 0] == v.K[1, 1] and (v.K[0, 2], v.K[1, 2]) == (48.0, 64.0)
+        c = v.c2w[:3, 3]
+        assert ms.AERIAL_Z[0] - 1e-9 <= c[2] <= ms.AERIAL_Z[1] + 1e-9
+        assert abs(c[0]) <= ms.AERIAL_HALF[0] + 0.1 + 1e-9 and abs(c[1]) <= ms.AERIAL_HALF[1] + 0.1 + 1e-9
+        axis = v.c2w[:3, 2]
+        # 0-20 degrees off straight down, tilted towards the middle (never away from it)
+        tilt = math.degrees(math.acos(-axis[2]))
+        assert tilt <= 20.0
+        if math.hypot(c[0], c[1]) > 0.6:
+            assert float(axis[:2] @ -c[:2]) > 0
+        # the image's up is the world's +y side (the down vector of the image has y < 0)
+        assert v.c2w[1, 1] < 0
+        # the ground point straight below the middle of the survey lies in front of every camera
+        x = v.w2c[:3, :3] @ np.array([0.0, 0.0, 0.0]) + v.w2c[:3, 3]
+        assert x[2] > 0
+    # the presets' classifier reads the survey as forward-facing: the axes nearly share a direction
+    cams = cameras_of([v for v in views if v.split == "train"])
+    assert axis_spread(cams) < CONVERGING_SPREAD
