@@ -1,7 +1,8 @@
 """The generator's ``arc`` rig (a handheld sweep round the front of a scene, in 4:3 landscape
 images) and ``aerial`` rig (a drone survey looking down, in 3:4 portrait images): checked against
 their definitions with plain geometry, and their cameras through the rig classifiers the presets
-use (an arc is neither forward-facing nor inside-out; a survey is forward-facing)."""
+use (an arc is neither forward-facing nor inside-out; a survey is forward-facing); and the ``thin``
+variant's fence of sub-pixel posts and wires."""
 
 from __future__ import annotations
 
@@ -84,3 +85,39 @@ def test_the_aerial_rig_flies_its_grid_looking_down_in_portrait_images():
     # the presets' classifier reads the survey as forward-facing: the axes nearly share a direction
     cams = cameras_of([v for v in views if v.split == "train"])
     assert axis_spread(cams) < CONVERGING_SPREAD
+
+
+def test_the_thin_variants_fence_stands_round_the_objects_and_its_points_lie_on_it():
+    ms = load_make_scene()
+    fence = ms.fence_segments()
+    posts = [s for s in fence if s[3] == "post"]
+    wires = [s for s in fence if s[3] == "wire"]
+    assert len(posts) == ms.FENCE_POSTS and len(wires) == ms.FENCE_POSTS * len(ms.FENCE_WIRE_HEIGHTS)
+    for p0, p1, r, _ in posts:  # upright, on the circle, from the ground
+        assert math.hypot(p0[0], p0[1]) == pytest.approx(ms.FENCE_RADIUS) and p0[2] == 0.0
+        assert np.allclose(p1 - p0, [0.0, 0.0, ms.FENCE_POST_HEIGHT])
+    for p0, p1, r, _ in wires:  # level, between two neighbouring post tops' circle points
+        assert p0[2] == p1[2] and p0[2] in ms.FENCE_WIRE_HEIGHTS
+        assert np.linalg.norm(p1 - p0) == pytest.approx(2 * ms.FENCE_RADIUS * math.sin(math.pi / ms.FENCE_POSTS))
+    # every object stands inside the fence, clear of its posts and wires
+    obj = ms.objects_at("thin", 0.0)
+    reach = max(math.hypot(*obj.ball_centre[:2]) + obj.ball_radius, math.hypot(*obj.metal_centre[:2]) + obj.metal_radius,
+                math.hypot(*obj.box_centre[:2]) + math.sqrt(2) * obj.box_half,
+                math.hypot(*obj.cyl_base[:2]) + obj.cyl_radius)
+    inner = ms.FENCE_RADIUS * math.cos(math.pi / ms.FENCE_POSTS) - ms.FENCE_POST_RADIUS  # the wires' closest approach
+    assert reach < inner
+    # sampled points lie on the cylinders' sides (at their radius from the axis, within the
+    # segment), shared among them by area: 2 pi r length each
+    pts = ms.sample_segments(2000, fence, np.random.default_rng(0))
+    off = np.full((len(pts), len(fence)), np.inf)
+    for k, (p0, p1, r, _) in enumerate(fence):
+        d = p1 - p0
+        t = (pts - p0) @ d / (d @ d)
+        radial = np.linalg.norm(pts - (p0 + t[:, None] * d), axis=1)
+        off[:, k] = np.where((t >= -1e-9) & (t <= 1 + 1e-9), np.abs(radial - r), np.inf)
+    assert off.min(axis=1).max() < 1e-9
+    area = np.array([2 * math.pi * r * np.linalg.norm(p1 - p0) for p0, p1, r, _ in fence])
+    is_post = np.array([kind == "post" for *_, kind in fence])
+    share = float(is_post[off.argmin(axis=1)].mean())
+    expected = float(area[is_post].sum() / area.sum())  # 0.42
+    assert abs(share - expected) < 4 * math.sqrt(expected * (1 - expected) / len(pts))

@@ -67,6 +67,10 @@ Variants (``--variant``):
   flown row by row over a jittered grid 3 x 2 wide, 3.6-4.4 above the ground, each tilted 0-20
   degrees from straight down towards the scene's middle, in **3:4 portrait images** (height
   ``--size``, width 3/4 of it). Nearly parallel axes like a forward rig's, looking down.
+* ``thin``: the default scene fenced in: 12 dark posts (0.03 across, about 1.2 px at 128 px)
+  on a circle of radius 1.35 round the objects, joined by three rings of pale wire (0.016
+  across, about 0.6 px), on the default's hemisphere rig. Structure thinner than a pixel, in
+  front of the objects in every view: at the pyramid's 1/4 level it is a quarter of that.
 * ``room-walk``: the same room seen by cameras that walk a loop of radius ROOM_WALK_RADIUS about
   its middle, each looking ahead along the loop (yaw jittered by up to 30 degrees either way):
   the axes spread every way and meet nowhere, as for the room, but the objects near the walls
@@ -94,7 +98,7 @@ from typing import Optional
 import numpy as np
 
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
-            "room", "room-walk", "arc", "aerial")
+            "room", "room-walk", "arc", "aerial", "thin")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 ROOM_VARIANTS = ("room", "room-walk")
 CLUTTER_CONTENT = ("clutter", "forward-clutter", "arc", "aerial")  # the clutter scene's primitives and light
@@ -142,6 +146,14 @@ AERIAL_GRID = (10, 6)
 AERIAL_HALF = (1.5, 1.0)
 AERIAL_Z = (3.6, 4.4)
 AERIAL_ASPECT = 0.75
+
+# thin: a fence round the default scene's objects: FENCE_POSTS posts of FENCE_POST_RADIUS on a
+# circle of FENCE_RADIUS, FENCE_POST_HEIGHT high, joined by wires of FENCE_WIRE_RADIUS at
+# FENCE_WIRE_HEIGHTS (at 128 px and the rig's distance a pixel is about 0.026 wide: the posts
+# are about 1.2 px across, the wires 0.6 px, a quarter of that at the pyramid's 1/4 level)
+FENCE_POSTS, FENCE_RADIUS, FENCE_POST_HEIGHT = 12, 1.35, 1.1
+FENCE_POST_RADIUS, FENCE_WIRE_RADIUS = 0.015, 0.008
+FENCE_WIRE_HEIGHTS = (0.35, 0.7, 1.05)
 
 # clutter: primitive layout seed and the sun (azimuth, elevation) in radians
 CLUTTER_SEED = 2024
@@ -572,6 +584,34 @@ class Objects:
     cyl_height: float
 
 
+def fence_segments() -> list[tuple[np.ndarray, np.ndarray, float, str]]:
+    """The thin variant's fence: (p0, p1, radius, "post" | "wire") per cylinder, posts first."""
+    angles = [2 * math.pi * (k + 0.5) / FENCE_POSTS for k in range(FENCE_POSTS)]
+    foot = [np.array([FENCE_RADIUS * math.cos(a), FENCE_RADIUS * math.sin(a), 0.0]) for a in angles]
+    out = [(f, f + np.array([0.0, 0.0, FENCE_POST_HEIGHT]), FENCE_POST_RADIUS, "post") for f in foot]
+    for h in FENCE_WIRE_HEIGHTS:
+        up = np.array([0.0, 0.0, h])
+        out += [(foot[k] + up, foot[(k + 1) % FENCE_POSTS] + up, FENCE_WIRE_RADIUS, "wire")
+                for k in range(FENCE_POSTS)]
+    return out
+
+
+def sample_segments(n: int, segments, rng: np.random.Generator) -> np.ndarray:
+    """n points on the side surfaces of the cylinders (p0, p1, radius, _), area-weighted."""
+    areas = np.array([2 * math.pi * r * np.linalg.norm(p1 - p0) for p0, p1, r, _ in segments])
+    which = rng.choice(len(segments), size=n, p=areas / areas.sum())
+    out = np.empty((n, 3))
+    for i, k in enumerate(which):
+        p0, p1, r, _ = segments[k]
+        axis = (p1 - p0) / np.linalg.norm(p1 - p0)
+        u = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(axis, u)
+        a = rng.uniform(0, 2 * math.pi)
+        out[i] = p0 + rng.random() * (p1 - p0) + r * (math.cos(a) * u + math.sin(a) * v)
+    return out
+
+
 def objects_at(variant: str, t: float) -> Objects:
     obj = Objects(
         ball_centre=np.array([0.55, -0.40, 0.35]), ball_radius=0.35,
@@ -960,6 +1000,11 @@ class SceneBuilder:
                         "to_world": T().translate(top.tolist()).scale(
                             [obj.cyl_radius, obj.cyl_radius, 1.0])},
         }
+        if self.variant == "thin":
+            colour = {"post": [0.06, 0.06, 0.07], "wire": [0.85, 0.85, 0.8]}  # dark posts, pale wires
+            for k, (p0, p1, r, kind) in enumerate(fence_segments()):
+                out[f"fence_{k}"] = {"type": "cylinder", "p0": p0.tolist(), "p1": p1.tolist(), "radius": r,
+                                     "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": colour[kind]}}}
         if self.variant == "forward":
             out["wall"] = {"type": "rectangle", "to_world": T(wall_to_world().tolist()),
                            "bsdf": {"type": "diffuse", "reflectance": {
@@ -1109,7 +1154,8 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
     if variant in ROOM_VARIANTS:
         return sample_room(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
-    n = n - n_wall
+    n_fence = int(0.08 * n) if variant == "thin" else 0
+    n = n - n_wall - n_fence
     obj = objects_at(variant, 0.0)
     cyl_area = 2 * math.pi * obj.cyl_radius * obj.cyl_height + math.pi * obj.cyl_radius ** 2
     areas = np.array([4 * math.pi * obj.ball_radius ** 2, 4 * math.pi * obj.metal_radius ** 2,
@@ -1123,6 +1169,8 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
              sample_cylinder(counts[3], obj.cyl_base, obj.cyl_radius, obj.cyl_height, rng)]
     if n_wall:
         parts.append(sample_rectangle(n_wall, wall_to_world(), rng))
+    if n_fence:
+        parts.append(sample_segments(n_fence, fence_segments(), rng))
     return np.concatenate(parts)
 
 
