@@ -21,7 +21,7 @@ def test_the_arc_rig_sweeps_its_arc_in_order_at_its_distances_in_landscape_image
     assert sum(v.split == "train" for v in views) == 48 and sum(v.split == "test" for v in views) == 12
     step = math.radians(ms.ARC_SPAN_DEG) / 59
     lo = math.radians(ms.ARC_CENTRE_DEG - 0.5 * ms.ARC_SPAN_DEG)
-    for k, v in enumerate(views_in_rig_order(views)):
+    for k, v in enumerate(views_in_rig_order(ms, views)):
         assert (v.width, v.height) == (128, 96)
         # square pixels, the principal point at the centre of the non-square image
         assert v.K[0, 0] == v.K[1, 1] and (v.K[0, 2], v.K[1, 2]) == (64.0, 48.0)
@@ -39,9 +39,8 @@ def test_the_arc_rig_sweeps_its_arc_in_order_at_its_distances_in_landscape_image
     assert math.degrees(2 * math.atan(64.0 / views[0].K[0, 0])) == pytest.approx(ms.FOV_X_DEG)
 
 
-def views_in_rig_order(views):
+def views_in_rig_order(ms, views):
     """The views in the order the rig made them (make_views interleaves the splits)."""
-    ms = load_make_scene()
     slots = ms.pick_test_slots(len(views), sum(v.split == "test" for v in views))
     train = iter(v for v in views if v.split == "train")
     test = iter(v for v in views if v.split == "test")
