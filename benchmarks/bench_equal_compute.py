@@ -60,6 +60,11 @@ RUNS = {
     "default-pyramid": ["--preset", "default", "--forward-rig", "pyramid"],
     # the default with densification capped at twice the count each stage began with
     "default-growth2": ["--preset", "default", "--stage-growth", "2"],
+    # the default's two plans spelled out (docs/equal_compute.md, "The 1/4 level does not pay"):
+    # today's, 30 % of the work at 1/2 and 70 % at full; the one before 2026-11-27, 10 % at 1/4,
+    # 20 % at 1/2, 70 % at full
+    "default-half": ["--preset", "default", "--stages", "2:1:16364,1:1:21000"],
+    "default-quarter": ["--preset", "default", "--stages", "4:1:9231,2:1:10909,1:1:21000"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

@@ -118,3 +118,25 @@ def test_a_run_the_examples_refuse_ends_the_benchmark_with_its_error(tmp_path, c
         with pytest.raises(SystemExit):
             bench.main(["--budgets", "40", flag, value, "--out", str(tmp_path / "c")])
         assert flag in capsys.readouterr().err
+
+
+def test_the_spelled_out_plans_are_the_defaults_now_and_before(tmp_path):
+    """default-half is today's default plan and default-quarter the one before 2026-11-27 (10 /
+    20 / 70 % of the work at 1/4, 1/2 and full resolution), each worked out here from the view
+    cost 0.1 + 0.9 / f: given one budget, the spelled-out kind and the plan it stands for make
+    the same stages."""
+    from mvgs_plugin import cli
+    from mvgs_plugin.config import MVGSConfig
+
+    def stages(kind, budget=3000):
+        import argparse
+        parser = argparse.ArgumentParser()
+        parser.add_argument("--data", default=str(tmp_path))
+        args = cli.common_args(parser, "out").parse_args(bench.run_argv(kind, budget, 1, 0, 1))
+        return [(s.factor, s.views, s.steps) for s in cli.config_from_args(args).stages]
+
+    assert stages("default-half") == stages("default")
+    before = [(4, 1, 0.1), (2, 1, 0.2), (1, 1, 0.7)]
+    assert stages("default-quarter") == [(f, m, round(3000 * w / (0.1 + 0.9 / f))) for f, m, w in before]
+    now = [(f, m, round(3000 * w / (0.1 + 0.9 / f))) for f, m, w in ((2, 1, 0.3), (1, 1, 0.7))]
+    assert stages("default") == now and MVGSConfig.default().with_budget(3000).stages[0].factor == 2

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from mvgs_plugin.config import CRDConfig, MVGSConfig
+from mvgs_plugin.config import DEFAULT_SHARES, CRDConfig, MVGSConfig
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene
 
@@ -115,14 +115,14 @@ def test_stages_from_shares_gives_each_stage_its_share_of_the_work():
 @pytest.mark.parametrize("budget", [1000, 3000, 10_000])
 def test_default_is_coarse_to_fine_with_one_view_and_keeps_its_shares_on_any_budget(budget):
     config = MVGSConfig.default().with_budget(budget)
-    assert [(s.factor, s.views) for s in config.stages] == [(4, 1), (2, 1), (1, 1)]
+    assert [(s.factor, s.views) for s in config.stages] == [(2, 1), (1, 1)]
     assert not config.mvad and not config.crd and config.grad_threshold_width == 800
     work = [s.steps * (0.1 + 0.9 / s.factor) for s in config.stages]
-    assert [w / budget for w in work] == pytest.approx([0.1, 0.2, 0.7], abs=1e-3)
+    assert [w / budget for w in work] == pytest.approx([0.3, 0.7], abs=1e-3)
     # Coarse steps are cheap: the run makes more optimizer steps than a baseline on the budget.
-    assert config.total_steps == pytest.approx(budget * (0.1 / 0.325 + 0.2 / 0.55 + 0.7), rel=1e-3)
+    assert config.total_steps == pytest.approx(budget * (0.3 / 0.55 + 0.7), rel=1e-3)
     # Full resolution starts at 30 % of the budget, before densification ends (at 50 %).
-    assert (work[0] + work[1]) / budget == pytest.approx(0.3, abs=1e-3)
+    assert work[0] / budget == pytest.approx(0.3, abs=1e-3)
     assert config.densify_until / budget == pytest.approx(0.5, abs=1e-3)
     multiview = MVGSConfig.multiview().with_views(4)
     assert [(s.factor, s.views) for s in multiview.stages] == [(8, 24), (4, 12), (2, 6), (1, 4)]
@@ -133,14 +133,14 @@ def test_default_is_coarse_to_fine_with_one_view_and_keeps_its_shares_on_any_bud
 @pytest.mark.parametrize("steps", [300, 1000, 7000])
 def test_default_on_steps_keeps_its_clocks_at_the_same_fractions_of_the_work(scene, steps):
     """With --steps the default's clocks count work too: 3DGS's step-valued window (until step
-    15000 of 30000) would otherwise close before the full-resolution stage opens (at 49 % of
-    the default's steps), and the run would never densify at full resolution."""
+    15000 of 30000) would otherwise close before the full-resolution stage opens (at 44 % of
+    the default's steps), and the run would densify at full resolution for a few steps only."""
     config = MVGSConfig.default().with_total_steps(steps)
     assert config.total_steps == steps and config.counts_work and config.budget is None
     work_of = [s.steps * (0.1 + 0.9 / s.factor) for s in config.stages]
     total = sum(work_of)
     assert config.clock_length == round(total)
-    full_res_from = work_of[0] + work_of[1]
+    full_res_from = sum(work_of[:-1])
     assert full_res_from / total == pytest.approx(0.3, abs=0.01)
     assert config.densify_until == max(1, round(15_000 * total / 30_000))
     got, schedule = plans(scene, config)
@@ -163,7 +163,7 @@ def test_default_on_steps_keeps_its_clocks_at_the_same_fractions_of_the_work(sce
 
 def test_view_cost_flag_sets_the_clock_and_the_defaults_shares_of_its_work(tmp_path):
     """--view-cost A: a view at factor f costs A + (1 - A) / f. The default's stages keep their
-    shares of the work (10 % at 1/4, 20 % at 1/2, 70 % at full resolution) under that cost,
+    shares of the work (DEFAULT_SHARES: 30 % at 1/2, 70 % at full resolution) under that cost,
     recomputed here from the formula; a budget B is then B of that work; a bad A is a usage
     error naming it."""
     from mvgs_plugin.cli import config_from_args
@@ -171,16 +171,18 @@ def test_view_cost_flag_sets_the_clock_and_the_defaults_shares_of_its_work(tmp_p
 
     example = _example("train_3dgs.py")
     a = 0.66
-    cost = {4: a + (1 - a) / 4, 2: a + (1 - a) / 2, 1: 1.0}
+    cost = {f: a + (1 - a) / f for f, _, _ in DEFAULT_SHARES}
+    shares = [w for _, _, w in DEFAULT_SHARES]
+    assert math.isclose(sum(shares), 1.0) and [f for f, _, _ in DEFAULT_SHARES][-1] == 1
     recipe = MVGSConfig.default(view_cost=(a, 1 - a))
     assert recipe.view_cost == (a, 1 - a)
     assert [(s.factor, s.steps) for s in recipe.stages] == [
-        (f, round(30_000 * w / cost[f])) for f, w in ((4, 0.1), (2, 0.2), (1, 0.7))]
+        (f, round(30_000 * w / cost[f])) for f, _, w in DEFAULT_SHARES]
     config = config_from_args(example.parse_args(["--data", str(tmp_path), "--view-cost", str(a), "--budget", "600"]))
     assert config.view_cost == (a, 1 - a) and config.budget == 600
     assert abs(sum(s.steps * cost[s.factor] for s in config.stages) - 600) <= 1.5
     work = [s.steps * cost[s.factor] / 600 for s in config.stages]
-    assert all(math.isclose(w, share, abs_tol=0.01) for w, share in zip(work, (0.1, 0.2, 0.7)))
+    assert len(work) == len(shares) and all(math.isclose(w, share, abs_tol=0.01) for w, share in zip(work, shares))
     # the baseline has one full-resolution stage: the cost model does not change its plan
     base = config_from_args(example.parse_args(["--data", str(tmp_path), "--view-cost", "0.9", "--preset", "baseline",
                                                 "--budget", "600"]))
@@ -189,3 +191,23 @@ def test_view_cost_flag_sets_the_clock_and_the_defaults_shares_of_its_work(tmp_p
         example.parse_args(["--data", str(tmp_path), "--view-cost", "1.5"])
     with pytest.raises(ValueError, match=r"view_cost must be \(a, b\) with a, b >= 0 and a \+ b = 1, got \(0.5, 0.6\)"):
         MVGSConfig.default(view_cost=(0.5, 0.6))
+
+
+@pytest.mark.parametrize("views", [2, 4])
+def test_views_per_step_keep_the_default_clocks_at_their_shares_of_the_work(views):
+    """default().with_views(M) makes every step M views: the clocks, which count work, stretch
+    with it, so densification still ends at half the run's work, resets come every tenth and
+    size pruning starts at a tenth (3DGS's 15000, 3000, 3000 of 30000), whether the length is
+    given in steps (before or after with_views) or as a budget."""
+    for config in (MVGSConfig.default().with_views(views).with_total_steps(3000),
+                   MVGSConfig.default().with_total_steps(3000).with_views(views),
+                   MVGSConfig.default().with_views(views).with_budget(3000)):
+        assert all(s.views == views for s in config.stages)
+        work = sum(s.steps * s.views * (0.1 + 0.9 / s.factor) for s in config.stages)
+        # (a clock rounded to whole work before M views multiply it is off by up to M / 2)
+        assert config.densify_until == pytest.approx(work / 2, abs=views)
+        assert config.opacity_reset_every == pytest.approx(work / 10, abs=views)
+        assert config.prune_large_after == pytest.approx(work / 10, abs=views)
+    # the multi-view preset counts steps: its clocks are steps whatever M is
+    steps = MVGSConfig.multiview().with_total_steps(3000)
+    assert steps.with_views(views).densify_until == steps.densify_until

@@ -100,7 +100,7 @@ def test_a_compact_run_holds_its_budget_through_every_phase(orbit, tmp_path):
             seen["stages"].add(info.stage)
             seen["reset"] += info.opacity_reset and run is trainer
             seen["densify"] += info.densify is not None and run is trainer
-    assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == {0, 1, 2}
+    assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == set(range(len(trainer.config.stages)))
     assert max(counts) <= 38 and max(counts) > 20  # it grew, never past the budget
     assert seen["prune_large"] == {False}  # no size pruning under the budget
     for name, p in trainer.adapter.params.items():  # the resumed run is the same run

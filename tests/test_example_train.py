@@ -154,9 +154,9 @@ def test_train_3dgs_on_a_budget(tmp_path):
         assert saved["num_gaussians"] != 4000  # densified / pruned from the 4000 scene points
     base, default, multiview = runs["baseline"], runs["default"], runs["multiview"]
     assert base["steps"] == 600 and multiview["steps"] < 600  # multi-view steps cost more views each
-    # The default's coarse-to-fine warm-up (10 / 20 % of the work at 1/4 and 1/2 resolution)
-    # makes cheap steps: 60 / 0.325 + 120 / 0.55 + 420 full-resolution ones.
-    assert default["steps"] == pytest.approx(60 / 0.325 + 120 / 0.55 + 420, abs=2)
+    # The default's coarse-to-fine warm-up (30 % of the work at 1/2 resolution) makes cheap
+    # steps: a step at 1/2 costs 0.1 + 0.9 / 2 = 0.55 of a full one, so 180 / 0.55 + 420.
+    assert default["steps"] == pytest.approx(180 / 0.55 + 420, abs=2)
     with pytest.raises(SystemExit) as err:  # argparse's usage error, before any work
         example.main(["--budget", "-3", "--out", str(tmp_path / "bad"), "--no-progress"])
     assert err.value.code == 2 and not (tmp_path / "bad").exists()

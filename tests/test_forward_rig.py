@@ -145,7 +145,7 @@ def test_the_controller_and_view_schedule_run_the_forward_scene_as_the_baseline(
     # an orbit keeps the pyramid
     orbit = synthetic_scene(n_train=8, n_test=1, size=16, n_points=20)
     assert not is_forward_facing(orbit.train_cameras)
-    assert [s.factor for s in MVGS(GS3DAdapter.from_scene(orbit), orbit, config).config.stages] == [4, 2, 1]
+    assert [s.factor for s in MVGS(GS3DAdapter.from_scene(orbit), orbit, config).config.stages] == [2, 1]
 
 
 def test_a_resumed_forward_run_checks_its_resolved_config(tmp_path):

@@ -32,7 +32,7 @@ def make(scene):
 
 
 def config(budget, **kw):
-    # default(): three pyramid stages, clocks on work; β unscaled so that 16 px views densify
+    # default(): its pyramid stages, clocks on work; β unscaled so that 16 px views densify
     return MVGSConfig.default(max_gaussians=budget, grad_threshold_width=None, **kw).with_total_steps(STEPS)
 
 
@@ -113,7 +113,7 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
                 seen["capped"] += info.densify.extra["dropped_by_max_gaussians"] > 0
                 seen["swapped"] += info.densify.extra["swapped"]
     assert max(counts + resumed_counts) <= budget
-    assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == {0, 1, 2}
+    assert seen["densify"] >= 5 and seen["reset"] >= 1 and seen["stages"] == set(range(len(trainer.config.stages)))
     assert seen["grew"] >= 1 and seen["capped"] >= 1  # it grew, and the schedule held it back
     assert seen["swapped"] >= 1  # and at the cap, rows made way for candidates (budget_swap 0.02)
     for name, p in trainer.adapter.params.items():  # the resumed run is the same run
