@@ -65,6 +65,9 @@ RUNS = {
     # 20 % at 1/2, 70 % at full
     "default-half": ["--preset", "default", "--stages", "2:1:16364,1:1:21000"],
     "default-quarter": ["--preset", "default", "--stages", "4:1:9231,2:1:10909,1:1:21000"],
+    # the default with its periodic opacity resets at the 1/2 level too (before 2026-11-27, evening;
+    # docs/equal_compute.md, "No opacity reset at the coarse level")
+    "default-coarse-reset": ["--preset", "default", "--coarse-opacity-reset"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

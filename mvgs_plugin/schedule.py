@@ -257,7 +257,8 @@ class ViewSchedule:
             images=images, backgrounds=self._backgrounds(len(ids)),
             weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
             densify=densify,
-            reset_opacity=collect and pos.crosses(cfg.opacity_reset_every),
+            reset_opacity=collect and pos.crosses(cfg.opacity_reset_every) and (
+                cfg.coarse_opacity_reset or pos.stage.factor <= min(s.factor for s in self.plan.stages)),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
             wants_maps=densify and cfg.crd.enabled,
         )
