@@ -238,8 +238,8 @@ class MVGSConfig:
         turns them off: on the generated 10-view scene a reset at 1/2 resolution left a model
         that fitted its training views and not the test views (1k: test 25.23 dB with them,
         28.67 without, training views 34.7 and 35.1; 10k: 26.92 and 30.36), and at 1k they cost
-        every generated scene 0.25-1.3 dB; on a wire fence they paid at 3k and 10k
-        (docs/equal_compute.md, "No opacity reset at the coarse level").
+        every generated 360-degree, inside-out and arc scene 0.25-3.7 dB; on a wire fence they
+        paid at 3k and 10k (docs/equal_compute.md, "No opacity reset at the coarse level").
     background: "auto" (the colour the scene's RGBA images were composited on, else black),
         "black", "white", "random" (per view and step) or an (r, g, b) tuple.
     seed: seeds the view sampler and random backgrounds.
