@@ -450,10 +450,16 @@ class MVGSConfig:
     def total_steps(self) -> int:
         return sum(s.steps for s in self.stages)
 
+    @property
+    def finest_factor(self) -> int:
+        """The smallest pyramid factor of the stage plan: "full resolution" for the work clock and
+        coarse_opacity_reset (1, or the --resolution-scale factor)."""
+        return min(s.factor for s in self.stages)
+
     def step_work(self, stage: Stage) -> float:
         """Work of one step of `stage` in full-resolution view renders (see view_cost); "full
         resolution" is the finest stage's (e.g. 1/4 of the images' with --resolution-scale 4)."""
-        return stage.views * view_work(self.view_cost, stage.factor / min(s.factor for s in self.stages))
+        return stage.views * view_work(self.view_cost, stage.factor / self.finest_factor)
 
     @property
     def total_work(self) -> float:
@@ -530,10 +536,7 @@ class MVGSConfig:
         level does not pay"): a 1/4 level before the 1/2 one (10 % of the work, taken from the
         1/2 level's 30 %) did worse at equal work on average at 1k and 3k, and most where the
         scene has structure thinner than a pixel at 1/4. Its opacity resets run at full
-        resolution only (coarse_opacity_reset=False): better at equal work in 13 of 13 runs at 1k
-        (mean +1.11 dB, +3.4 to +3.7 on the 10-view scene) and 11 of 14 at 3k, worse on a wire
-        fence at 3k and 10k (-0.4 to -1.6 dB; docs/equal_compute.md, "No opacity reset at the
-        coarse level")."""
+        resolution only (coarse_opacity_reset=False, measured there)."""
         view_cost = checked_view_cost(overrides.get("view_cost", cls.view_cost))  # shares of the work it counts
         return cls(**{"stages": stages_from_shares(DEFAULT_SHARES, view_cost=view_cost), "preset": "default",
                       "clock_unit": "work", "coarse_opacity_reset": False,
@@ -655,7 +658,7 @@ class MVGSConfig:
 
         if self.pixels_per_gaussian is not None and self.max_gaussians is None and (
                 self.forward_rig_budget or not forward_facing()):
-            pixels = training_pixels(scene.train_cameras, min(s.factor for s in self.stages))
+            pixels = training_pixels(scene.train_cameras, self.finest_factor)
             if round(pixels / self.pixels_per_gaussian) < 1:  # a budget of no Gaussian: the user's to fix, not ours to round up
                 raise ValueError(f"pixels_per_gaussian={self.pixels_per_gaussian:g} gives a budget of no Gaussian for "
                                  f"the {pixels} training pixels; give at most {pixels} (a budget of one Gaussian)")
@@ -671,7 +674,7 @@ class MVGSConfig:
                         steps = max(1, round(s.steps * s.views / views))
                     stages.append(Stage(s.factor, views, steps))
                 out = dataclasses.replace(out, stages=tuple(stages))
-        finest = min(s.factor for s in out.stages)
+        finest = out.finest_factor
         if out.forward_rig == "pyramid" or all(s.factor == finest for s in out.stages):
             return out
         if not forward_facing():
@@ -729,7 +732,7 @@ class MVGSConfig:
         last = self.stages[-1]
         if views == 1:
             return self
-        if last.views != 1 or last.factor != min(s.factor for s in self.stages):
+        if last.views != 1 or last.factor != self.finest_factor:
             raise ValueError(f"late views need a last stage at the finest factor with one view per step, got "
                              f"{last} (stages {list(self.stages)})")
         if self.restart_per_stage or self.opacity_reset_at_handoff:

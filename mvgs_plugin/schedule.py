@@ -67,6 +67,7 @@ class StagePlan:
         self.stages = tuple(stages)
         self.restart_per_stage = restart_per_stage
         self.total_steps = sum(s.steps for s in self.stages)
+        self.finest_factor = min(s.factor for s in self.stages)
         self.step_work = step_work
 
     def locate(self, step: int) -> StagePosition:
@@ -258,7 +259,7 @@ class ViewSchedule:
             weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
             densify=densify,
             reset_opacity=collect and pos.crosses(cfg.opacity_reset_every) and (
-                cfg.coarse_opacity_reset or pos.stage.factor <= min(s.factor for s in self.plan.stages)),
+                cfg.coarse_opacity_reset or pos.stage.factor == self.plan.finest_factor),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
             wants_maps=densify and cfg.crd.enabled,
         )
