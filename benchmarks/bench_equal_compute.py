@@ -32,7 +32,9 @@ pixels / 128), "default-budget", "coarse-mv-budget" (4 views per step at 1/4 res
 "default-budget128", the default at the baseline's pixels / 128; "compact" (MVGSConfig.compact(), the
 default at pixels / 213 where the rig is not forward-facing); with the shell and the distance
 size rule, "coarse-mv4" (4 views per step at 1/4, 2 at 1/2, no budget) and "coarse-mv4-cap" /
-"default-cap" (the same and the default at the budget --max-gaussians N).
+"default-cap" (the same and the default at the budget --max-gaussians N). "baseline-r10" and
+"default-r10" are the two with the floor on opacity resets before 2026-11-27 (10 densification
+calls apart in a compressed clock, MVGSConfig.min_densify_per_reset; now 30).
 """
 
 from __future__ import annotations
@@ -68,6 +70,14 @@ RUNS = {
     # the default with its periodic opacity resets at the 1/2 level too (before 2026-11-27, evening;
     # docs/equal_compute.md, "No opacity reset at the coarse level")
     "default-coarse-reset": ["--preset", "default", "--coarse-opacity-reset"],
+    # the default's pyramid with 10 % of the work at 1/2 instead of 30 % (docs/equal_compute.md, "Opacity
+    # resets that leave time to recover": a smaller coarse share at 10k does not hold on every scene)
+    "default-coarse10": ["--preset", "default", "--stages", "2:1:5455,1:1:27000"],
+    # the baseline and the default with the floor on opacity resets before 2026-11-27 (night): no sooner
+    # than 10 densification calls apart when the schedule is compressed (now 30, 3DGS's own ratio;
+    # docs/equal_compute.md, "Opacity resets that leave time to recover")
+    "baseline-r10": ["--preset", "baseline", "--threshold-width", "800", "--min-densify-per-reset", "10"],
+    "default-r10": ["--preset", "default", "--min-densify-per-reset", "10"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

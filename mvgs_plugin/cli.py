@@ -429,6 +429,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--coarse-opacity-reset", action=argparse.BooleanOptionalAction, default=None,
                     help="periodic opacity resets also at the coarser pyramid levels, or at the finest only "
                          "(MVGSConfig.coarse_opacity_reset; default: as the preset, finest only for default)")
+    ap.add_argument("--min-densify-per-reset", type=int_at_least(1), default=None, metavar="K",
+                    help="a compressed schedule resets opacities no sooner than K densification calls apart "
+                         "(MVGSConfig.min_densify_per_reset; default: as the preset)")
     ap.add_argument("--out", type=out_folder, default=Path(out),
                     help="output folder (created; metrics.json, test/*.png and the model are written there)")
     ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0,
@@ -488,7 +491,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         preset_overrides = {**preset_overrides, "stages": args.stages}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
                  "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning",
-                 "budget_initial_share", "coarse_opacity_reset"):
+                 "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     if getattr(args, "background", "auto") != "auto":  # the colour the scene's images were composited on

@@ -26,13 +26,13 @@ def test_baseline_on_a_budget_is_the_baseline_on_steps(scene):
     for b in (300, 1000, 4321):
         on_budget, on_steps = MVGSConfig.baseline().with_budget(b), MVGSConfig.baseline().with_total_steps(b)
         assert dataclasses.replace(on_budget, budget=None) == on_steps
-    config = MVGSConfig.baseline().with_budget(400)
+    config = MVGSConfig.baseline().with_budget(800)
     got, schedule = plans(scene, config)
-    ref, _ = plans(scene, MVGSConfig.baseline().with_total_steps(400))
+    ref, _ = plans(scene, MVGSConfig.baseline().with_total_steps(800))
     for a, r in zip(got, ref):
         assert (a.clock, a.densify, a.reset_opacity) == (r.clock, r.densify, r.reset_opacity)
     assert sum(p.densify for p in got) > 10 and sum(p.reset_opacity for p in got) >= 1
-    assert schedule.work_done == pytest.approx(400)
+    assert schedule.work_done == pytest.approx(800)
 
 
 def test_stages_keep_their_share_of_the_work():
@@ -198,10 +198,11 @@ def test_views_per_step_keep_the_default_clocks_at_their_shares_of_the_work(view
     """default().with_views(M) makes every step M views: the clocks, which count work, stretch
     with it, so densification still ends at half the run's work, resets come every tenth and
     size pruning starts at a tenth (3DGS's 15000, 3000, 3000 of 30000), whether the length is
-    given in steps (before or after with_views) or as a budget."""
-    for config in (MVGSConfig.default().with_views(views).with_total_steps(3000),
-                   MVGSConfig.default().with_total_steps(3000).with_views(views),
-                   MVGSConfig.default().with_views(views).with_budget(3000)):
+    given in steps (before or after with_views) or as a budget (a length where the floor on
+    resets, 30 densification intervals, does not act)."""
+    for config in (MVGSConfig.default().with_views(views).with_total_steps(6000),
+                   MVGSConfig.default().with_total_steps(6000).with_views(views),
+                   MVGSConfig.default().with_views(views).with_budget(6000)):
         assert all(s.views == views for s in config.stages)
         work = sum(s.steps * s.views * (0.1 + 0.9 / s.factor) for s in config.stages)
         # (a clock rounded to whole work before M views multiply it is off by up to M / 2)
@@ -209,5 +210,5 @@ def test_views_per_step_keep_the_default_clocks_at_their_shares_of_the_work(view
         assert config.opacity_reset_every == pytest.approx(work / 10, abs=views)
         assert config.prune_large_after == pytest.approx(work / 10, abs=views)
     # the multi-view preset counts steps: its clocks are steps whatever M is
-    steps = MVGSConfig.multiview().with_total_steps(3000)
+    steps = MVGSConfig.multiview().with_total_steps(6000)
     assert steps.with_views(views).densify_until == steps.densify_until

@@ -95,7 +95,8 @@ def test_a_default_run_through_both_levels_never_resets_at_the_coarse_one(scene)
     """The controller with the 3DGS adapter, a default run long enough to densify at both levels,
     hand over and reset: no reset while the 1/2 level trains, at least one after, and the
     Gaussians' opacities are capped by the reset value only then."""
-    config = MVGSConfig.default().with_budget(600)
+    # resets 100 work apart (the floor of 10 densifications) so a 600-view run crosses one at each level
+    config = MVGSConfig.default(min_densify_per_reset=10).with_budget(600)
     adapter = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(config, seed=0))
     trainer = MVGS(adapter, scene, config)
     infos, cap = [], adapter.config.opacity_reset_value

@@ -72,7 +72,8 @@ def test_a_compact_run_holds_its_budget_through_every_phase(orbit, tmp_path):
         torch.manual_seed(0)
         return GS3DAdapter.from_scene(orbit, GS3DConfig(position_lr_max_steps=STEPS, sh_degree_interval=30))
 
-    cfg = MVGSConfig.compact(grad_threshold_width=None).with_total_steps(STEPS)  # β unscaled for 32 px views
+    # β unscaled for 32 px views; resets 10 densifications apart (30 leaves a 300-step run none)
+    cfg = MVGSConfig.compact(grad_threshold_width=None, min_densify_per_reset=10).with_total_steps(STEPS)
     trainer = MVGS(make(), orbit, cfg)
     assert trainer.config.max_gaussians == 38 and trainer.adapter.num_primitives() == 20
     seen = {"densify": 0, "reset": 0, "stages": set(), "prune_large": set()}

@@ -196,8 +196,12 @@ def test_three_line_wrap(scene):
     assert not torch.equal(mvgs.positions()[: single.num_primitives()], single.positions()[: mvgs.num_primitives()])
 
 
-@pytest.mark.parametrize("preset, config", [("baseline", {}), ("paper", {}), ("default", {}), ("multiview", {}),
-                                            ("paper", {"max_gaussians": 60, "budget_initial_share": 0.5})])
+EARLY_RESETS = {"min_densify_per_reset": 10}  # resets 10 densifications apart: a 300-step run then resets
+
+
+@pytest.mark.parametrize("preset, config", [("baseline", EARLY_RESETS), ("paper", EARLY_RESETS), ("default", EARLY_RESETS),
+                                            ("multiview", EARLY_RESETS),
+                                            ("paper", {"max_gaussians": 60, "budget_initial_share": 0.5, **EARLY_RESETS})])
 def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset, config):
     """The hand-written loop of examples/three_line_wrap/mvgs.py, 300 steps: the schedule (built
     here independently with the same config) asks for densifications, an opacity reset and

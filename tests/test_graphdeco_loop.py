@@ -95,11 +95,12 @@ def test_densify_and_prune_follows_the_3dgs_rules(scene):
 def test_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, scene, preset, views):
     steps = 300
     extra = {"crd": CRDConfig(enabled=True)} if preset == "multiview" else {}  # CRD is on in paper() only
+    extra["min_densify_per_reset"] = 10  # resets 10 densifications apart: a 300-step run then resets
     # the checkpoint falls inside the densification window (steps 60-110 here) and before the opacity
     # reset at 100, so the resumed part densifies from restored statistics and resets too
     full, log = train_mvgs.training(scene, steps, preset, checkpoint_iterations=(85,), out=tmp_path, views=views,
                                     **extra)
-    cfg = train_mvgs.MVGSConfig.from_preset(preset).with_total_steps(steps)
+    cfg = train_mvgs.MVGSConfig.from_preset(preset, **extra).with_total_steps(steps)
     assert len(cfg.stages) > 1  # pyramid hand-offs happen
     assert len(log["densify"]) >= 3 and log["reset"], log
     assert full.get_xyz.shape[0] != len(scene.points)

@@ -32,7 +32,9 @@ def make(scene):
 
 
 def config(budget, **kw):
-    # default(): its pyramid stages, clocks on work; β unscaled so that 16 px views densify
+    # default(): its pyramid stages, clocks on work; β unscaled so that 16 px views densify; resets
+    # 10 densifications apart, so that a 300-step run resets
+    kw = {"min_densify_per_reset": 10, **kw}
     return MVGSConfig.default(max_gaussians=budget, grad_threshold_width=None, **kw).with_total_steps(STEPS)
 
 
