@@ -247,12 +247,9 @@ class MVGSConfig:
         per step a Gaussian the views need takes about 100-150 steps to come back, and the
         learning rates are not compressed. With the earlier floor of 10 a 1k-step run reset every
         100 steps, before its Gaussians had recovered from the last reset; 30 puts resets 300
-        steps (work) apart below 3k and changes nothing from 3k up. On seven generated scenes the
-        baseline gained +0.52 to +1.11 dB at 1k (an inside-out room lost 0.37 with 3x the
-        Gaussians) and +0.05 to +1.08 at 2k; the default +0.06 to +0.70 at 1k and -0.60 to +0.19
-        at 2k; on 4DGS at 300-600 steps, which now do not reset, both +0.3 to +0.9
-        (docs/equal_compute.md, "Opacity resets that leave time to recover").
-        Configs saved before the field read 10, the floor they were compressed with.
+        steps (work) apart below 3k and changes nothing from 3k up. Measured for every preset
+        in docs/equal_compute.md, "Opacity resets that leave time to recover". Configs saved
+        before the field read 10, the floor they were compressed with.
     background: "auto" (the colour the scene's RGBA images were composited on, else black),
         "black", "white", "random" (per view and step) or an (r, g, b) tuple.
     seed: seeds the view sampler and random backgrounds.
