@@ -719,6 +719,15 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
     return trainer, seconds, result
 
 
+def _masks_said(scene) -> Optional[str]:
+    """How many views have a mask (Scene.mask), for metrics.json; None for a scene without."""
+    if not getattr(scene, "has_masks", False):
+        return None
+    train, test = len(scene.masked(scene.train_cameras)), len(scene.masked(scene.test_cameras))
+    return (f"{train} of {len(scene.train_cameras)} training and {test} of {len(scene.test_cameras)} test views have a "
+            "mask: the loss and the test metrics count the pixels it keeps")
+
+
 def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_seconds: float, **extra) -> dict:
     """The metrics.json every train_*.py script writes: test PSNR/SSIM/LPIPS, training seconds,
     steps, primitives, peak memory, the run's settings and per-view results; `extra` adds the
@@ -734,6 +743,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "work": trainer.schedule.work_done,
         "num_gaussians": trainer.adapter.num_primitives(),
         "init": getattr(trainer.scene, "points_origin", None),
+        "masks": _masks_said(trainer.scene),
         "background": {"colour": list(trainer.schedule.background_value()),
                        "origin": ("--background" if getattr(args, "background", "auto") != "auto"
                                   else getattr(trainer.scene, "background_origin", None))},

@@ -29,7 +29,7 @@ from .densify import loss_map
 from .distributed import Collective, require_support
 from .io import load_checked, save_checked
 from .losses import photometric_loss
-from .metrics import lpips, lpips_available, psnr, ssim
+from .metrics import lpips, lpips_available, masked_psnr, psnr, ssim
 from .protocol import Adapter, DensifyReport, check_is_adapter
 from .schedule import ViewSchedule
 
@@ -303,12 +303,15 @@ class MVGS:
             with timer("render"):
                 result = adapter.render(cams, plan.backgrounds[positions])
             with timer("loss"):
-                if maps is not None:
-                    maps += [loss_map(img, gt) for img, gt in zip(result.images, gts)]
                 # One batched loss for the chunk: the mean over its views times their number is the
                 # sum of the per-view losses (same image size), with one SSIM filter call.
                 images = result.images if isinstance(result.images, torch.Tensor) else torch.stack(list(result.images))
                 target = torch.stack(gts).to(images)
+                if plan.masks is not None:  # ignored pixels are black in both, as nerfstudio's masked loss
+                    weight = torch.stack([plan.masks[i] for i in positions]).to(images)
+                    images, target = images * weight, target * weight
+                if maps is not None:
+                    maps += [loss_map(img, gt) for img, gt in zip(images, target)]
                 loss = plan.weight * len(gts) * photometric_loss(images, target, self.config.lambda_dssim)
                 if positions[0] == 0:  # the regulariser counts once per step (on one rank), not once per view
                     reg = adapter.regularization(plan.clock)
@@ -437,8 +440,15 @@ class MVGS:
             view = cam if factor == 1 else cam.scaled(factor)
             img = self.adapter.render([view], bg).images[0].clamp(0, 1).float()
             gt = self.scene.image(cam, factor).float()
-            rows.append({"name": cam.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt),
-                         "lpips": lpips(img, gt) if lpips_available() else None, "image": img})
+            mask = self.scene.mask(cam, factor) if getattr(self.scene, "has_masks", False) else None
+            if mask is None:
+                rows.append({"name": cam.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt),
+                             "lpips": lpips(img, gt) if lpips_available() else None, "image": img})
+            else:  # the pixels the mask keeps: PSNR of their MSE; SSIM and LPIPS of the images blacked out alike
+                w = mask.float()
+                shown, target = img * w, gt * w
+                rows.append({"name": cam.name, "psnr": masked_psnr(img, gt, w), "ssim": ssim(shown, target),
+                             "lpips": lpips(shown, target) if lpips_available() else None, "image": img})
         finite = [r["psnr"] for r in rows if math.isfinite(r["psnr"])]
         lp = [r["lpips"] for r in rows if r["lpips"] is not None]
         return EvalResult(

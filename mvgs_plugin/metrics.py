@@ -19,7 +19,7 @@ import torch
 
 from .losses import ssim_window
 
-__all__ = ["psnr", "ssim", "lpips", "lpips_available"]
+__all__ = ["psnr", "masked_psnr", "ssim", "lpips", "lpips_available"]
 
 
 def _as_numpy_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -43,6 +43,29 @@ def psnr(img1, img2) -> float:
     """
     a, b = _as_numpy_pair(img1, img2, "psnr")
     mse = float(np.mean((a - b) ** 2))
+    if mse == 0.0:
+        return float("inf")
+    return -10.0 * math.log10(mse)
+
+
+def masked_psnr(img1, img2, weights) -> float:
+    """PSNR in dB over the pixels a mask keeps: ``-10 log10(MSE)`` with the MSE the weighted mean
+    of the squared error, ``sum(w (a - b)^2) / (C sum(w))``, for images [H, W, C] and weights
+    [H, W] or [H, W, 1] in [0, 1] (a 0/1 mask: the plain PSNR of the kept pixels). Identical kept
+    pixels give ``float('inf')``; weights that keep nothing are refused."""
+    a, b = _as_numpy_pair(img1, img2, "masked_psnr")
+    w = np.asarray(weights.detach().cpu() if isinstance(weights, torch.Tensor) else weights, dtype=np.float64)
+    if w.ndim == a.ndim - 1:
+        w = w[..., None]
+    if a.ndim != 3 or w.shape != a.shape[:2] + (1,):
+        raise ValueError(f"masked_psnr: weights {list(w.shape)} do not fit images {list(a.shape)} "
+                         "(expected [H, W] or [H, W, 1] for [H, W, C] images)")
+    if not (np.isfinite(w).all() and w.min() >= 0 and w.max() <= 1):
+        raise ValueError("masked_psnr: weights must be finite and in [0, 1]")
+    total = float(w.sum()) * a.shape[2]
+    if total == 0.0:
+        raise ValueError("masked_psnr: the weights keep no pixel")
+    mse = float((w * (a - b) ** 2).sum()) / total
     if mse == 0.0:
         return float("inf")
     return -10.0 * math.log10(mse)

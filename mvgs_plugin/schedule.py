@@ -100,7 +100,9 @@ class StepPlan:
     collected; densify / reset_opacity / handoff_reset: what runs after the backward passes.
     wants_maps: whether this step's densification needs per-view loss maps (it densifies and
     cross-ray densification is on); recorded: the maps a hand-written loop handed over with
-    record() (optional: see ViewSchedule.densify_context).
+    record() (optional: see ViewSchedule.densify_context). masks: when the scene has masks
+    (Scene.mask), the targets' pixel weights [H', W', 1] in view order, else None; a loop
+    multiplies render and target by them before its loss (mask_for(camera) finds one).
     """
 
     step: int
@@ -119,13 +121,27 @@ class StepPlan:
     handoff_reset: bool
     wants_maps: bool = False
     recorded: List[Tensor] = field(default_factory=list)
+    masks: Optional[List[Tensor]] = None
+
+    def mask_for(self, camera: Camera) -> Optional[Tensor]:
+        """The mask [H', W', 1] of one of this plan's cameras (as ``iter(plan)`` gives them), or
+        None when the scene has none. A loop multiplies its render and target by it before the
+        loss, so that ignored pixels count nothing."""
+        if self.masks is None:
+            return None
+        for cam, mask in zip(self.cameras, self.masks):
+            if cam is camera:
+                return mask
+        raise ValueError(f"plan.mask_for: camera {getattr(camera, 'name', camera)!r} is not one of this step's cameras "
+                         f"{[c.name for c in self.cameras]}; pass a camera the plan gave")
 
     def record(self, images: Sequence[Tensor], targets: Sequence[Tensor]) -> None:
         """Hand the step's rendered images and their targets to the schedule, chunk by chunk in
         view order (one line after backward in a hand-written loop). Cross-ray densification
         needs their per-view loss maps; without them it is skipped with a warning. The maps are
         detached and [H', W'] each, so recording costs no graph memory; on steps that do not
-        densify with CRD (wants_maps False) nothing is computed or kept."""
+        densify with CRD (wants_maps False) nothing is computed or kept. With masks, record the
+        images as the loss saw them (multiplied by mask_for(camera))."""
         if self.wants_maps:
             for img, gt in zip(images, targets):
                 k = len(self.recorded)
@@ -248,6 +264,8 @@ class ViewSchedule:
         cams = [self._camera(i, pos.stage.factor) for i in ids]
         images = ([self.scene.image(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
                   if self.load_images else [])
+        masks = ([self.scene.mask(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
+                 if self.load_images and getattr(self.scene, "has_masks", False) else None)
         chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
         collect = pos.clock < cfg.densify_until
         densify = collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)
@@ -261,7 +279,7 @@ class ViewSchedule:
             reset_opacity=collect and pos.crosses(cfg.opacity_reset_every) and (
                 cfg.coarse_opacity_reset or pos.stage.factor == self.plan.finest_factor),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
-            wants_maps=densify and cfg.crd.enabled,
+            wants_maps=densify and cfg.crd.enabled, masks=masks,
         )
 
     @property

@@ -230,3 +230,33 @@ def test_the_examples_triangulate_a_scene_without_points_into_their_output_folde
     example.main(["--data", str(folder), "--steps", "3", "--out", str(tmp_path / "o2"), "--no-progress",
                   "--init", "random"])
     assert "training frusta" in json.loads((tmp_path / "o2" / "metrics.json").read_text())["init"]
+
+
+def test_masks_keep_features_out_of_the_pixels_they_ignore(tmp_path):
+    """With masks that keep only the right half of every training view, each track is seen (its
+    projection lands, within 2 px, on kept pixels) by at least the two views it needs; without
+    them many tracks are not: COLMAP got the masks."""
+    loaded = load_nerf_synthetic(bare_copy(tmp_path / "scene"))
+    files = {c.uid: loaded.image_file(c) for c in loaded.cameras}
+    keep = {}
+    for cam in loaded.train_cameras:
+        m = torch.zeros(cam.height, cam.width)
+        m[:, cam.width // 2:] = 1.0
+        keep[cam.uid] = m
+    masked = Scene(loaded.train_cameras, loaded.test_cameras, files, background=loaded.background, masks=keep)
+    plain = Scene(loaded.train_cameras, loaded.test_cameras, files, background=loaded.background)
+
+    def views_seeing(tracks) -> torch.Tensor:
+        xyz = torch.from_numpy(tracks.xyz)
+        count = torch.zeros(len(xyz), dtype=torch.int64)
+        for cam in loaded.train_cameras:
+            pix, z = cam.project(xyz)
+            count += ((z > 0) & (pix[:, 0] >= cam.width // 2 - 2) & (pix[:, 0] < cam.width)
+                      & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height)).long()
+        return count
+
+    with_masks = triangulate(masked, tmp_path / "work_masked", threads=1)
+    without = triangulate(plain, tmp_path / "work_plain", threads=1)
+    assert len(with_masks) >= 20 and len(without) > len(with_masks), (len(with_masks), len(without))
+    assert int(views_seeing(with_masks).min()) >= 2
+    assert int((views_seeing(without) < 2).sum()) >= 10

@@ -95,6 +95,9 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
             for viewpoint_cam, gt_image, bg in zip(cameras, targets, backgrounds):
                 render_pkg = render(viewpoint_cam, gaussians, bg)
                 image = render_pkg["render"].permute(1, 2, 0)
+                mask = plan.mask_for(viewpoint_cam)  # MVGS: a scene with masks (mask_path): ignored pixels count nothing
+                if mask is not None:
+                    image, gt_image = image * mask, gt_image * mask
                 Ll1 = l1_loss(image, gt_image)
                 loss = (1.0 - lambda_dssim) * Ll1 + lambda_dssim * (1.0 - ssim(image, gt_image))
                 (plan.weight * loss).backward()  # MVGS: the step's loss is the weighted sum over its views

@@ -347,6 +347,11 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
             original 3DGS "llffhold" with k = 8). None or 0: no test images.
         test_names: explicit test image names; overrides ``test_every``.
         background: RGB in [0,1] to composite RGBA images on; None drops the alpha channel.
+
+    Masks (:meth:`Scene.mask`): a ``masks/`` folder beside the images (``masks_K/`` for images in
+    ``images_K/``) holds, per image name N, ``N.png`` (COLMAP's convention, "a/1.jpg.png") or N
+    with its extension replaced by ".png" (nerfstudio's); each has its image file's size, and an
+    image without one counts all its pixels.
     Returns:
         A :class:`Scene`; camera uids are COLMAP image ids, names are the model's image names.
         Only registered images (with a pose) are used. Every image's size is checked against its
@@ -420,5 +425,31 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
         LOG.info("%s: images in %s are downscaled copies, each camera scaled to its images: %s", model_dir, images_dir,
                  "; ".join(f"camera {i} {w}x{h} -> " + ", ".join(f"{a}x{b}" for a, b in sorted(to))
                            for (i, w, h), to in sorted(resized.items())))
+    masks = _masks(path, images_dir, records, files, sources)
+    if masks:
+        LOG.info("%s: %d of %d images have a mask: the loss and the test metrics count the pixels it keeps",
+                 path, len(masks), len(records))
     return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()}, points=_points(rec, model_dir), background=background,
-                 source=path)
+                 source=path, masks=masks)
+
+
+def _masks(path: Path, images_dir: Path, records: list, files: dict, sources: dict) -> dict:
+    """Per camera uid, its mask file (an UndistortedImage when its image is one), from the masks
+    folder load_colmap describes; {} when there is none."""
+    suffix = images_dir.name[len("images"):] if images_dir.name.startswith("images") else ""
+    folder = next((f for f in (path / f"masks{suffix}", path / "masks") if f.is_dir()), None)
+    if folder is None:
+        return {}
+    out = {}
+    for cam in records:
+        name = Path(cam.name)
+        found = next((f for f in (folder / f"{cam.name}.png", folder / name.with_suffix(".png")) if f.is_file()), None)
+        if found is None:
+            continue
+        size, want = image_size(found), image_size(files[cam.uid])
+        if size != want:
+            raise ValueError(f"mask {found} is {size[0]}x{size[1]} but its image {files[cam.uid]} is {want[0]}x{want[1]} "
+                             "(a mask has its image's size)")
+        src = sources.get(cam.uid)
+        out[cam.uid] = UndistortedImage(found, src.undistortion) if isinstance(src, UndistortedImage) else found
+    return out

@@ -157,9 +157,10 @@ class Undistortion:
         return self._grid
 
     def apply(self, image: torch.Tensor) -> torch.Tensor:
-        """The pinhole image [H_out, W_out, 3] of a distorted one [H, W, 3] (bilinear)."""
-        if tuple(image.shape) != (self.height, self.width, 3):
-            raise ValueError(f"an image for this camera must be [{self.height}, {self.width}, 3], got {list(image.shape)}")
+        """The pinhole image [H_out, W_out, C] of a distorted one [H, W, C] (bilinear; C = 3 for
+        an image, 1 for a mask)."""
+        if image.ndim != 3 or tuple(image.shape[:2]) != (self.height, self.width) or image.shape[2] < 1:
+            raise ValueError(f"an image for this camera must be [{self.height}, {self.width}, C], got {list(image.shape)}")
         out = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None].to(torch.float32), self.grid(),
                                               mode="bilinear", padding_mode="border", align_corners=False)
         return out[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
@@ -187,3 +188,10 @@ class UndistortedImage:
         from .images import read_rgb
 
         return self.undistortion.apply(read_rgb(self.path, background))
+
+    def read_mask(self) -> torch.Tensor:
+        """The file read as a mask (:func:`~mvgs_plugin.data.images.read_mask`), resampled as
+        the image: a pixel on the mask's edge gets a weight between 0 and 1."""
+        from .images import read_mask
+
+        return self.undistortion.apply(read_mask(self.path))

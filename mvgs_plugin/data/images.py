@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import struct
 import warnings
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "downsample", "downsample_batch", "check_background", "may_have_alpha",
+__all__ = ["image_size", "read_rgb", "read_mask", "downsample", "downsample_batch", "check_background", "may_have_alpha",
            "has_transparency", "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -188,23 +189,31 @@ BORDER_TOLERANCE = 8.0 / 255.0
 BORDER_SHARE = 0.9
 
 
-def uniform_border(images: Iterable[torch.Tensor]) -> Optional[tuple[float, float, float]]:
+def uniform_border(images: Iterable[torch.Tensor],
+                   masks: Optional[Iterable[Optional[torch.Tensor]]] = None) -> Optional[tuple[float, float, float]]:
     """The colour of the images' one-pixel border when it is one colour, else None.
 
     ``images``: [H, W, 3] tensors. The per-channel median of every border pixel of every image,
     when at least BORDER_SHARE of those pixels lie within BORDER_TOLERANCE of it in every channel:
     the backdrop a synthetic scene without alpha was rendered or composited on. A photograph's
-    border (sky, floor, walls) fails the test."""
+    border (sky, floor, walls) fails the test. ``masks``: optionally, per image, its pixel weights
+    [H, W, 1] or None; border pixels a mask ignores (weight below 1/2) are left out."""
+    def ring(x: torch.Tensor) -> torch.Tensor:
+        if x.shape[0] < 3 or x.shape[1] < 3:
+            return x.reshape(-1, x.shape[2])
+        return torch.cat([x[0], x[-1], x[1:-1, 0], x[1:-1, -1]])
+
     rings = []
-    for img in images:
+    for img, mask in zip(images, masks if masks is not None else itertools.repeat(None)):
         img = torch.as_tensor(img, dtype=torch.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"uniform_border needs [H, W, 3] images, got {list(img.shape)}")
-        if img.shape[0] < 3 or img.shape[1] < 3:
-            rings.append(img.reshape(-1, 3))
-            continue
-        rings.append(torch.cat([img[0], img[-1], img[1:-1, 0], img[1:-1, -1]]))
-    if not rings:
+        pixels = ring(img)
+        if mask is not None:
+            weights = torch.as_tensor(mask, dtype=torch.float32).reshape(img.shape[0], img.shape[1], 1)
+            pixels = pixels[ring(weights)[:, 0] >= 0.5]
+        rings.append(pixels)
+    if not sum(len(r) for r in rings):
         return None
     ring = torch.cat(rings)
     median = ring.median(dim=0).values
@@ -234,6 +243,27 @@ def read_rgb(path: Path, background: Optional[Sequence[float]] = None) -> torch.
     if alpha is not None and bg is not None:
         color = color * alpha + np.asarray(bg, dtype=np.float32) * (1.0 - alpha)
     return torch.from_numpy(np.ascontiguousarray(color, dtype=np.float32))
+
+
+def read_mask(path: Path) -> torch.Tensor:
+    """Decode a mask image to float32 [H, W, 1]: 1 where a pixel counts, 0 where it is ignored.
+
+    nerfstudio's convention (its ``mask_path``): any non-zero value keeps the pixel, zero drops
+    it. The file is one channel (or grey with alpha, the alpha ignored), or colour whose three
+    channels are equal (masks saved as RGB); colour that differs between channels is refused,
+    as it is not a mask.
+    """
+    path = Path(path)
+    arr = _decode(path)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    c = arr.shape[2]
+    grey = arr[:, :, :1] if c in (1, 2) else arr[:, :, :3]
+    if grey.shape[2] == 3 and not ((grey[:, :, :1] == grey[:, :, 1:]).all()):
+        raise ValueError(f"mask {path} is a colour image whose channels differ; a mask is one channel (or equal "
+                         "RGB channels): non-zero keeps a pixel, zero ignores it")
+    keep = np.asarray(grey[:, :, :1]) != 0
+    return torch.from_numpy(np.ascontiguousarray(keep, dtype=np.float32))
 
 
 def downsample(image: torch.Tensor, width: int, height: int) -> torch.Tensor:

@@ -122,12 +122,14 @@ class InitRegion:
 
 
 def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
-                 max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 max_width: int = PHOTO_WIDTH, mask=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """What each point [P, 3] lands on in the training views: every point is projected into every
     camera (its image downsampled to at most ``max_width`` pixels across by ``image(camera,
     factor)``). Returns (mean colour [P, 3] float64 over the views that see the point, the variance
     of those colours [P] (summed over the channels), how many views see it [P]); a point no view
-    sees has mean and variance 0."""
+    sees has mean and variance 0. ``mask``: optionally ``mask(camera, factor)``, the view's pixel
+    weights [H', W', 1] or None (:meth:`~mvgs_plugin.data.Scene.mask`): a point that lands on a
+    pixel the mask ignores (weight below 1/2 at that level) counts as not seen by that view."""
     p = points.shape[0]
     # float32 is plenty for a pixel lookup at <= 64 px; sums of <= a few thousand views in float64
     pts = points.to(torch.float32)
@@ -147,6 +149,9 @@ def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
         inside = (z > 0) & (px >= 0) & (px < small.width) & (py >= 0) & (py < small.height)
         u = px.clamp(0, small.width - 1).to(torch.int64)
         v = py.clamp(0, small.height - 1).to(torch.int64)
+        weights = None if mask is None else mask(cam, factor)
+        if weights is not None:  # an ignored pixel says nothing of what the point is
+            inside &= weights.reshape(-1)[v * small.width + u] >= 0.5
         colour = (img[v * small.width + u] * inside[:, None]).to(torch.float64)
         total += colour
         squares += (colour * colour).sum(1)
@@ -157,16 +162,16 @@ def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
 
 
 def photo_consistent(candidates: torch.Tensor, cameras: Sequence[Camera], image, n: int,
-                     max_width: int = PHOTO_WIDTH) -> tuple[torch.Tensor, torch.Tensor, int]:
+                     max_width: int = PHOTO_WIDTH, mask=None) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The n candidates whose colour agrees best across the training views, and that colour.
 
     The score of a candidate [P, 3] is the variance of the colours it lands on over the views that
     see it (:func:`view_colours`; a crude plane sweep: a point on a surface sees one colour from
     everywhere, a point in free space sees several). Candidates seen by fewer than ``MIN_VIEWS``
     views rank last. Returns (xyz [n, 3] float64, rgb [n, 3] in [0, 1] the mean colour, how many
-    of the n are seen by at least MIN_VIEWS views).
+    of the n are seen by at least MIN_VIEWS views). ``mask``: as :func:`view_colours`'.
     """
-    mean, variance, count = view_colours(candidates, cameras, image, max_width)
+    mean, variance, count = view_colours(candidates, cameras, image, max_width, mask)
     keep = _photo_rank(variance, count)[:n]
     return candidates[keep], mean[keep].clamp(0.0, 1.0), int((count[keep] >= MIN_VIEWS).sum())
 
@@ -194,7 +199,7 @@ def random_init_points(scene, n: int, generator: torch.Generator,
         xyz = region.sample(n, generator)
         return xyz, torch.rand(n, 3, generator=generator, dtype=torch.float64), region.description
     candidates = region.sample(CANDIDATES_PER_POINT * n, generator)
-    xyz, rgb, seen = photo_consistent(candidates, scene.train_cameras, scene.image, n)
+    xyz, rgb, seen = photo_consistent(candidates, scene.train_cameras, scene.image, n, mask=getattr(scene, "mask", None))
     return xyz, rgb, (f"{region.description}; kept the {n} of {candidates.shape[0]} candidates whose colour agrees "
                       f"best across the views ({seen} seen by >= {MIN_VIEWS} views)")
 
@@ -345,7 +350,7 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
 
 
 def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, image,
-                     radius: float = SHELL_RADIUS, points: Optional[torch.Tensor] = None,
+                     radius: float = SHELL_RADIUS, points: Optional[torch.Tensor] = None, mask=None,
                      ) -> tuple[torch.Tensor, torch.Tensor, str]:
     """Initial points for what lies beyond a rig that surrounds its scene (sky, horizon, far walls).
 
@@ -362,6 +367,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     the sphere would stand in front of every view: with the scene's ``points`` [P, 3], when their
     median distance from ``center`` exceeds the sphere's radius; without them (None or empty),
     when the rig does not look in at one place (:func:`look_convergence` below ``CONVERGING_COSINE``).
+    ``mask``: as :func:`view_colours`' (a masked pixel colours no point).
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
     """
@@ -401,7 +407,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     dirs = torch.stack([torch.cos(azimuth) * torch.sin(polar), torch.sin(azimuth) * torch.sin(polar),
                         torch.cos(polar)], dim=1)
     shell = center + radius * rig * dirs
-    mean, variance, count = view_colours(shell, cameras, image)
+    mean, variance, count = view_colours(shell, cameras, image, mask=mask)
     seen = count > 0
     if not seen.any():
         return empty, empty.clone(), f"no background shell: none of {n} points at {radius:g} rig radii is in a view"

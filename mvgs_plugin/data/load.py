@@ -98,7 +98,7 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         from .scene import PointCloud
 
         xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
-                                          points=scene.points.xyz)
+                                          points=scene.points.xyz, mask=scene.mask)
         if xyz.shape[0]:
             pts = scene.points  # float32 (PointCloud's dtype)
             scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),

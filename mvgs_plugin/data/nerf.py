@@ -158,8 +158,26 @@ def _world_to_camera(frame: dict, where: str) -> np.ndarray:
         raise ValueError(f"{where}: 'transform_matrix' is singular: {c2w.tolist()}") from None
 
 
+def _mask_file(frame: dict, root: Path, image: Path, width: int, height: int, where: str) -> Optional[Path]:
+    """The frame's mask file (nerfstudio's ``mask_path``, relative to the json's folder) or None;
+    it must exist and have its image's size."""
+    if "mask_path" not in frame:
+        return None
+    mp = frame["mask_path"]
+    if not isinstance(mp, str) or not mp.strip():
+        raise ValueError(f"{where}: 'mask_path' must be a file name, got {mp!r}")
+    file = root / check_inside(normalize_name(mp), root, f"{where}: mask_path")
+    if not file.is_file():
+        raise FileNotFoundError(f"{where}: its mask_path {mp!r} names {file}, which does not exist")
+    w, h = image_size(file)
+    if (w, h) != (width, height):
+        raise ValueError(f"{where}: its mask {file} is {w}x{h} but its image {image} is {width}x{height} "
+                         "(a mask has its image's size)")
+    return file
+
+
 def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str,
-                  undistortions: dict) -> tuple[Camera, Union[Path, UndistortedImage]]:
+                  undistortions: dict) -> tuple[Camera, Union[Path, UndistortedImage], Union[None, Path, UndistortedImage]]:
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
         raise ValueError(f"{where}: missing 'file_path'")
@@ -189,18 +207,20 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
         if not 0.0 <= time <= 1.0:
             raise ValueError(f"{where}: 'time' must be in [0,1], got {time}")
     source = file
+    mask = _mask_file(frame, root, file, width, height, where)
     try:
         K = _intrinsics(frame, width, height, where)
         dist = _distortion(frame, where)
         if dist:
             und = shared_undistortion(undistortions, K, width, height, dist, where)
             K, width, height, source = und.K_out, und.width_out, und.height_out, UndistortedImage(file, und)
+            mask = None if mask is None else UndistortedImage(mask, und)
         cam = Camera(uid=uid, name=name, K=K, world_to_camera=_world_to_camera(frame, where), width=width,
                      height=height, time=time)
     except ValueError as err:
         msg = str(err)
         raise ValueError(msg if msg.startswith(where) else f"{where}: {msg}") from None
-    return cam, source
+    return cam, source, mask
 
 
 def read_points_ply(file: Path) -> PointCloud:
@@ -303,14 +323,17 @@ def _load_blender(path, background, with_time: bool) -> Scene:
         warnings.warn(said, stacklevel=3)
     splits: dict[str, list[Camera]] = {}
     files: dict[int, Union[Path, UndistortedImage]] = {}
+    masks: dict[int, Union[Path, UndistortedImage]] = {}
     undistortions: dict = {}
     uid = 0
     for split in _SPLITS:
         cams = []
         for i, frame in by_split[split]:  # i: the frame's index in its json
-            cam, file = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions)
+            cam, file, mask = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions)
             cams.append(cam)
             files[uid] = file
+            if mask is not None:
+                masks[uid] = mask
             uid += 1
         splits[split] = cams
     _warn_repeated(splits, root)
@@ -323,7 +346,10 @@ def _load_blender(path, background, with_time: bool) -> Scene:
         points = None
     # sizes were read from the headers above, so the Scene need not read them again
     scene = Scene(splits["train"], splits["test"], files, points=points, background=bg,
-                  check_sizes=False, source=root)
+                  check_sizes=False, source=root, masks=masks)
+    if masks:
+        LOG.info("%s: %d of %d frames have a mask (mask_path): the loss and the test metrics count the pixels "
+                 "it keeps", root, len(masks), uid)
     if not auto:
         scene.background_origin = "given" if bg is not None else "none (alpha dropped)"
         return scene
@@ -333,7 +359,7 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     if any(has_transparency(scene.image_file(cam)) for cam in scene.train_cameras if alpha[cam.uid]):
         scene.background_origin = "white: RGBA images composited on it (the default)"
         opaque = [cam for cam in scene.train_cameras if not alpha[cam.uid]]
-        shown = uniform_border(scene.image(cam) for cam in opaque) if opaque else None
+        shown = uniform_border((scene.image(cam) for cam in opaque), (scene.mask(cam) for cam in opaque)) if opaque else None
         if shown is not None and max(abs(c - 1.0) for c in shown) > BORDER_TOLERANCE:
             warnings.warn(f"{root}: {len(opaque)} of the {len(scene.train_cameras)} training images have no transparent "
                           f"pixel and their borders show ({shown[0]:.3f}, {shown[1]:.3f}, {shown[2]:.3f}), not the white "
@@ -341,7 +367,8 @@ def _load_blender(path, background, with_time: bool) -> Scene:
                           "trained against two backdrops; composite them alike, or give the background they share",
                           stacklevel=3)
     else:  # opaque images, composited already: the colour their borders show, if they show one
-        found = uniform_border(scene.image(cam) for cam in scene.train_cameras)
+        found = uniform_border((scene.image(cam) for cam in scene.train_cameras),
+                               (scene.mask(cam) for cam in scene.train_cameras))
         if found is not None:
             scene.background = found
             scene.background_origin = ("the training images have no transparent pixel and their borders are one colour, "
@@ -394,7 +421,10 @@ def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "a
     and a fisheye ``camera_model`` (or ``is_fisheye``) is refused. ``points3d.ply`` next to
     the jsons, else the ply a transforms.json names in ``ply_file_path`` (nerfstudio), becomes
     ``scene.points``. Uids count train frames then test frames from 0; names are the image paths
-    relative to ``path`` (e.g. "train/r_000.png").
+    relative to ``path`` (e.g. "train/r_000.png"). A frame's ``mask_path`` (nerfstudio: a one-channel
+    image of the image's size, zero where a pixel is to be ignored, e.g. a person walking through)
+    becomes its :meth:`Scene.mask`: the training loss and the test metrics count only the pixels it
+    keeps; a frame without one counts all of its pixels.
 
     ``background``: "auto" (default) composites RGBA images on white, as the Blender scenes are
     evaluated; when no training image has a transparent pixel, the images were composited

@@ -11,7 +11,7 @@ import torch
 
 from ..camera import Camera, _check_factor
 from .distortion import UndistortedImage
-from .images import check_background, downsample, image_size, read_rgb
+from .images import check_background, downsample, image_size, read_mask, read_rgb
 
 __all__ = ["Scene", "PointCloud", "camera_normalization"]
 
@@ -76,6 +76,35 @@ def camera_normalization(cams: Sequence[Camera]) -> tuple[torch.Tensor, float]:
     return center, extent
 
 
+def _file_source(cam: Camera, src, check_size: bool, what: str):
+    """An image (or mask) source given as a file, or as a file resampled through a lens model,
+    checked against its camera: the size the camera expects (the file's header, read when
+    check_size), and the undistorted size."""
+    if isinstance(src, UndistortedImage):
+        und = src.undistortion
+        if (cam.width, cam.height) != (und.width_out, und.height_out):
+            raise ValueError(f"camera {cam.name!r} is {cam.width}x{cam.height} but its undistorted {what} is "
+                             f"{und.width_out}x{und.height_out}")
+        file, size = src.path, (und.width, und.height)
+    else:
+        src = file = Path(src)
+        size = (cam.width, cam.height)
+    if check_size:
+        w, h = image_size(file)
+        if (w, h) != size:
+            raise ValueError(f"{what} {file} is {w}x{h} but its camera {cam.name!r} expects {size[0]}x{size[1]}")
+    return src
+
+
+def _masked_downsample(image: torch.Tensor, mask: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """The weighted mean of ``image`` [H, W, 3] under ``mask`` [H, W, 1] at [height, width, 3]:
+    downsample(image x mask) / downsample(mask), 0 where no kept pixel reaches."""
+    both = downsample(torch.cat([image * mask, mask], dim=2), width, height)
+    weight = both[:, :, 3:]
+    out = torch.where(weight > 1e-6, both[:, :, :3] / weight.clamp_min(1e-6), torch.zeros_like(both[:, :, :3]))
+    return out.clamp(0.0, 1.0)
+
+
 class Scene:
     """Cameras and images of one scene.
 
@@ -90,6 +119,11 @@ class Scene:
             dropped / no alpha). Renderers should use the same colour behind the Gaussians.
         check_sizes: read every image file's header now and raise if its size differs from its
             camera's (cheap: PNG and JPEG headers are parsed, not decoded).
+        masks: optional, per camera uid (any subset), which pixels the loss and the metrics count:
+            a mask file (:func:`~mvgs_plugin.data.images.read_mask`: non-zero keeps a pixel,
+            nerfstudio's ``mask_path``), a float [H, W] or [H, W, 1] tensor of weights in [0, 1],
+            or an :class:`~mvgs_plugin.data.distortion.UndistortedImage` (a mask file taken with
+            the lens distortion of its image). A camera without one counts every pixel.
 
     Attributes:
         center: [3] float64 and extent (float): see :func:`camera_normalization`.
@@ -102,7 +136,7 @@ class Scene:
     def __init__(self, train_cameras: Sequence[Camera], test_cameras: Sequence[Camera],
                  images: Mapping[int, ImageSource], points: Optional[PointCloud] = None,
                  background: Optional[Sequence[float]] = None, check_sizes: bool = True,
-                 source: Optional[Path] = None) -> None:
+                 source: Optional[Path] = None, masks: Optional[Mapping[int, ImageSource]] = None) -> None:
         self.train_cameras = list(train_cameras)
         self.test_cameras = list(test_cameras)
         self.points = points
@@ -129,6 +163,12 @@ class Scene:
             if uid not in images:
                 raise ValueError(f"no image given for camera {cam.name!r} (uid {uid})")
             self._add_source(cam, images[uid], check_sizes)
+        self._mask_sources: dict[int, ImageSource] = {}
+        self._mask_cache: dict[tuple[int, float], torch.Tensor] = {}
+        for uid, src in (masks or {}).items():
+            if uid not in self._by_uid:
+                raise ValueError(f"a mask is given for camera uid {uid!r}, which is not one of the scene's cameras")
+            self._add_mask_source(self._by_uid[uid], src, check_sizes)
         self.center, self.extent = camera_normalization(self.train_cameras)
 
     def _add_source(self, cam: Camera, src: ImageSource, check_size: bool) -> None:
@@ -140,24 +180,79 @@ class Scene:
             if not (bool(torch.isfinite(img).all()) and img.min() >= 0 and img.max() <= 1):
                 raise ValueError(f"image for camera {cam.name!r} must be finite and in [0,1]")
             self._cache[(cam.uid, 1.0)] = img
-        elif isinstance(src, UndistortedImage):
-            und = src.undistortion
-            if (cam.width, cam.height) != (und.width_out, und.height_out):
-                raise ValueError(f"camera {cam.name!r} is {cam.width}x{cam.height} but its undistorted image is "
-                                 f"{und.width_out}x{und.height_out}")
-            if check_size:
-                w, h = image_size(src.path)
-                if (w, h) != (und.width, und.height):
-                    raise ValueError(f"image {src.path} is {w}x{h} but its camera {cam.name!r} expects "
-                                     f"{und.width}x{und.height}")
         else:
-            src = Path(src)
-            if check_size:
-                w, h = image_size(src)
-                if (w, h) != (cam.width, cam.height):
-                    raise ValueError(f"image {src} is {w}x{h} but its camera {cam.name!r} expects "
-                                     f"{cam.width}x{cam.height}")
+            src = _file_source(cam, src, check_size, "image")
         self._sources[cam.uid] = src
+
+    def _add_mask_source(self, cam: Camera, src: ImageSource, check_size: bool) -> None:
+        if isinstance(src, torch.Tensor):
+            m = src.detach().to("cpu", torch.float32)
+            m = m[:, :, None] if m.ndim == 2 else m
+            if tuple(m.shape) != (cam.height, cam.width, 1):
+                raise ValueError(f"mask for camera {cam.name!r} must be [{cam.height},{cam.width}] or "
+                                 f"[{cam.height},{cam.width},1], got {list(src.shape)}")
+            if not (bool(torch.isfinite(m).all()) and m.min() >= 0 and m.max() <= 1):
+                raise ValueError(f"mask for camera {cam.name!r} must be finite weights in [0,1]")
+            if not bool(m.any()):
+                raise ValueError(f"mask for camera {cam.name!r} ignores every pixel: nothing of this view would "
+                                 "count; drop the view, or give a mask that keeps some pixels")
+            self._mask_cache[(cam.uid, 1.0)] = m
+        else:
+            src = _file_source(cam, src, check_size, "mask")
+        self._mask_sources[cam.uid] = src
+
+    def _level(self, cam: Camera, factor) -> tuple[Camera, float]:
+        """The scene's own camera for ``cam`` (its full-resolution camera) and the checked factor."""
+        base = self._by_uid.get(getattr(cam, "uid", None))
+        if base is None:
+            raise KeyError(f"camera {cam!r} is not part of this scene")
+        if (cam.width, cam.height) != (base.width, base.height):
+            raise ValueError(f"pass the full-resolution camera ({base.width}x{base.height}) and a "
+                             f"factor, got a {cam.width}x{cam.height} camera")
+        return base, _check_factor(factor)
+
+    @property
+    def has_masks(self) -> bool:
+        """Whether any camera has a mask (then :meth:`mask` gives one for every camera)."""
+        return bool(self._mask_sources)
+
+    def masked(self, cameras: Optional[Sequence[Camera]] = None) -> list[Camera]:
+        """The cameras (default: all) that have a mask of their own."""
+        return [c for c in (self.cameras if cameras is None else cameras) if c.uid in self._mask_sources]
+
+    def mask(self, cam: Camera, factor: float = 1) -> Optional[torch.Tensor]:
+        """The pixel weights of ``cam``'s image at ``factor`` as float32 [H', W', 1] in [0, 1]:
+        its mask, downsampled as the image is (a pixel on a mask's edge gets a weight between 0
+        and 1), ones for a camera without a mask in a scene that has masks, and None when the
+        scene has none. Cached; do not modify the result in place."""
+        if not self._mask_sources:
+            return None
+        base, factor = self._level(cam, factor)
+        key = (base.uid, factor)
+        if key not in self._mask_cache:
+            if base.uid not in self._mask_sources:
+                small = base.scaled(factor) if factor != 1.0 else base
+                self._mask_cache[key] = torch.ones(small.height, small.width, 1)
+            elif factor == 1.0:
+                self._mask_cache[key] = self._full_mask(base)
+            else:
+                small = base.scaled(factor)
+                self._mask_cache[key] = downsample(self._full_mask(base), small.width, small.height).clamp(0.0, 1.0)
+        return self._mask_cache[key]
+
+    def _full_mask(self, cam: Camera) -> torch.Tensor:
+        key = (cam.uid, 1.0)
+        if key not in self._mask_cache:
+            src = self._mask_sources[cam.uid]
+            m = src.read_mask() if isinstance(src, UndistortedImage) else read_mask(src)
+            if tuple(m.shape) != (cam.height, cam.width, 1):
+                raise ValueError(f"mask {src} is {m.shape[1]}x{m.shape[0]} but its camera {cam.name!r} expects "
+                                 f"{cam.width}x{cam.height}")
+            if not bool(m.any()):
+                raise ValueError(f"mask {src} of camera {cam.name!r} ignores every pixel: nothing of this view "
+                                 "would count; drop the view, or give a mask that keeps some pixels")
+            self._mask_cache[key] = m
+        return self._mask_cache[key]
 
     @property
     def cameras(self) -> list[Camera]:
@@ -177,22 +272,22 @@ class Scene:
         ``cam`` is the scene's full-resolution camera (its uid selects the image); the result is
         float32 [H', W', 3] in [0, 1] with (W', H') = ``cam.scaled(factor)``'s size, made once
         per (camera, factor) with :func:`~mvgs_plugin.data.images.downsample` and cached.
-        The cached tensor itself is returned: do not modify it in place.
+        The cached tensor itself is returned: do not modify it in place. An image with a mask
+        (:meth:`mask`) is downsampled as a weighted mean, downsample(image x mask) /
+        downsample(mask), so a pixel the mask ignores gives no colour to any level (0 where a
+        level's pixel has no kept pixel under it).
         """
-        base = self._by_uid.get(getattr(cam, "uid", None))
-        if base is None:
-            raise KeyError(f"camera {cam!r} is not part of this scene")
-        if (cam.width, cam.height) != (base.width, base.height):
-            raise ValueError(f"pass the full-resolution camera ({base.width}x{base.height}) and a "
-                             f"factor, got a {cam.width}x{cam.height} camera")
-        factor = _check_factor(factor)
+        base, factor = self._level(cam, factor)
         key = (base.uid, factor)
         if key not in self._cache:
             full = self._full(base)
             if factor == 1.0:
                 return full
             small = base.scaled(factor)
-            self._cache[key] = downsample(full, small.width, small.height)
+            if base.uid in self._mask_sources:
+                self._cache[key] = _masked_downsample(full, self._full_mask(base), small.width, small.height)
+            else:
+                self._cache[key] = downsample(full, small.width, small.height)
         return self._cache[key]
 
     def _full(self, cam: Camera) -> torch.Tensor:
@@ -228,11 +323,14 @@ class Scene:
         return src.undistortion if isinstance(src, UndistortedImage) else None
 
     def clear_cache(self) -> None:
-        """Forget decoded images loaded from files (in-memory images are kept)."""
+        """Forget decoded images and masks loaded from files (in-memory ones are kept)."""
         self._cache = {k: v for k, v in self._cache.items()
                        if k[1] == 1.0 and isinstance(self._sources[k[0]], torch.Tensor)}
+        self._mask_cache = {k: v for k, v in self._mask_cache.items()
+                            if k[1] == 1.0 and isinstance(self._mask_sources.get(k[0]), torch.Tensor)}
 
     def __repr__(self) -> str:
         pts = "no points" if self.points is None else f"{len(self.points)} points"
+        masks = f", {len(self._mask_sources)} masks" if self._mask_sources else ""
         return (f"Scene({self.source or 'in memory'}: {len(self.train_cameras)} train, "
-                f"{len(self.test_cameras)} test, {pts}, extent={self.extent:.4g})")
+                f"{len(self.test_cameras)} test, {pts}{masks}, extent={self.extent:.4g})")

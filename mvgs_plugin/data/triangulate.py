@@ -155,6 +155,18 @@ def _stage_images(scene: Scene, cameras: Sequence[Camera], folder: Path) -> list
     return names
 
 
+def _stage_masks(scene: Scene, cameras: Sequence[Camera], names: list, folder: Path) -> Path:
+    """The training views' masks as COLMAP reads them: ``folder/<image name>.png``, 0 where the
+    scene's mask ignores a pixel (weight below 1/2), 255 elsewhere."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for cam, name in zip(cameras, names):
+        keep = (scene.mask(cam)[..., 0] >= 0.5).numpy()
+        Image.fromarray((keep * 255).astype(np.uint8)).save(folder / f"{name}.png")
+    return folder
+
+
 def _pinhole(cam: Camera):
     import pycolmap
 
@@ -199,6 +211,8 @@ def _run_pycolmap(scene: Scene, cameras: list, names: list, work: Path, threads:
     db_path, image_dir = work / "database.db", work / "images"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
+    if getattr(scene, "has_masks", False):  # no feature where a mask ignores the pixels (COLMAP's mask_path)
+        reader.mask_path = str(_stage_masks(scene, cameras, names, work / "masks"))
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.max_image_size = MAX_IMAGE_SIZE
@@ -308,7 +322,7 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
         near, far = bounds[i]
         disparity = 1.0 / far + torch.rand(rows.numel(), generator=generator, dtype=torch.float64) * (1.0 / near - 1.0 / far)
         candidates[rows] = origin + direction * (1.0 / disparity / cos)[:, None]
-    kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width)
+    kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width, mask=getattr(scene, "mask", None))
     share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
     return kept, rgb, (f"{n} fill points where no track projects ({share:.0%} of the pixels at {max_width} px), the "
                        f"most photo-consistent of {total} candidates between the tracks' depths ({seen} seen by >= 3 views)")
@@ -332,6 +346,8 @@ def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:
             und = scene.undistortion(cam)
             if und is not None:  # the pixels are the file resampled through the lens model
                 h.update(repr((und.K.tolist(), und.distortion)).encode())
+        if getattr(scene, "has_masks", False):
+            h.update(scene.mask(cam).numpy().tobytes())
     return h.hexdigest()[:16]
 
 
@@ -368,7 +384,8 @@ def _random(scene: Scene, method: str, n: int, generator: torch.Generator, why: 
             rgb, text = torch.rand(n, 3, generator=generator, dtype=torch.float64), region.description
         else:
             candidates = region.sample(CANDIDATES_PER_POINT * n, generator)
-            xyz, rgb, seen = photo_consistent(candidates, scene.train_cameras, scene.image, n)
+            xyz, rgb, seen = photo_consistent(candidates, scene.train_cameras, scene.image, n,
+                                              mask=getattr(scene, "mask", None))
             text = f"{region.description}; kept the {n} most photo-consistent of {candidates.shape[0]} candidates"
     else:
         xyz, rgb, text = random_init_points(scene, n, generator)
