@@ -33,7 +33,7 @@ def write_model(root, n=10, fmt="bin", model="PINHOLE", seed=0, nan_image=None):
     rng = np.random.default_rng(seed)
     rec = pycolmap.Reconstruction()
     params = {"PINHOLE": [50.0, 52.0, 19.5, 15.2], "SIMPLE_RADIAL": [50.0, 20.0, 15.0, 0.01],
-              "OPENCV_FISHEYE": [50.0, 52.0, 19.5, 15.2, 0.01, 0.0, 0.0, 0.0]}[model]
+              "THIN_PRISM_FISHEYE": [50.0, 52.0, 19.5, 15.2, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002, 0.0]}[model]
     rec.add_camera_with_trivial_rig(
         pycolmap.Camera(camera_id=1, model=model, width=W, height=H, params=params))
     rec.add_camera_with_trivial_rig(
@@ -227,10 +227,11 @@ def test_images_dir_and_model_folder_given_directly(scene_dir):
 
 # ---- bad input: one clear error each -----------------------------------------------------
 
-def test_a_fisheye_camera_model_is_refused(tmp_path):
-    """Radial and OpenCV lenses are undistorted when read (test_data_distortion.py); a fisheye is not."""
-    write_model(tmp_path, model="OPENCV_FISHEYE")
-    with pytest.raises(ValueError, match="OPENCV_FISHEYE: supported are .*image_undistorter"):
+def test_a_thin_prism_camera_model_is_refused(tmp_path):
+    """Radial, OpenCV and fisheye lenses are undistorted when read (test_data_distortion.py); a
+    thin-prism fisheye is not."""
+    write_model(tmp_path, model="THIN_PRISM_FISHEYE")
+    with pytest.raises(ValueError, match="THIN_PRISM_FISHEYE: supported are .*image_undistorter"):
         load_colmap(tmp_path)
 
 

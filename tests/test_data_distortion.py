@@ -31,17 +31,21 @@ LENSES = {  # COLMAP model: (params after the pinhole ones, our Distortion)
     "OPENCV": ([-0.18, 0.05, 0.003, -0.004], Distortion(k1=-0.18, k2=0.05, p1=0.003, p2=-0.004)),
     "FULL_OPENCV": ([-0.18, 0.05, 0.003, -0.004, 0.01, 0.0, 0.0, 0.0],
                     Distortion(k1=-0.18, k2=0.05, k3=0.01, p1=0.003, p2=-0.004)),
+    "OPENCV_FISHEYE": ([0.05, -0.02, 0.01, -0.003], Distortion(k1=0.05, k2=-0.02, k3=0.01, k4=-0.003, fisheye=True)),
+    "SIMPLE_RADIAL_FISHEYE": ([0.04], Distortion(k1=0.04, fisheye=True)),
+    "RADIAL_FISHEYE": ([-0.03, 0.01], Distortion(k1=-0.03, k2=0.01, fisheye=True)),
 }
+ONE_FOCAL = ("SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
 
 
 def colmap_camera(model, camera_id=1):
     extra = LENSES[model][0]
-    pinhole = [FX, CX, CY] if model in ("SIMPLE_RADIAL", "RADIAL") else [FX, FY, CX, CY]
+    pinhole = [FX, CX, CY] if model in ONE_FOCAL else [FX, FY, CX, CY]
     return pycolmap.Camera(camera_id=camera_id, model=model, width=W, height=H, params=pinhole + extra)
 
 
 def fy_of(model):
-    return FX if model in ("SIMPLE_RADIAL", "RADIAL") else FY
+    return FX if model in ONE_FOCAL else FY
 
 
 def picture(x, y):
@@ -139,19 +143,21 @@ def test_colmap_images_are_undistorted_to_the_pinhole_camera(tmp_path, model):
                        atol=1e-6)
 
 
-def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path):
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, model):
     """The same lens through nerfstudio's transforms.json keys: the same pinhole camera and pixels."""
-    _write_colmap(tmp_path / "colmap", "OPENCV")
+    _write_colmap(tmp_path / "colmap", model)
     via_colmap = load_colmap(tmp_path / "colmap")
-    k1, k2, p1, p2 = LENSES["OPENCV"][0]
+    lens = (dict(zip(("k1", "k2", "p1", "p2"), LENSES[model][0])) if model == "OPENCV"
+            else dict(zip(("k1", "k2", "k3", "k4"), LENSES[model][0])))
     frames = [{"file_path": f"images/{c.name}",  # OpenGL camera-to-world
                "transform_matrix": (np.linalg.inv(c.world_to_camera.numpy()) @ np.diag([1.0, -1.0, -1.0, 1.0])).tolist()}
               for c in via_colmap.cameras]
     (tmp_path / "ns").mkdir()
     (tmp_path / "ns" / "images").symlink_to(tmp_path / "colmap" / "images")
     (tmp_path / "ns" / "transforms.json").write_text(json.dumps({
-        "camera_model": "OPENCV", "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H,
-        "k1": k1, "k2": k2, "p1": p1, "p2": p2, "frames": frames}))
+        "camera_model": model, "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H,
+        **lens, "frames": frames}))
     via_ns = load_nerf_synthetic(tmp_path / "ns")
     a, b = via_colmap.camera(via_colmap.cameras[1].name), via_ns.camera("images/" + via_colmap.cameras[1].name)
     assert (a.width, a.height) == (b.width, b.height)
@@ -159,6 +165,22 @@ def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path):
     assert np.allclose(a.world_to_camera.numpy(), b.world_to_camera.numpy(), atol=1e-9)
     assert torch.equal(via_colmap.image(a), via_ns.image(b))
     assert len({id(via_ns.undistortion(c)) for c in via_ns.cameras}) == 1  # one grid for the shared camera
+
+
+def test_a_wide_fisheye_keeps_the_rays_its_edges_see_or_is_refused():
+    """An equidistant lens (k = 0): a 100° field across keeps its edges' rays (the pinhole's edge
+    pixel is the ray at the capture's edge midpoint, tan 50°); 160° across would need a pinhole
+    tan(80°) / (80° in radians) = 4.1x as wide, and is refused naming the sizes."""
+    dist = Distortion(fisheye=True)
+    fx = (W / 2) / math.radians(50)  # the edge midpoints lie 50° off the axis
+    und = Undistortion(np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1]]), W, H, dist)
+    # the edge pixel centres lie (W - 1) / W of 50° off the axis; the pinhole spans their tangents
+    assert und.width_out == math.floor(2 * math.tan(math.radians(50) * (W - 1) / W) * fx)
+    su, _ = und.source_pixels()
+    assert su.min() >= 0.5 - 1e-6 and su.max() <= W - 0.5 + 1e-6
+    fx = (W / 2) / math.radians(80)
+    with pytest.raises(ValueError, match=r"fisheye \(equidistant\): the undistorted image would be \d+x\d+ px for a 96x72"):
+        Undistortion(np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1]]), W, H, dist)
 
 
 def test_colmap_models_that_cannot_be_resampled_are_refused(tmp_path):

@@ -80,10 +80,11 @@ def test_a_three_by_four_matrix_and_a_dynamic_transforms_json(tmp_path):
 
 
 @pytest.mark.parametrize("extra, match", [
-    ({"camera_model": "OPENCV_FISHEYE"}, r"camera_model 'OPENCV_FISHEYE': supported are PINHOLE, SIMPLE_PINHOLE, OPENCV"),
+    ({"camera_model": "EQUIRECTANGULAR"}, r"camera_model 'EQUIRECTANGULAR': supported are PINHOLE, SIMPLE_PINHOLE, OPENCV"),
+    ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, r"'OPENCV_FISHEYE' has no tangential terms, got p1=0.01, p2=0"),
     ({"k1": "0.1"}, r"'k1' must be a finite number, got '0.1'"),
     ({"k1": -3.0}, r"lens distortion k1=-3: it cannot be inverted over the image"),
-    ({"is_fisheye": True}, r"is_fisheye is set: a fisheye lens is not resampled here"),
+    ({"is_fisheye": True}, r"is_fisheye is set \(instant-ngp's flag\), which does not say the lens model"),
 ])
 def test_lenses_that_cannot_be_resampled_are_refused(tmp_path, extra, match):
     frames, _ = _frames(3, tmp_path)

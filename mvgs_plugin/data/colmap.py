@@ -235,8 +235,9 @@ def _read_model(pycolmap, model_dir: Path):
 
 def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     """K [3,3] and the lens distortion of a pycolmap camera: the pinhole models, and SIMPLE_RADIAL,
-    RADIAL, OPENCV and FULL_OPENCV without its rational terms (k4 = k5 = k6 = 0), whose images are
-    undistorted when read; other models are refused."""
+    RADIAL, OPENCV, FULL_OPENCV without its rational terms (k4 = k5 = k6 = 0) and the fisheye models
+    OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE and RADIAL_FISHEYE, whose images are undistorted when
+    read; other models are refused."""
     model = getattr(cam, "model_name", None) or cam.model.name
     p = [float(v) for v in cam.params]
     dist = Distortion()
@@ -257,12 +258,22 @@ def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     elif model == "FULL_OPENCV" and not any(p[9:12]):
         fx, fy, cx, cy, k1, k2, p1, p2, k3 = p[:9]
         dist = Distortion(k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
+    elif model == "OPENCV_FISHEYE":
+        fx, fy, cx, cy, k1, k2, k3, k4 = p
+        dist = Distortion(k1=k1, k2=k2, k3=k3, k4=k4, fisheye=True)
+    elif model == "SIMPLE_RADIAL_FISHEYE":
+        fx, cx, cy, k = p
+        fy, dist = fx, Distortion(k1=k, fisheye=True)
+    elif model == "RADIAL_FISHEYE":
+        fx, cx, cy, k1, k2 = p
+        fy, dist = fx, Distortion(k1=k1, k2=k2, fisheye=True)
     else:
-        # Splatting renders an ideal pinhole; a fisheye or rational lens is not resampled here.
+        # Splatting renders an ideal pinhole; a rational or thin-prism lens is not resampled here.
         why = " with rational terms k4..k6" if model == "FULL_OPENCV" else ""
         raise ValueError(
             f"camera model {model}{why}: supported are PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL, OPENCV, "
-            "FULL_OPENCV with k4 = k5 = k6 = 0 (undistorted when read). Undistort the images first: colmap image_undistorter "
+            "FULL_OPENCV with k4 = k5 = k6 = 0, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE (undistorted when "
+            "read). Undistort the images first: colmap image_undistorter "
             "--image_path <images> --input_path <sparse/0> --output_path <out> "
             "(then load <out>, which has images/ and sparse/)")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist

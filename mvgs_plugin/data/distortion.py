@@ -2,7 +2,8 @@
 
 Splatting renders an ideal pinhole. A capture whose camera model has lens distortion (COLMAP's
 SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV without its rational terms; nerfstudio's
-``k1``..``k4``, ``p1``, ``p2``) is loaded as the pinhole camera with the same focal lengths whose
+``k1``..``k4``, ``p1``, ``p2``; and the fisheye models OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
+RADIAL_FISHEYE) is loaded as the pinhole camera with the same focal lengths whose
 image is the largest axis-aligned rectangle every pixel of which the distorted image saw, and
 each image is resampled onto it (bilinear) when it is read. COLMAP's image_undistorter does the
 same with its default settings; here it happens in memory, so the scene folder stays as it is
@@ -15,7 +16,14 @@ The model, in normalised camera coordinates (x, y) = (X / Z, Y / Z), r² = x² +
     y_d = y radial + p1 (r² + 2 y²) + 2 p2 x y
 
 and the pixel is (fx x_d + cx, fy y_d + cy), pixel centres at +0.5 (COLMAP's, and this
-package's, convention).
+package's, convention). A fisheye lens (OpenCV's fisheye model, Kannala-Brandt; ``fisheye=True``)
+bends the angle from the axis instead, θ = atan(r):
+
+    θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸),   (x_d, y_d) = (θ_d / r) (x, y)
+
+A pinhole holds rays up to 90° from the axis only, and a wide one stretches its edges: the
+pinhole kept is the rectangle the distorted image's edge midpoints enclose, refused when that
+is more than twice the capture's size per axis (COLMAP's undistorter bounds its scale alike).
 """
 
 from __future__ import annotations
@@ -40,7 +48,8 @@ _MAX_GROWTH = 2.0
 
 @dataclasses.dataclass(frozen=True)
 class Distortion:
-    """Radial (k1..k4) and tangential (p1, p2) lens distortion coefficients."""
+    """Radial (k1..k4) and tangential (p1, p2) lens distortion coefficients; with fisheye=True
+    the k's bend the angle from the axis (OpenCV's fisheye model; p1 = p2 = 0)."""
 
     k1: float = 0.0
     k2: float = 0.0
@@ -48,22 +57,44 @@ class Distortion:
     k4: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    fisheye: bool = False
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
+        for f in _COEFFICIENTS:
+            v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"distortion coefficient {f.name} must be a finite number, got {v!r}")
+                raise ValueError(f"distortion coefficient {f} must be a finite number, got {v!r}")
+        if not isinstance(self.fisheye, bool):
+            raise ValueError(f"fisheye must be True or False, got {self.fisheye!r}")
+        if self.fisheye and (self.p1 or self.p2):
+            raise ValueError(f"a fisheye lens has no tangential terms (OpenCV's fisheye model), got p1={self.p1:g}, "
+                             f"p2={self.p2:g}")
 
-    def __bool__(self) -> bool:
-        return any(getattr(self, f.name) != 0.0 for f in dataclasses.fields(self))
+    def __bool__(self) -> bool:  # a fisheye with k = 0 is the equidistant lens, not a pinhole
+        return self.fisheye or any(getattr(self, f) != 0.0 for f in _COEFFICIENTS)
 
     def describe(self) -> str:
-        return ", ".join(f"{f.name}={getattr(self, f.name):g}" for f in dataclasses.fields(self)
-                         if getattr(self, f.name) != 0.0) or "none"
+        terms = ", ".join(f"{f}={getattr(self, f):g}" for f in _COEFFICIENTS if getattr(self, f) != 0.0)
+        if self.fisheye:
+            return f"fisheye ({terms or 'equidistant'})"
+        return terms or "none"
+
+    def _theta(self, r: np.ndarray):
+        """θ = atan(r), θ_d(θ) and dθ_d/dθ of the fisheye model."""
+        t = np.arctan(r)
+        t2 = t * t
+        poly = 1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4)))
+        dpoly = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
+        return t, t * poly, dpoly
 
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distorted normalised coordinates of undistorted ones (float64 arrays)."""
+        if self.fisheye:
+            r = np.hypot(x, y)
+            _, td, _ = self._theta(r)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                scale = np.where(r > 1e-12, td / r, 1.0)  # θ_d / r -> 1 on the axis
+            return x * scale, y * scale
         r2 = x * x + y * y
         radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * (self.k3 + r2 * self.k4)))
         xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
@@ -82,7 +113,10 @@ class Distortion:
     def undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted normalised coordinates of distorted ones, by Newton's method from
         (xd, yd); ValueError when it does not converge (a lens model that folds over itself
-        inside the image)."""
+        inside the image). A fisheye's ray 90° or more from the axis has no pinhole coordinates:
+        it comes back as infinite (x, y) along its direction."""
+        if self.fisheye:
+            return self._undistort_fisheye(np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64))
         x, y = np.array(xd, dtype=np.float64), np.array(yd, dtype=np.float64)
         for _ in range(_NEWTON_STEPS):
             fx, fy = self.distort(x, y)
@@ -97,6 +131,36 @@ class Distortion:
                 break
         raise ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
                          "folds over itself there, or its coefficients are not in normalised units)")
+
+
+    def _undistort_fisheye(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """θ from θ_d = hypot(x_d, y_d) by Newton's method on the (radial, monotone) lens
+        polynomial; then r = tan θ along (x_d, y_d)."""
+        target = np.hypot(xd, yd)
+        t = target.copy()
+        for _ in range(_NEWTON_STEPS):
+            t2 = t * t
+            poly = 1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4)))
+            dpoly = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
+            err = t * poly - target
+            if np.abs(err).max(initial=0.0) < _INVERSE_TOLERANCE:
+                break
+            if not (dpoly > 0).all():  # the polynomial turns back: two angles land on one radius
+                t = None
+                break
+            t = t - err / dpoly
+        else:
+            t = None
+        if t is None or not np.isfinite(t).all():
+            raise ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
+                             "folds over itself there, or its coefficients are not in normalised units)")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(t < 0.5 * math.pi, np.tan(np.minimum(t, 0.5 * math.pi - 1e-12)), np.inf)
+            scale = np.where(target > 1e-12, r / target, 1.0)
+        return xd * scale, yd * scale
+
+
+_COEFFICIENTS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 class Undistortion:
