@@ -301,6 +301,23 @@ def test_initial_colours_skip_pixels_a_mask_ignores():
     assert bool((unmasked >= count).all()) and float(unmasked.sum()) > float(count.sum())
 
 
+def test_a_level_below_full_resolution_holds_only_that_level(tmp_path):
+    """A scene loaded from files (the automatic background reads every training image's border)
+    and read at 1/2: the full-resolution images and masks are read and let go, never held; asked
+    for at full resolution, they are."""
+    _nerfstudio(tmp_path)
+    with pytest.warns(UserWarning, match="held out"):
+        scene = load_scene(tmp_path, init=None)
+    assert "borders" in scene.background_origin  # it did read them
+    for cam in scene.cameras:
+        scene.image(cam, 2), scene.mask(cam, 2)
+    held = [k for k in list(scene._cache) + list(scene._mask_cache) if k[1] == 1.0]
+    assert held == [], held
+    cam = scene.train_cameras[0]
+    first = scene.image(cam)
+    assert scene.image(cam) is first and (cam.uid, 1.0) in scene._cache
+
+
 # ---- the loss and the metrics --------------------------------------------------------------------
 
 def _one_step_gradients(scene: Scene) -> dict:

@@ -11,7 +11,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "read_mask", "downsample", "downsample_batch", "check_background", "may_have_alpha",
+__all__ = ["image_size", "read_rgb", "read_mask", "border_pixels", "downsample", "downsample_batch", "check_background", "may_have_alpha",
            "has_transparency", "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -189,6 +189,14 @@ BORDER_TOLERANCE = 8.0 / 255.0
 BORDER_SHARE = 0.9
 
 
+def border_pixels(x: torch.Tensor) -> torch.Tensor:
+    """The one-pixel border of ``x`` [H, W, C] as [N, C] (every pixel of an image under 3 px
+    high or wide)."""
+    if x.shape[0] < 3 or x.shape[1] < 3:
+        return x.reshape(-1, x.shape[2])
+    return torch.cat([x[0], x[-1], x[1:-1, 0], x[1:-1, -1]])
+
+
 def uniform_border(images: Iterable[torch.Tensor],
                    masks: Optional[Iterable[Optional[torch.Tensor]]] = None) -> Optional[tuple[float, float, float]]:
     """The colour of the images' one-pixel border when it is one colour, else None.
@@ -198,20 +206,15 @@ def uniform_border(images: Iterable[torch.Tensor],
     the backdrop a synthetic scene without alpha was rendered or composited on. A photograph's
     border (sky, floor, walls) fails the test. ``masks``: optionally, per image, its pixel weights
     [H, W, 1] or None; border pixels a mask ignores (weight below 1/2) are left out."""
-    def ring(x: torch.Tensor) -> torch.Tensor:
-        if x.shape[0] < 3 or x.shape[1] < 3:
-            return x.reshape(-1, x.shape[2])
-        return torch.cat([x[0], x[-1], x[1:-1, 0], x[1:-1, -1]])
-
     rings = []
     for img, mask in zip(images, masks if masks is not None else itertools.repeat(None)):
         img = torch.as_tensor(img, dtype=torch.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"uniform_border needs [H, W, 3] images, got {list(img.shape)}")
-        pixels = ring(img)
+        pixels = border_pixels(img)
         if mask is not None:
             weights = torch.as_tensor(mask, dtype=torch.float32).reshape(img.shape[0], img.shape[1], 1)
-            pixels = pixels[ring(weights)[:, 0] >= 0.5]
+            pixels = pixels[border_pixels(weights)[:, 0] >= 0.5]
         rings.append(pixels)
     if not sum(len(r) for r in rings):
         return None

@@ -237,10 +237,12 @@ class Scene:
                 self._mask_cache[key] = self._full_mask(base)
             else:
                 small = base.scaled(factor)
-                self._mask_cache[key] = downsample(self._full_mask(base), small.width, small.height).clamp(0.0, 1.0)
+                self._mask_cache[key] = downsample(self._full_mask(base, keep=False), small.width,
+                                                   small.height).clamp(0.0, 1.0)
         return self._mask_cache[key]
 
-    def _full_mask(self, cam: Camera) -> torch.Tensor:
+    def _full_mask(self, cam: Camera, keep: bool = True) -> torch.Tensor:
+        """The full-resolution mask, cached when ``keep`` (else read and not held)."""
         key = (cam.uid, 1.0)
         if key not in self._mask_cache:
             src = self._mask_sources[cam.uid]
@@ -251,6 +253,8 @@ class Scene:
             if not bool(m.any()):
                 raise ValueError(f"mask {src} of camera {cam.name!r} ignores every pixel: nothing of this view "
                                  "would count; drop the view, or give a mask that keeps some pixels")
+            if not keep:
+                return m
             self._mask_cache[key] = m
         return self._mask_cache[key]
 
@@ -272,7 +276,9 @@ class Scene:
         ``cam`` is the scene's full-resolution camera (its uid selects the image); the result is
         float32 [H', W', 3] in [0, 1] with (W', H') = ``cam.scaled(factor)``'s size, made once
         per (camera, factor) with :func:`~mvgs_plugin.data.images.downsample` and cached.
-        The cached tensor itself is returned: do not modify it in place. An image with a mask
+        The cached tensor itself is returned: do not modify it in place. Asked for a level
+        below full resolution, only that level is kept: the full image is read, downsampled
+        and let go (a 4K capture trained at 1/4 holds 1/16 of its pixels). An image with a mask
         (:meth:`mask`) is downsampled as a weighted mean, downsample(image x mask) /
         downsample(mask), so a pixel the mask ignores gives no colour to any level (0 where a
         level's pixel has no kept pixel under it).
@@ -280,17 +286,34 @@ class Scene:
         base, factor = self._level(cam, factor)
         key = (base.uid, factor)
         if key not in self._cache:
-            full = self._full(base)
             if factor == 1.0:
-                return full
+                return self._full(base)
+            full = self._full(base, keep=False)
             small = base.scaled(factor)
             if base.uid in self._mask_sources:
-                self._cache[key] = _masked_downsample(full, self._full_mask(base), small.width, small.height)
+                self._cache[key] = _masked_downsample(full, self._full_mask(base, keep=False), small.width, small.height)
             else:
                 self._cache[key] = downsample(full, small.width, small.height)
         return self._cache[key]
 
-    def _full(self, cam: Camera) -> torch.Tensor:
+    def read(self, cam: Camera) -> torch.Tensor:
+        """The full-resolution image of ``cam``, read now and not cached (a cached one is returned
+        as it is): for a look at every image at load time (the border colour, triangulation)
+        that does not hold them all in memory."""
+        return self._full(self._level(cam, 1)[0], keep=False)
+
+    def read_mask(self, cam: Camera) -> Optional[torch.Tensor]:
+        """:meth:`read` for the mask: the full-resolution mask of ``cam``, not cached (ones for a
+        camera without one, None in a scene without masks)."""
+        base, _ = self._level(cam, 1)
+        if not self._mask_sources:
+            return None
+        if base.uid not in self._mask_sources:
+            return torch.ones(base.height, base.width, 1)
+        return self._full_mask(base, keep=False)
+
+    def _full(self, cam: Camera, keep: bool = True) -> torch.Tensor:
+        """The full-resolution image, cached when ``keep`` (else read and not held)."""
         key = (cam.uid, 1.0)
         if key not in self._cache:
             src = self._sources[cam.uid]
@@ -298,6 +321,8 @@ class Scene:
             if tuple(img.shape) != (cam.height, cam.width, 3):
                 raise ValueError(f"image {self._sources[cam.uid]} is {img.shape[1]}x{img.shape[0]} "
                                  f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
+            if not keep:
+                return img
             self._cache[key] = img
         return self._cache[key]
 

@@ -149,7 +149,7 @@ def _stage_images(scene: Scene, cameras: Sequence[Camera], folder: Path) -> list
                 shutil.copyfile(src, folder / name)
         else:
             name = f"{k:05d}.png"
-            img = (scene.image(cam).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+            img = (scene.read(cam).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
             Image.fromarray(img).save(folder / name)
         names.append(name)
     return names
@@ -162,7 +162,7 @@ def _stage_masks(scene: Scene, cameras: Sequence[Camera], names: list, folder: P
 
     folder.mkdir(parents=True, exist_ok=True)
     for cam, name in zip(cameras, names):
-        keep = (scene.mask(cam)[..., 0] >= 0.5).numpy()
+        keep = (scene.read_mask(cam)[..., 0] >= 0.5).numpy()
         Image.fromarray((keep * 255).astype(np.uint8)).save(folder / f"{name}.png")
     return folder
 
@@ -347,7 +347,7 @@ def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:
             if und is not None:  # the pixels are the file resampled through the lens model
                 h.update(repr((und.K.tolist(), und.distortion)).encode())
         if getattr(scene, "has_masks", False):
-            h.update(scene.mask(cam).numpy().tobytes())
+            h.update(scene.read_mask(cam).numpy().tobytes())
     return h.hexdigest()[:16]
 
 
