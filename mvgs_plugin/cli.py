@@ -380,7 +380,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--images", type=str, default=None, metavar="DIR",
                     help="a COLMAP scene's image folder, relative to --data: a copy downscaled by one factor, such "
                          "as Mip-NeRF 360's images_4, scales the cameras to it (default: --data/images when there is "
-                         "one, else --data)")
+                         "one, else --data); for a nerfstudio transforms.json, the downscaled copy of its images/ "
+                         "(images_2, images_4, ...) read in its place")
     ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
                     help="folder the triangulation (features and points) is kept in and read back from by the next "
                          "run (default: OUT/init; the scene folder is never written unless DIR is in it)")

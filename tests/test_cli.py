@@ -205,6 +205,6 @@ def test_images_names_a_downscaled_colmap_folder(tmp_path):
         scene("--images", "images_9")
     ap2 = cli.common_args(argparse.ArgumentParser(), "out")
     ap2.add_argument("--data", type=cli.scene_folder)
-    with pytest.raises(cli.UsageError, match=r"--images images_2: images='images_2' is for COLMAP scenes"):
+    with pytest.raises(cli.UsageError, match=r"--images images_2: images='images_2': a NeRF-style scene takes a downscaled copy of nerfstudio's images/"):
         cli.scene_from_args(ap2.parse_args(["--data", str(cli.BUNDLED), "--images", "images_2",
                                             "--out", str(tmp_path / "o2")]))

@@ -903,7 +903,7 @@ def test_the_parser_reads_gsplats_data_factor_as_the_images_folder(tmp_path):
         full = model.calibration_matrix()
         want = np.diag([27 / W, 20 / H, 1.0]) @ full
         assert parser.imsize_dict[i] == (27, 20) and np.allclose(parser.Ks_dict[i], want, atol=1e-5)
-    with pytest.raises(ValueError, match="images='images_2' is for COLMAP scenes"):
+    with pytest.raises(ValueError, match="images='images_2': a NeRF-style scene takes a downscaled copy of nerfstudio's images/"):
         common.Parser(ROOT / "examples" / "scenes" / "tabletop", factor=2)
 
 
@@ -913,7 +913,7 @@ def test_a_data_factor_without_its_folder_is_one_line_naming_the_flag(tmp_path):
     r = subprocess.run([sys.executable, str(LOOP / "simple_trainer_mvgs.py"), "--data-factor", "2", "--steps", "10",
                         "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-800:]
-    assert "simple_trainer_mvgs.py: error: --data-factor 2: images='images_2' is for COLMAP scenes" in r.stderr
+    assert "simple_trainer_mvgs.py: error: --data-factor 2: images='images_2': a NeRF-style scene takes a downscaled copy" in r.stderr
     assert not (tmp_path / "o").exists()
 
 

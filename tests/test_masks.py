@@ -467,3 +467,4 @@ def test_training_with_masks_ignores_what_they_hide_through_every_phase(tmp_path
                                           str(tmp_path / "cut" / "checkpoint.pt")])
     for key in ("psnr", "ssim", "num_gaussians"):
         assert resumed[key] == runs["masked"][key], key
+

@@ -279,17 +279,18 @@ def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist
 
 
-def _downscaled(K: np.ndarray, width: int, height: int, size: tuple, file: Path, camera_id) -> tuple:
+def _downscaled(K: np.ndarray, width: int, height: int, size: tuple, file: Path, owner: str) -> tuple:
     """(K, width, height) of a camera for its image at ``size``, a copy of the camera's image
     downscaled alike on both axes (Mip-NeRF 360's images_2/4/8: the rounded size of each side over
-    one factor); each row of K scales with its axis, as Camera.scaled does. ValueError otherwise."""
+    one factor); each row of K scales with its axis, as Camera.scaled does. ValueError otherwise,
+    naming ``owner`` (what the full size is of: "its camera 3")."""
     w, h = size
     sx, sy = w / width, h / height
     # one factor s for both sides, each rounded or cut to whole pixels: |width / s - w| <= 1 and
     # |height / s - h| <= 1, i.e. the ranges of 1 / s the two sides allow overlap
     if w <= width and h <= height and max((w - 1) / width, (h - 1) / height) <= min((w + 1) / width, (h + 1) / height):
         return np.diag([sx, sy, 1.0]) @ K, w, h
-    raise ValueError(f"image {file} is {w}x{h} but its camera {camera_id} is {width}x{height}, and it is not a copy "
+    raise ValueError(f"image {file} is {w}x{h} but {owner} is {width}x{height}, and it is not a copy "
                      f"downscaled alike on both axes (x {sx:.4g}, y {sy:.4g}); give the folder of full-size images, or "
                      "one downscaled by one factor (e.g. images_4)")
 
@@ -395,7 +396,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
             if file.is_file():  # a missing one is named below
                 size = image_size(file)
                 if size != (width, height):  # a downscaled copy (images_4/): its intrinsics
-                    K, width, height = _downscaled(K, width, height, size, file, image.camera_id)
+                    K, width, height = _downscaled(K, width, height, size, file, f"its camera {image.camera_id}")
                     resized.setdefault((image.camera_id, cam.width, cam.height), set()).add((width, height))
             if dist:
                 und = shared_undistortion(undistortions, K, width, height, dist, f"{model_dir}: camera {image.camera_id}")

@@ -42,8 +42,9 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
 
     ``images``: a COLMAP scene's image folder, relative to ``path`` or absolute (default:
     ``path/images`` when it exists, else ``path``); a copy downscaled by one factor (Mip-NeRF
-    360's ``images_4``) scales the cameras to it (:func:`load_colmap`). NeRF-style scenes name
-    their images in their jsons, and are refused an ``images``.
+    360's ``images_4``) scales the cameras to it (:func:`load_colmap`). A NeRF-style scene takes
+    the name of a downscaled copy of nerfstudio's ``images/`` beside its json (``images_4``), read
+    in place of ``images/`` with each camera scaled to it (:func:`load_nerf_synthetic`).
 
     A scene without a point file (points3d.ply beside the jsons, COLMAP's points3D) gets initial
     points by ``init`` (:func:`~mvgs_plugin.data.triangulate.initial_points`): "triangulate"
@@ -74,10 +75,7 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
             raise ValueError("background must be 'auto' or 3 floats in [0,1], got None")
     layout = scene_layout(path)
     if layout == "nerf":
-        if images is not None:
-            raise ValueError(f"images={str(images)!r} is for COLMAP scenes; {path} is NeRF-style, its jsons name each "
-                             "frame's image (file_path)")
-        scene = (load_dnerf if is_dynamic(path) else load_nerf_synthetic)(path, background=background)
+        scene = (load_dnerf if is_dynamic(path) else load_nerf_synthetic)(path, background=background, images=images)
     elif layout == "colmap":
         folder = None if images is None else path / images  # an absolute one stays itself
         if folder is not None and not folder.is_dir():

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from .colmap import check_inside, normalize_name
+from .colmap import _downscaled, check_inside, normalize_name
 from .distortion import Distortion, UndistortedImage, shared_undistortion
 from .images import (BORDER_TOLERANCE, border_pixels, check_background, has_transparency, image_size, may_have_alpha,
                      uniform_border)
@@ -184,11 +184,26 @@ def _mask_file(frame: dict, root: Path, image: Path, width: int, height: int, wh
     return file
 
 
+def _in_copy(path: str, folder: str, copy: str, key: str, where: str) -> str:
+    """``path`` (a frame's file_path or mask_path) moved from ``folder``/ to its downscaled copy
+    ``copy``/ (nerfstudio's images/ -> images_4/, masks/ -> masks_4/)."""
+    parts = normalize_name(path).split("/")
+    if len(parts) < 2 or parts[0] != folder:
+        raise ValueError(f"{where}: its {key} {path!r} does not lie in {folder}/, so it has no copy in {copy}/ "
+                         f"(a downscaled folder replaces nerfstudio's {folder}/ folder)")
+    return "/".join([copy] + parts[1:])
+
+
 def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str,
-                  undistortions: dict) -> tuple[Camera, Union[Path, UndistortedImage], Union[None, Path, UndistortedImage]]:
+                  undistortions: dict, images: Optional[str] = None,
+                  ) -> tuple[Camera, Union[Path, UndistortedImage], Union[None, Path, UndistortedImage]]:
     fp = frame.get("file_path")
     if not isinstance(fp, str) or not fp.strip():
         raise ValueError(f"{where}: missing 'file_path'")
+    original = None  # the full-size file, when the images are read from a downscaled copy
+    if images is not None:
+        original = fp
+        fp = _in_copy(fp, "images", images, "file_path", where)
     rel = fp if Path(fp).suffix else fp + ".png"  # Blender scenes omit the extension
     if rel == fp and not (root / normalize_name(fp)).is_file() and (root / normalize_name(fp + ".png")).is_file():
         rel = fp + ".png"  # a name with a dot and no extension ("r.0"), the extension omitted as above
@@ -202,7 +217,18 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
             raise
         raise FileNotFoundError(f"{err} ({where}: its file_path {fp!r} has no extension, so '.png' was added, as "
                                 "Blender scenes omit it; write the extension in file_path)") from None
-    for key, actual in (("w", width), ("h", height)):
+    full = (width, height)  # the size the json's intrinsics are for
+    if original is not None:
+        declared = (_number(frame, "w", where), _number(frame, "h", where))
+        if None in declared:  # the full-size image's header says it
+            first = root / check_inside(normalize_name(original), root, where)
+            full = image_size(first) if first.is_file() else None
+            if full is None:
+                raise ValueError(f"{where}: reading a downscaled copy needs the full size its intrinsics are for: give "
+                                 f"'w' and 'h', or keep the full-size image {first}")
+        else:
+            full = (int(declared[0]), int(declared[1]))
+    for key, actual in (("w", full[0]), ("h", full[1])):
         declared = _number(frame, key, where)
         if declared is not None and declared != actual:
             raise ValueError(f"{where}: '{key}' is {declared:g} but the image {file} is "
@@ -215,9 +241,14 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
         if not 0.0 <= time <= 1.0:
             raise ValueError(f"{where}: 'time' must be in [0,1], got {time}")
     source = file
+    if images is not None and isinstance(frame.get("mask_path"), str):
+        copy = "masks" + images[len("images"):]
+        frame = {**frame, "mask_path": _in_copy(frame["mask_path"], "masks", copy, "mask_path", where)}
     mask = _mask_file(frame, root, file, width, height, where)
     try:
-        K = _intrinsics(frame, width, height, where)
+        K = _intrinsics(frame, full[0], full[1], where)
+        if full != (width, height):  # a copy downscaled by one factor: the camera scaled to it
+            K, width, height = _downscaled(K, full[0], full[1], (width, height), file, "the full-size image its intrinsics are for")
         dist = _distortion(frame, where)
         if dist:
             und = shared_undistortion(undistortions, K, width, height, dist, where)
@@ -308,8 +339,13 @@ def _points_file(root: Path, shared: dict, jfile: Path) -> Optional[Path]:
     return file
 
 
-def _load_blender(path, background, with_time: bool) -> Scene:
+def _load_blender(path, background, with_time: bool, images: Optional[str] = None) -> Scene:
     root = Path(path)
+    if images is not None:
+        images = str(images)
+        if not images.startswith("images") or "/" in images.strip("/") or not (root / images).is_dir():
+            raise ValueError(f"images={images!r}: a NeRF-style scene takes a downscaled copy of nerfstudio's images/ "
+                             f"folder beside its json (e.g. images_4), which must exist in {root}")
     if not root.is_dir():
         raise FileNotFoundError(f"scene folder not found: {root}")
     auto = isinstance(background, str)
@@ -337,7 +373,8 @@ def _load_blender(path, background, with_time: bool) -> Scene:
     for split in _SPLITS:
         cams = []
         for i, frame in by_split[split]:  # i: the frame's index in its json
-            cam, file, mask = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions)
+            cam, file, mask = _frame_camera(frame, uid, root, with_time, f"{where[split]}: frame {i}", undistortions,
+                                            images)
             cams.append(cam)
             files[uid] = file
             if mask is not None:
@@ -423,7 +460,8 @@ def is_dynamic(path) -> bool:
     return "time" in _read_json(transforms_files(path)[0])[0][0]
 
 
-def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "auto") -> Scene:
+def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "auto",
+                        images: Optional[str] = None) -> Scene:
     """Load a NeRF-synthetic (Blender) scene, or a folder with one ``transforms.json``
     (instant-ngp, nerfstudio).
 
@@ -445,6 +483,12 @@ def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "a
     becomes its :meth:`Scene.mask`: the training loss and the test metrics count only the pixels it
     keeps; a frame without one counts all of its pixels.
 
+    ``images``: the name of a downscaled copy of nerfstudio's ``images/`` folder beside the json
+    (``images_2``, ``images_4``, ... as ``ns-process-data`` writes them): every ``file_path``
+    under ``images/`` is read from it instead (masks from ``masks_2``, ...), and each camera is
+    scaled to its copy's size (the json's intrinsics are for the full size: its ``w``/``h``, or
+    the full-size image's header).
+
     ``background``: "auto" (default) composites RGBA images on white, as the Blender scenes are
     evaluated; when no training image has a transparent pixel, the images were composited
     already, and the colour their one-pixel borders show, when it is one colour
@@ -452,10 +496,10 @@ def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "a
     is not: a photograph's border). A colour composites RGBA images on it and is the scene's
     background whatever the images hold; None drops alpha. ``scene.background_origin`` says which.
     """
-    return _load_blender(path, background, with_time=False)
+    return _load_blender(path, background, with_time=False, images=images)
 
 
-def load_dnerf(path, background: Union[str, Sequence[float], None] = "auto") -> Scene:
+def load_dnerf(path, background: Union[str, Sequence[float], None] = "auto", images: Optional[str] = None) -> Scene:
     """Load a D-NeRF scene: as :func:`load_nerf_synthetic`, plus every frame's ``time`` in [0,1]
     (required) on ``Camera.time``."""
-    return _load_blender(path, background, with_time=True)
+    return _load_blender(path, background, with_time=True, images=images)
