@@ -46,7 +46,7 @@ from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, check_device, check_out, float_
 from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
-from mvgs_plugin.metrics import psnr, ssim as ssim_metric
+from mvgs_plugin.metrics import masked_psnr, psnr, ssim as ssim_metric
 
 
 @dataclass
@@ -147,7 +147,9 @@ class Parser:
 
 class Dataset(torch.utils.data.Dataset):
     """gsplat's Dataset: item i of the split is a dict K [3, 3], camtoworld [4, 4], image
-    [H, W, 3] float in 0..255, image_id i (the item's index in this split)."""
+    [H, W, 3] float in 0..255, image_id i (the item's index in this split), and, in a scene with
+    masks (mvgs_plugin's Scene.mask), mask [H, W] bool (True: the pixel counts), as gsplat's items
+    carry one."""
 
     def __init__(self, parser: Parser, split: str = "train"):
         self.parser = parser
@@ -160,12 +162,16 @@ class Dataset(torch.utils.data.Dataset):
     def __getitem__(self, item: int) -> Dict[str, Tensor]:
         index = int(self.indices[item])
         cam = self.parser.cameras[index]
-        return {
+        out = {
             "K": torch.from_numpy(self.parser.Ks_dict[self.parser.camera_ids[index]]).float(),
             "camtoworld": torch.from_numpy(self.parser.camtoworlds[index]).float(),
             "image": self.parser.scene.image(cam) * 255.0,
             "image_id": item,
         }
+        mask = self.parser.scene.mask(cam)
+        if mask is not None:
+            out["mask"] = mask[..., 0] >= 0.5
+        return out
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
@@ -326,7 +332,9 @@ def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) 
 
 @torch.no_grad()
 def evaluate(splats, cfg: Config, parser: Parser) -> Dict:
-    """Mean PSNR and SSIM over the val split at full resolution, at the full SH degree."""
+    """Mean PSNR and SSIM over the val split at full resolution, at the full SH degree (a view
+    with a mask: the PSNR of the pixels it keeps, the SSIM of both images blacked out alike, as
+    mvgs_plugin's controller reports them)."""
     valset = Dataset(parser, split="val")
     if len(valset) == 0:
         valset = Dataset(parser, split="train")
@@ -339,7 +347,12 @@ def evaluate(splats, cfg: Config, parser: Parser) -> Dict:
                                      sh_degree=cfg.sh_degree, near_plane=cfg.near_plane, far_plane=cfg.far_plane)
         out = img[0].clamp(0, 1).cpu()
         name = parser.image_names[int(valset.indices[i])]
-        rows.append({"name": name, "psnr": psnr(out, pixels), "ssim": ssim_metric(out, pixels)})
+        if "mask" in data:
+            keep = data["mask"][..., None].float()
+            rows.append({"name": name, "psnr": masked_psnr(out, pixels, keep),
+                         "ssim": ssim_metric(out * keep, pixels * keep)})
+        else:
+            rows.append({"name": name, "psnr": psnr(out, pixels), "ssim": ssim_metric(out, pixels)})
     return {"psnr": sum(r["psnr"] for r in rows) / len(rows), "ssim": sum(r["ssim"] for r in rows) / len(rows),
             "per_view": rows}
 

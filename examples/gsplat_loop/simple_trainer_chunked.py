@@ -94,8 +94,12 @@ class Runner(simple_trainer_mvgs.Runner):
                     info=info,
                 )
 
-                l1loss = F.l1_loss(colors, pixels[part])
-                ssimloss = 1.0 - ssim(colors, pixels[part], padding="valid")
+                target = pixels[part]
+                if "mask" in data:  # [C, H, W]
+                    keep = data["mask"].to(device)[part][..., None]
+                    target, colors = target * keep, colors * keep
+                l1loss = F.l1_loss(colors, target)
+                ssimloss = 1.0 - ssim(colors, target, padding="valid")
                 loss = l1loss * (1.0 - cfg.ssim_lambda) + ssimloss * cfg.ssim_lambda
                 (loss * weight).backward()
 

@@ -105,6 +105,11 @@ class Runner:
                 info=info,
             )
 
+            masks = data["mask"].to(device) if "mask" in data else None  # [C, H, W]
+            if masks is not None:
+                pixels = pixels * masks[..., None]
+                colors = colors * masks[..., None]
+
             l1loss = F.l1_loss(colors, pixels)
             ssimloss = 1.0 - ssim(colors, pixels, padding="valid")
             loss = l1loss * (1.0 - cfg.ssim_lambda) + ssimloss * cfg.ssim_lambda
