@@ -438,7 +438,10 @@ class MVGSStrategy(DefaultStrategy):
     def at_level_dict(self, data: Dict[str, Any]) -> Dict[str, Any]:
         """:meth:`at_level` for a gsplat Dataset batch dict: ``image`` (0..255) and ``K`` at the
         step's level, plus ``mask`` [C, H, W] (resampled, then > 0.5) and depth-loss ``points``
-        [C, P, 2] (pixel coordinates scaled) when present; other keys as they are."""
+        [C, P, 2] (pixel coordinates scaled) when present; other keys as they are. With a mask,
+        a coarse level's image is the weighted mean of the kept pixels, downsample(image x mask)
+        / downsample(mask) (0 where none reaches), as the package's own pyramid makes it
+        (Scene.image), so a pixel the mask hides gives its colour to no level."""
         pixels = data["image"]
         self._close_step()
         plan, before = self._next_queued(len(pixels), data.get("image_id"))
@@ -447,7 +450,15 @@ class MVGSStrategy(DefaultStrategy):
         h, w = pixels.shape[1:3]
         h2, w2 = out["image"].shape[1:3]
         if isinstance(data.get("mask"), Tensor):
-            out["mask"] = downsample_batch(data["mask"].float()[..., None], w2, h2)[..., 0] > 0.5
+            if (w2, h2) == (w, h):
+                out["mask"] = data["mask"].bool() if data["mask"].dtype != torch.bool else data["mask"]
+            else:
+                keep = data["mask"].to(pixels.dtype if pixels.is_floating_point() else torch.float32)[..., None]
+                both = downsample_batch(torch.cat([pixels * keep, keep], dim=-1), w2, h2)
+                weight = both[..., -1:]
+                out["image"] = torch.where(weight > 1e-6, both[..., :-1] / weight.clamp_min(1e-6),
+                                           torch.zeros_like(both[..., :-1]))
+                out["mask"] = weight[..., 0] > 0.5
         if isinstance(data.get("points"), Tensor):
             out["points"] = data["points"] * torch.tensor([w2 / w, h2 / h], dtype=data["points"].dtype,
                                                            device=data["points"].device)

@@ -974,3 +974,26 @@ def test_the_port_reads_masks_as_gsplat_does(tmp_path):
         runs[name] = runner.splats
     for k in runs["clean"].keys():
         assert torch.equal(runs["clean"][k], runs["occluded"][k]), k
+
+
+def test_at_level_makes_a_masked_views_levels_as_the_package_does(tmp_path):
+    """With masks, the loader's batches at every pyramid level match the package's own plans: the
+    image the weighted mean of the kept pixels (no colour from a hidden one), the mask the
+    package's weights above 1/2."""
+    data_dir = _masked_forward(tmp_path / "s", occluded=True)
+    scene = load_scene(data_dir)
+    parser = common.Parser(data_dir)
+    trainset = common.Dataset(parser, "train")
+    config = MVGSConfig.multiview(chunk_size=3)
+    strategy = MVGSStrategy(DefaultStrategy(), trainset, config, steps=40)
+    reference = ViewSchedule(scene, config.for_scene(scene).with_total_steps(40))
+    loader = torch.utils.data.DataLoader(trainset, batch_sampler=strategy.batch_sampler())
+    factors = set()
+    for step, data in zip(range(12), loader):
+        out = strategy.at_level_dict(data)
+        plan = reference.next()
+        factors.add(plan.factor)
+        torch.testing.assert_close(out["image"] / 255.0, torch.stack(plan.images), atol=2e-5, rtol=0)
+        assert torch.equal(out["mask"], torch.stack(plan.masks)[..., 0] > 0.5)
+        strategy.plan, strategy._reported = None, 0  # (no training here)
+    assert len(factors) >= 3 and any(f > 1 for f in factors)
