@@ -143,9 +143,12 @@ def test_colmap_images_are_undistorted_to_the_pinhole_camera(tmp_path, model):
                        atol=1e-6)
 
 
-@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE", "is_fisheye"])
 def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, model):
-    """The same lens through nerfstudio's transforms.json keys: the same pinhole camera and pixels."""
+    """The same lens through nerfstudio's transforms.json keys (or instant-ngp's is_fisheye with
+    k1..k4, as its colmap2nerf writes a COLMAP fisheye): the same pinhole camera and pixels."""
+    flag = model == "is_fisheye"
+    model = "OPENCV_FISHEYE" if flag else model
     _write_colmap(tmp_path / "colmap", model)
     via_colmap = load_colmap(tmp_path / "colmap")
     lens = (dict(zip(("k1", "k2", "p1", "p2"), LENSES[model][0])) if model == "OPENCV"
@@ -156,8 +159,8 @@ def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, mod
     (tmp_path / "ns").mkdir()
     (tmp_path / "ns" / "images").symlink_to(tmp_path / "colmap" / "images")
     (tmp_path / "ns" / "transforms.json").write_text(json.dumps({
-        "camera_model": model, "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H,
-        **lens, "frames": frames}))
+        **({"is_fisheye": True} if flag else {"camera_model": model}), "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY,
+        "w": W, "h": H, **lens, "frames": frames}))
     via_ns = load_nerf_synthetic(tmp_path / "ns")
     a, b = via_colmap.camera(via_colmap.cameras[1].name), via_ns.camera("images/" + via_colmap.cameras[1].name)
     assert (a.width, a.height) == (b.width, b.height)

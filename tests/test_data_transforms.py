@@ -84,7 +84,10 @@ def test_a_three_by_four_matrix_and_a_dynamic_transforms_json(tmp_path):
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, r"'OPENCV_FISHEYE' has no tangential terms, got p1=0.01, p2=0"),
     ({"k1": "0.1"}, r"'k1' must be a finite number, got '0.1'"),
     ({"k1": -3.0}, r"lens distortion k1=-3: it cannot be inverted over the image"),
-    ({"is_fisheye": True}, r"is_fisheye is set \(instant-ngp's flag\), which does not say the lens model"),
+    ({"camera_model": None, "is_fisheye": True, "p1": 0.01},
+     r"is_fisheye \(OpenCV's fisheye model\) has no tangential terms, got p1=0.01"),
+    ({"is_fisheye": True}, r"is_fisheye is set beside camera_model 'OPENCV': one says a fisheye lens"),
+    ({"is_fisheye": "yes"}, r"'is_fisheye' must be true or false, got 'yes'"),
 ])
 def test_lenses_that_cannot_be_resampled_are_refused(tmp_path, extra, match):
     frames, _ = _frames(3, tmp_path)

@@ -103,21 +103,25 @@ def _focal(frame: dict, axis: str, size: int, where: str) -> Optional[float]:
 
 def _distortion(frame: dict, where: str) -> Distortion:
     """The frame's lens distortion (k1..k4, p1, p2; 0 when absent; the fisheye model's k1..k4 for
-    nerfstudio's OPENCV_FISHEYE); ValueError for a camera_model this loader cannot resample
-    (EQUIRECTANGULAR) and for instant-ngp's is_fisheye flag."""
+    nerfstudio's OPENCV_FISHEYE and for instant-ngp's is_fisheye, which its colmap2nerf writes for
+    COLMAP's fisheye models); ValueError for a camera_model this loader cannot resample
+    (EQUIRECTANGULAR) and for is_fisheye beside a camera_model that is not a fisheye."""
     model = frame.get("camera_model")
     if model is not None and model not in _PINHOLE_MODELS:
         raise ValueError(f"{where}: camera_model {model!r}: supported are {', '.join(_PINHOLE_MODELS)} (OPENCV "
                          "with lens distortion k1..k4, p1, p2, OPENCV_FISHEYE with k1..k4, undistorted when read); "
                          "convert the capture to one, e.g. with COLMAP's image_undistorter")
-    if frame.get("is_fisheye"):  # instant-ngp's flag
-        raise ValueError(f"{where}: is_fisheye is set (instant-ngp's flag), which does not say the lens model; write "
-                         "nerfstudio's \"camera_model\": \"OPENCV_FISHEYE\" with k1..k4 instead, or convert the capture "
-                         "to a pinhole one, e.g. with COLMAP's image_undistorter")
+    flag = frame.get("is_fisheye", False)
+    if not isinstance(flag, bool):
+        raise ValueError(f"{where}: 'is_fisheye' must be true or false, got {flag!r}")
+    if flag and model not in (None, "OPENCV_FISHEYE"):
+        raise ValueError(f"{where}: is_fisheye is set beside camera_model {model!r}: one says a fisheye lens, the "
+                         "other not; keep the one that describes the capture")
     values = {k: v for k, v in ((k, _number(frame, k, where)) for k in _DISTORTION) if v is not None}
-    if model == "OPENCV_FISHEYE":
+    if model == "OPENCV_FISHEYE" or flag:  # instant-ngp's is_fisheye: OpenCV's fisheye model with k1..k4
         if values.get("p1") or values.get("p2"):
-            raise ValueError(f"{where}: camera_model 'OPENCV_FISHEYE' has no tangential terms, got p1="
+            name = "camera_model 'OPENCV_FISHEYE'" if model else "is_fisheye (OpenCV's fisheye model)"
+            raise ValueError(f"{where}: {name} has no tangential terms, got p1="
                              f"{values.get('p1', 0):g}, p2={values.get('p2', 0):g}")
         return Distortion(**{k: v for k, v in values.items() if k not in ("p1", "p2")}, fisheye=True)
     return Distortion(**values)
@@ -475,7 +479,7 @@ def load_nerf_synthetic(path, background: Union[str, Sequence[float], None] = "a
     tan(camera_angle_x / 2)) and fy from ``camera_angle_y`` or fy = fx; ``cx``/``cy`` default to
     W/2, H/2; ``w``/``h``, when given, must match the image; lens distortion (``k1``..``k4``,
     ``p1``, ``p2``) is undistorted when the images are read (:mod:`~mvgs_plugin.data.distortion`),
-    as is the ``OPENCV_FISHEYE`` ``camera_model`` (k1..k4), and ``is_fisheye`` is refused. ``points3d.ply`` next to
+    as is the ``OPENCV_FISHEYE`` ``camera_model`` (k1..k4) and instant-ngp's ``is_fisheye``. ``points3d.ply`` next to
     the jsons, else the ply a transforms.json names in ``ply_file_path`` (nerfstudio), becomes
     ``scene.points``. Uids count train frames then test frames from 0; names are the image paths
     relative to ``path`` (e.g. "train/r_000.png"). A frame's ``mask_path`` (nerfstudio: a one-channel
