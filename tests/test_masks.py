@@ -22,7 +22,6 @@ import torch
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin import controller as controller_module
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
-from mvgs_plugin.config import Stage
 from mvgs_plugin.data import Scene, load_scene
 from mvgs_plugin.data.images import read_mask
 from mvgs_plugin.metrics import masked_psnr, psnr
