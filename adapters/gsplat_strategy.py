@@ -100,7 +100,7 @@ from mvgs_plugin.adapters.gs3d import consistency_of, keep_scores_of
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
-from mvgs_plugin.data.images import downsample_batch
+from mvgs_plugin.data.images import downsample_batch, masked_downsample
 from mvgs_plugin.data.scene import camera_normalization
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.schedule import StepPlan, ViewSchedule
@@ -451,13 +451,10 @@ class MVGSStrategy(DefaultStrategy):
         h2, w2 = out["image"].shape[1:3]
         if isinstance(data.get("mask"), Tensor):
             if (w2, h2) == (w, h):
-                out["mask"] = data["mask"].bool() if data["mask"].dtype != torch.bool else data["mask"]
+                out["mask"] = data["mask"].bool()
             else:
                 keep = data["mask"].to(pixels.dtype if pixels.is_floating_point() else torch.float32)[..., None]
-                both = downsample_batch(torch.cat([pixels * keep, keep], dim=-1), w2, h2)
-                weight = both[..., -1:]
-                out["image"] = torch.where(weight > 1e-6, both[..., :-1] / weight.clamp_min(1e-6),
-                                           torch.zeros_like(both[..., :-1]))
+                out["image"], weight = masked_downsample(pixels, keep, lambda x: downsample_batch(x, w2, h2))
                 out["mask"] = weight[..., 0] > 0.5
         if isinstance(data.get("points"), Tensor):
             out["points"] = data["points"] * torch.tensor([w2 / w, h2 / h], dtype=data["points"].dtype,

@@ -8,7 +8,6 @@ its hand-off, densification, opacity reset and a resume) is in the slow test at 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import shutil
@@ -26,6 +25,7 @@ from mvgs_plugin.data import Scene, load_scene
 from mvgs_plugin.data.images import read_mask
 from mvgs_plugin.metrics import masked_psnr, psnr
 from mvgs_plugin.testing import synthetic_scene
+from test_example_resume import Crash, _example  # the example loader and the simulated kill of the resume tests
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLETOP = ROOT / "examples" / "scenes" / "tabletop"
@@ -404,17 +404,6 @@ def _occluded_tabletop(root: Path, with_masks: bool, occluded: bool = True) -> P
     return root
 
 
-def _example():
-    spec = importlib.util.spec_from_file_location("train_3dgs_masks", ROOT / "examples" / "train_3dgs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-class Crash(RuntimeError):
-    pass
-
-
 @pytest.mark.slow
 def test_training_with_masks_ignores_what_they_hide_through_every_phase(tmp_path, monkeypatch):
     """The 3DGS example on the bundled scene at 1/8 resolution, its training images occluded by a
@@ -425,7 +414,7 @@ def test_training_with_masks_ignores_what_they_hide_through_every_phase(tmp_path
     steps, every = 400, 150
     base = ["--preset", "default", "--steps", str(steps), "--threads", "1", "--no-progress", "--resolution-scale", "8",
             "--threshold-width", "0", "--min-densify-per-reset", "10"]
-    example = _example()
+    example = _example("train_3dgs.py")
     infos = []
     step = controller_module.MVGS.step
 

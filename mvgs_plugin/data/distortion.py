@@ -79,19 +79,22 @@ class Distortion:
             return f"fisheye ({terms or 'equidistant'})"
         return terms or "none"
 
-    def _theta(self, r: np.ndarray):
-        """θ = atan(r), θ_d(θ) and dθ_d/dθ of the fisheye model."""
-        t = np.arctan(r)
+    def _angle(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fisheye model's θ_d(θ) and dθ_d/dθ at the angles ``t`` from the axis."""
         t2 = t * t
         poly = 1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4)))
         dpoly = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
-        return t, t * poly, dpoly
+        return t * poly, dpoly
+
+    def _not_invertible(self) -> ValueError:
+        return ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
+                          "folds over itself there, or its coefficients are not in normalised units)")
 
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distorted normalised coordinates of undistorted ones (float64 arrays)."""
         if self.fisheye:
             r = np.hypot(x, y)
-            _, td, _ = self._theta(r)
+            td, _ = self._angle(np.arctan(r))
             with np.errstate(divide="ignore", invalid="ignore"):
                 scale = np.where(r > 1e-12, td / r, 1.0)  # θ_d / r -> 1 on the axis
             return x * scale, y * scale
@@ -129,9 +132,7 @@ class Distortion:
                 x, y = x - (d * ex - b * ey) / det, y - (a * ey - c * ex) / det
             if not (np.isfinite(x).all() and np.isfinite(y).all()):
                 break
-        raise ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
-                         "folds over itself there, or its coefficients are not in normalised units)")
-
+        raise self._not_invertible()
 
     def _undistort_fisheye(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """θ from θ_d = hypot(x_d, y_d) by Newton's method on the (radial, monotone) lens
@@ -139,21 +140,17 @@ class Distortion:
         target = np.hypot(xd, yd)
         t = target.copy()
         for _ in range(_NEWTON_STEPS):
-            t2 = t * t
-            poly = 1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4)))
-            dpoly = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)))
-            err = t * poly - target
+            td, dpoly = self._angle(t)
+            err = td - target
             if np.abs(err).max(initial=0.0) < _INVERSE_TOLERANCE:
                 break
             if not (dpoly > 0).all():  # the polynomial turns back: two angles land on one radius
-                t = None
-                break
+                raise self._not_invertible()
             t = t - err / dpoly
         else:
-            t = None
-        if t is None or not np.isfinite(t).all():
-            raise ValueError(f"lens distortion {self.describe()}: it cannot be inverted over the image (the model "
-                             "folds over itself there, or its coefficients are not in normalised units)")
+            raise self._not_invertible()
+        if not np.isfinite(t).all():
+            raise self._not_invertible()
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.where(t < 0.5 * math.pi, np.tan(np.minimum(t, 0.5 * math.pi - 1e-12)), np.inf)
             scale = np.where(target > 1e-12, r / target, 1.0)

@@ -11,7 +11,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "read_mask", "border_pixels", "downsample", "downsample_batch", "check_background", "may_have_alpha",
+__all__ = ["image_size", "read_rgb", "read_mask", "downsample", "masked_downsample", "downsample_batch", "check_background", "may_have_alpha",
            "has_transparency", "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -189,7 +189,7 @@ BORDER_TOLERANCE = 8.0 / 255.0
 BORDER_SHARE = 0.9
 
 
-def border_pixels(x: torch.Tensor) -> torch.Tensor:
+def _border_pixels(x: torch.Tensor) -> torch.Tensor:
     """The one-pixel border of ``x`` [H, W, C] as [N, C] (every pixel of an image under 3 px
     high or wide)."""
     if x.shape[0] < 3 or x.shape[1] < 3:
@@ -211,10 +211,10 @@ def uniform_border(images: Iterable[torch.Tensor],
         img = torch.as_tensor(img, dtype=torch.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"uniform_border needs [H, W, 3] images, got {list(img.shape)}")
-        pixels = border_pixels(img)
+        pixels = _border_pixels(img)
         if mask is not None:
             weights = torch.as_tensor(mask, dtype=torch.float32).reshape(img.shape[0], img.shape[1], 1)
-            pixels = pixels[border_pixels(weights)[:, 0] >= 0.5]
+            pixels = pixels[_border_pixels(weights)[:, 0] >= 0.5]
         rings.append(pixels)
     if not sum(len(r) for r in rings):
         return None
@@ -267,6 +267,18 @@ def read_mask(path: Path) -> torch.Tensor:
                          "RGB channels): non-zero keeps a pixel, zero ignores it")
     keep = np.asarray(grey[:, :, :1]) != 0
     return torch.from_numpy(np.ascontiguousarray(keep, dtype=np.float32))
+
+
+def masked_downsample(image: torch.Tensor, weights: torch.Tensor, resize) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the weighted mean of ``image`` [..., H, W, C] under ``weights`` [..., H, W, 1] (a mask) at
+    the size ``resize`` makes, the weights at that size): resize(image x weights) /
+    resize(weights), 0 where no weight reaches, and resize(weights). ``resize`` maps
+    [..., H, W, C + 1] to the level (:func:`downsample` or :func:`downsample_batch` with the
+    level's size), so an ignored pixel gives no colour to it."""
+    both = resize(torch.cat([image * weights, weights], dim=-1))
+    weight = both[..., -1:]
+    mean = torch.where(weight > 1e-6, both[..., :-1] / weight.clamp_min(1e-6), torch.zeros_like(both[..., :-1]))
+    return mean, weight
 
 
 def downsample(image: torch.Tensor, width: int, height: int) -> torch.Tensor:

@@ -16,8 +16,7 @@ import torch
 from ..camera import Camera
 from .colmap import _downscaled, check_inside, normalize_name
 from .distortion import Distortion, UndistortedImage, shared_undistortion
-from .images import (BORDER_TOLERANCE, border_pixels, check_background, has_transparency, image_size, may_have_alpha,
-                     uniform_border)
+from .images import BORDER_TOLERANCE, check_background, has_transparency, image_size, may_have_alpha, uniform_border
 from .scene import PointCloud, Scene
 
 __all__ = ["load_nerf_synthetic", "load_dnerf", "is_dynamic", "read_points_ply", "transforms_files", "OPENGL_TO_OPENCV"]
@@ -408,7 +407,7 @@ def _load_blender(path, background, with_time: bool, images: Optional[str] = Non
     if any(has_transparency(scene.image_file(cam)) for cam in scene.train_cameras if alpha[cam.uid]):
         scene.background_origin = "white: RGBA images composited on it (the default)"
         opaque = [cam for cam in scene.train_cameras if not alpha[cam.uid]]
-        shown = uniform_border(*_images_and_masks(scene, opaque)) if opaque else None
+        shown = uniform_border(*_full_reads(scene, opaque)) if opaque else None
         if shown is not None and max(abs(c - 1.0) for c in shown) > BORDER_TOLERANCE:
             warnings.warn(f"{root}: {len(opaque)} of the {len(scene.train_cameras)} training images have no transparent "
                           f"pixel and their borders show ({shown[0]:.3f}, {shown[1]:.3f}, {shown[2]:.3f}), not the white "
@@ -416,7 +415,7 @@ def _load_blender(path, background, with_time: bool, images: Optional[str] = Non
                           "trained against two backdrops; composite them alike, or give the background they share",
                           stacklevel=3)
     else:  # opaque images, composited already: the colour their borders show, if they show one
-        found = uniform_border(*_images_and_masks(scene, scene.train_cameras))
+        found = uniform_border(*_full_reads(scene, scene.train_cameras))
         if found is not None:
             scene.background = found
             scene.background_origin = ("the training images have no transparent pixel and their borders are one colour, "
@@ -427,16 +426,11 @@ def _load_blender(path, background, with_time: bool, images: Optional[str] = Non
     return scene
 
 
-def _images_and_masks(scene: Scene, cameras) -> tuple[list, list]:
-    """What uniform_border reads of every camera: its image's and mask's one-pixel border, as
-    [1, N, C] strips (uniform_border takes every pixel of an image under 3 px high), from full
-    images read one at a time and not cached (Scene.read, Scene.read_mask)."""
-    images, masks = [], []
-    for cam in cameras:
-        images.append(border_pixels(scene.read(cam))[None])
-        mask = scene.read_mask(cam)
-        masks.append(None if mask is None else border_pixels(mask)[None])
-    return images, masks
+def _full_reads(scene: Scene, cameras) -> tuple:
+    """(images, masks) of ``cameras`` at full resolution for uniform_border, as generators that
+    read one camera at a time without caching (Scene.read, Scene.read_mask): the border look
+    at load time holds no image beyond the one it reads."""
+    return (scene.read(cam) for cam in cameras), (scene.read_mask(cam) for cam in cameras)
 
 
 def _warn_repeated(splits: dict, root: Path) -> None:

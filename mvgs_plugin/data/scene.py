@@ -11,7 +11,7 @@ import torch
 
 from ..camera import Camera, _check_factor
 from .distortion import UndistortedImage
-from .images import check_background, downsample, image_size, read_mask, read_rgb
+from .images import check_background, downsample, image_size, masked_downsample, read_mask, read_rgb
 
 __all__ = ["Scene", "PointCloud", "camera_normalization"]
 
@@ -76,6 +76,14 @@ def camera_normalization(cams: Sequence[Camera]) -> tuple[torch.Tensor, float]:
     return center, extent
 
 
+def _keeps_some(mask: torch.Tensor, what: str, cam: Camera) -> torch.Tensor:
+    """``mask``, refused when it ignores every pixel of its view."""
+    if not bool(mask.any()):
+        raise ValueError(f"{what} of camera {cam.name!r} ignores every pixel: nothing of this view would count; "
+                         "drop the view, or give a mask that keeps some pixels")
+    return mask
+
+
 def _file_source(cam: Camera, src, check_size: bool, what: str):
     """An image (or mask) source given as a file, or as a file resampled through a lens model,
     checked against its camera: the size the camera expects (the file's header, read when
@@ -94,15 +102,6 @@ def _file_source(cam: Camera, src, check_size: bool, what: str):
         if (w, h) != size:
             raise ValueError(f"{what} {file} is {w}x{h} but its camera {cam.name!r} expects {size[0]}x{size[1]}")
     return src
-
-
-def _masked_downsample(image: torch.Tensor, mask: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """The weighted mean of ``image`` [H, W, 3] under ``mask`` [H, W, 1] at [height, width, 3]:
-    downsample(image x mask) / downsample(mask), 0 where no kept pixel reaches."""
-    both = downsample(torch.cat([image * mask, mask], dim=2), width, height)
-    weight = both[:, :, 3:]
-    out = torch.where(weight > 1e-6, both[:, :, :3] / weight.clamp_min(1e-6), torch.zeros_like(both[:, :, :3]))
-    return out.clamp(0.0, 1.0)
 
 
 class Scene:
@@ -193,10 +192,7 @@ class Scene:
                                  f"[{cam.height},{cam.width},1], got {list(src.shape)}")
             if not (bool(torch.isfinite(m).all()) and m.min() >= 0 and m.max() <= 1):
                 raise ValueError(f"mask for camera {cam.name!r} must be finite weights in [0,1]")
-            if not bool(m.any()):
-                raise ValueError(f"mask for camera {cam.name!r} ignores every pixel: nothing of this view would "
-                                 "count; drop the view, or give a mask that keeps some pixels")
-            self._mask_cache[(cam.uid, 1.0)] = m
+            self._mask_cache[(cam.uid, 1.0)] = _keeps_some(m, "mask", cam)
         else:
             src = _file_source(cam, src, check_size, "mask")
         self._mask_sources[cam.uid] = src
@@ -250,9 +246,7 @@ class Scene:
             if tuple(m.shape) != (cam.height, cam.width, 1):
                 raise ValueError(f"mask {src} is {m.shape[1]}x{m.shape[0]} but its camera {cam.name!r} expects "
                                  f"{cam.width}x{cam.height}")
-            if not bool(m.any()):
-                raise ValueError(f"mask {src} of camera {cam.name!r} ignores every pixel: nothing of this view "
-                                 "would count; drop the view, or give a mask that keeps some pixels")
+            _keeps_some(m, f"mask {src}", cam)
             if not keep:
                 return m
             self._mask_cache[key] = m
@@ -291,7 +285,9 @@ class Scene:
             full = self._full(base, keep=False)
             small = base.scaled(factor)
             if base.uid in self._mask_sources:
-                self._cache[key] = _masked_downsample(full, self._full_mask(base, keep=False), small.width, small.height)
+                mean, _ = masked_downsample(full, self._full_mask(base, keep=False),
+                                            lambda x: downsample(x, small.width, small.height))
+                self._cache[key] = mean.clamp(0.0, 1.0)
             else:
                 self._cache[key] = downsample(full, small.width, small.height)
         return self._cache[key]
@@ -336,6 +332,15 @@ class Scene:
         if isinstance(src, UndistortedImage):
             return src.path
         return None if isinstance(src, torch.Tensor) else Path(src)
+
+    def mask_file(self, cam: Camera) -> Optional[Path]:
+        """The file the mask of ``cam`` is read from (a mask taken with lens distortion: the
+        distorted file), or None for a camera without a mask or with one given as a tensor."""
+        base, _ = self._level(cam, 1)
+        src = self._mask_sources.get(base.uid)
+        if isinstance(src, UndistortedImage):
+            return src.path
+        return None if src is None or isinstance(src, torch.Tensor) else Path(src)
 
     def undistortion(self, cam: Camera):
         """The :class:`~mvgs_plugin.data.distortion.Undistortion` the image of ``cam`` is

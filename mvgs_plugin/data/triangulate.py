@@ -341,14 +341,23 @@ def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:
         if src is None:
             h.update(scene.image(cam).numpy().tobytes())
         else:
-            st = src.stat()
-            h.update(f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+            h.update(_file_id(src))
             und = scene.undistortion(cam)
             if und is not None:  # the pixels are the file resampled through the lens model
                 h.update(repr((und.K.tolist(), und.distortion)).encode())
-        if getattr(scene, "has_masks", False):
-            h.update(scene.read_mask(cam).numpy().tobytes())
+        if getattr(scene, "has_masks", False):  # a mask file as its image file; one given in memory, its values
+            file = scene.mask_file(cam)
+            if file is not None:
+                h.update(b"mask " + _file_id(file))
+            elif scene.masked([cam]):
+                h.update(scene.read_mask(cam).numpy().tobytes())
     return h.hexdigest()[:16]
+
+
+def _file_id(path: Path) -> bytes:
+    """A file as the cache key knows it: its resolved path, size and modification time."""
+    st = path.stat()
+    return f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()
 
 
 def _save_points(folder: Path, result: InitPoints) -> None:
