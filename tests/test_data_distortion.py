@@ -34,8 +34,10 @@ LENSES = {  # COLMAP model: (params after the pinhole ones, our Distortion)
     "OPENCV_FISHEYE": ([0.05, -0.02, 0.01, -0.003], Distortion(k1=0.05, k2=-0.02, k3=0.01, k4=-0.003, fisheye=True)),
     "SIMPLE_RADIAL_FISHEYE": ([0.04], Distortion(k1=0.04, fisheye=True)),
     "RADIAL_FISHEYE": ([-0.03, 0.01], Distortion(k1=-0.03, k2=0.01, fisheye=True)),
+    "SIMPLE_FISHEYE": ([], Distortion(fisheye=True)),  # equidistant: theta_d = theta
+    "FISHEYE": ([], Distortion(fisheye=True)),
 }
-ONE_FOCAL = ("SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
+ONE_FOCAL = ("SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "SIMPLE_FISHEYE")
 
 
 def colmap_camera(model, camera_id=1):
@@ -143,7 +145,7 @@ def test_colmap_images_are_undistorted_to_the_pinhole_camera(tmp_path, model):
                        atol=1e-6)
 
 
-@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE", "is_fisheye"])
+@pytest.mark.parametrize("model", ["OPENCV", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE", "is_fisheye"])
 def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, model):
     """The same lens through nerfstudio's transforms.json keys (or instant-ngp's is_fisheye with
     k1..k4, as its colmap2nerf writes a COLMAP fisheye): the same pinhole camera and pixels."""
@@ -151,7 +153,7 @@ def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, mod
     model = "OPENCV_FISHEYE" if flag else model
     _write_colmap(tmp_path / "colmap", model)
     via_colmap = load_colmap(tmp_path / "colmap")
-    lens = (dict(zip(("k1", "k2", "p1", "p2"), LENSES[model][0])) if model == "OPENCV"
+    lens = (dict(zip(("k1", "k2", "p1", "p2"), LENSES[model][0])) if model in ("OPENCV", "SIMPLE_RADIAL", "RADIAL")
             else dict(zip(("k1", "k2", "k3", "k4"), LENSES[model][0])))
     frames = [{"file_path": f"images/{c.name}",  # OpenGL camera-to-world
                "transform_matrix": (np.linalg.inv(c.world_to_camera.numpy()) @ np.diag([1.0, -1.0, -1.0, 1.0])).tolist()}
@@ -159,7 +161,7 @@ def test_a_nerfstudio_folder_with_distortion_loads_as_colmaps_does(tmp_path, mod
     (tmp_path / "ns").mkdir()
     (tmp_path / "ns" / "images").symlink_to(tmp_path / "colmap" / "images")
     (tmp_path / "ns" / "transforms.json").write_text(json.dumps({
-        **({"is_fisheye": True} if flag else {"camera_model": model}), "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY,
+        **({"is_fisheye": True} if flag else {"camera_model": model}), "fl_x": FX, "fl_y": fy_of(model), "cx": CX, "cy": CY,
         "w": W, "h": H, **lens, "frames": frames}))
     via_ns = load_nerf_synthetic(tmp_path / "ns")
     a, b = via_colmap.camera(via_colmap.cameras[1].name), via_ns.camera("images/" + via_colmap.cameras[1].name)
@@ -183,6 +185,9 @@ def test_a_wide_fisheye_keeps_the_rays_its_edges_see_or_is_refused():
     assert su.min() >= 0.5 - 1e-6 and su.max() <= W - 0.5 + 1e-6
     fx = (W / 2) / math.radians(80)
     with pytest.raises(ValueError, match=r"fisheye \(equidistant\): the undistorted image would be \d+x\d+ px for a 96x72"):
+        Undistortion(np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1]]), W, H, dist)
+    fx = (W / 2) / math.radians(100)  # 200 degrees across: the edge rays lie behind the camera's plane
+    with pytest.raises(ValueError, match=r"fisheye \(equidistant\): the capture sees 180 degrees or more across its 96x72"):
         Undistortion(np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1]]), W, H, dist)
 
 

@@ -80,7 +80,7 @@ def test_a_three_by_four_matrix_and_a_dynamic_transforms_json(tmp_path):
 
 
 @pytest.mark.parametrize("extra, match", [
-    ({"camera_model": "EQUIRECTANGULAR"}, r"camera_model 'EQUIRECTANGULAR': supported are PINHOLE, SIMPLE_PINHOLE, OPENCV"),
+    ({"camera_model": "EQUIRECTANGULAR"}, r"camera_model 'EQUIRECTANGULAR': supported are PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV"),
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, r"'OPENCV_FISHEYE' has no tangential terms, got p1=0.01, p2=0"),
     ({"k1": "0.1"}, r"'k1' must be a finite number, got '0.1'"),
     ({"k1": -3.0}, r"lens distortion k1=-3: it cannot be inverted over the image"),

@@ -45,6 +45,33 @@ def test_a_mask_file_keeps_every_non_zero_pixel(tmp_path):
     assert torch.equal(read_mask(tmp_path / "rgb.png"), got)
 
 
+def test_a_mask_in_an_alpha_channel_or_a_palette_is_read(tmp_path):
+    """A cut-out saved as white with transparent holes keeps the opaque pixels; grey and alpha
+    that agree are one mask; grey and alpha that disagree are refused. A palette image keeps
+    its non-zero indices (as nerfstudio reads it), whatever colours the palette gives them."""
+    from PIL import Image
+
+    hole = np.zeros((6, 8), bool)
+    hole[1:4, 2:6] = True
+    rgba = np.full((6, 8, 4), 255, np.uint8)
+    rgba[..., 3][hole] = 0
+    skimage.io.imsave(tmp_path / "cut.png", rgba, check_contrast=False)
+    want = (~hole).astype(np.float32)
+    assert np.array_equal(read_mask(tmp_path / "cut.png")[..., 0].numpy(), want)
+    la = np.stack([np.where(hole, 0, 255), np.where(hole, 0, 255)], -1).astype(np.uint8)
+    skimage.io.imsave(tmp_path / "la.png", la, check_contrast=False)
+    assert np.array_equal(read_mask(tmp_path / "la.png")[..., 0].numpy(), want)
+    la[0, 0, 0] = 0  # the grey drops a pixel the alpha keeps
+    skimage.io.imsave(tmp_path / "bad.png", la, check_contrast=False)
+    with pytest.raises(ValueError, match=r"bad\.png: its grey values and its alpha channel both vary and disagree on 1 pixels"):
+        read_mask(tmp_path / "bad.png")
+    indices = np.where(hole, 0, 2).astype(np.uint8)
+    img = Image.fromarray(indices, mode="P")
+    img.putpalette([255, 255, 255, 0, 0, 0, 200, 0, 0] + [0] * 759)  # index 0 white, 2 red
+    img.save(tmp_path / "p.png")
+    assert np.array_equal(read_mask(tmp_path / "p.png")[..., 0].numpy(), want)
+
+
 def test_a_colour_image_is_not_taken_for_a_mask(tmp_path):
     img = np.zeros((5, 5, 3), np.uint8)
     img[2, 3] = (255, 0, 0)
@@ -201,18 +228,34 @@ def test_nerfstudio_mask_path_becomes_the_scene_mask(tmp_path):
 
 
 def test_a_distorted_capture_resamples_its_masks_as_its_images(tmp_path):
-    """With lens distortion (k1) image and mask go through one resampling: an image painted white
-    where the mask keeps a pixel and black where it does not stays equal to its mask."""
-    _nerfstudio(tmp_path, k1=-0.08)
+    """With lens distortion (k1) the mask is resampled as an image is (the same capture with
+    its masks painted in as images, loaded without masks, gives the same pixels), and an image
+    is resampled as the weighted mean of its kept pixels: painted white where its mask keeps a
+    pixel and magenta where it does not, every pixel with weight is white, on the mask's edge too."""
+    _nerfstudio(tmp_path / "a", k1=-0.08)
+    _nerfstudio(tmp_path / "b", k1=-0.08)
+    meta = json.loads((tmp_path / "b/transforms.json").read_text())
+    for f in meta["frames"]:
+        del f["mask_path"]
+    (tmp_path / "b/transforms.json").write_text(json.dumps(meta))
     for k in range(9):
-        m = skimage.io.imread(tmp_path / f"masks/f{k}.png")
-        skimage.io.imsave(tmp_path / f"images/f{k}.png", np.repeat(m[..., None], 3, axis=2), check_contrast=False)
+        keep = skimage.io.imread(tmp_path / f"a/masks/f{k}.png") != 0
+        magenta = np.where(keep[..., None], 255, np.array([255, 0, 255])).astype(np.uint8)
+        skimage.io.imsave(tmp_path / f"a/images/f{k}.png", magenta, check_contrast=False)
+        skimage.io.imsave(tmp_path / f"b/images/f{k}.png", np.repeat(np.where(keep, 255, 0)[..., None], 3, 2).astype(np.uint8),
+                          check_contrast=False)
     with pytest.warns(UserWarning):
-        scene = load_scene(tmp_path, init=None)
-    for cam in scene.cameras:
-        mask, image = scene.mask(cam)[..., 0], scene.image(cam)[..., 0]
-        assert mask.shape == image.shape and 0 < float(mask.mean()) < 1
-        assert torch.allclose(mask, image, atol=1.5 / 255), cam.name
+        masked, painted = load_scene(tmp_path / "a", init=None), load_scene(tmp_path / "b", init=None)
+    edges = 0
+    for cam, other in zip(masked.cameras, painted.cameras):
+        mask, image = masked.mask(cam)[..., 0], masked.image(cam)
+        assert 0 < float(mask.mean()) < 1
+        assert torch.allclose(mask, painted.image(other)[..., 0], atol=1.5 / 255), cam.name
+        kept = mask > 0
+        assert torch.allclose(image[kept], torch.ones_like(image[kept]), atol=1e-5), cam.name
+        assert float(image[~kept].abs().max()) == 0.0
+        edges += int(((mask > 0.05) & (mask < 0.95)).sum())
+    assert edges > 50  # the resampling does make edge pixels, and none of them takes magenta
 
 
 @pytest.mark.parametrize("edit,error,message", [
@@ -244,13 +287,27 @@ def test_a_colmap_folder_reads_masks_by_either_naming(tmp_path):
     m1[:, 90:] = 0
     skimage.io.imsave(tmp_path / "s/masks/train/r_000.png.png", m0, check_contrast=False)
     skimage.io.imsave(tmp_path / "s/masks/train/r_001.png", m1, check_contrast=False)
-    scene = load_colmap(tmp_path / "s")
+    with pytest.warns(UserWarning, match=r"masks: 58 of 60 images have no mask \(for test/r_000.png: .*test/r_000.png.png"):
+        scene = load_colmap(tmp_path / "s")
     assert sorted(c.name for c in scene.masked()) == ["train/r_000.png", "train/r_001.png"]
     assert np.array_equal(scene.mask(scene.camera("train/r_000.png"))[..., 0].numpy(), (m0 != 0).astype(np.float32))
     assert np.array_equal(scene.mask(scene.camera("train/r_001.png"))[..., 0].numpy(), (m1 != 0).astype(np.float32))
     assert float(scene.mask(scene.camera("train/r_002.png")).min()) == 1.0
     skimage.io.imsave(tmp_path / "s/masks/train/r_001.png", np.full((64, 128), 255, np.uint8), check_contrast=False)
     with pytest.raises(ValueError, match=r"r_001.png is 128x64 but its image .*r_001.png is 128x128"):
+        load_colmap(tmp_path / "s")
+
+
+def test_a_colmap_masks_folder_that_matches_no_image_is_refused(tmp_path):
+    """Masks named as their images (JPEG masks under the image's own name, another layout) match
+    neither naming: the folder is refused naming what was looked for, not silently unused."""
+    from mvgs_plugin.data import load_colmap
+
+    shutil.copytree(TABLETOP, tmp_path / "s")
+    (tmp_path / "s" / "masks" / "train").mkdir(parents=True)
+    skimage.io.imsave(tmp_path / "s/masks/train/r_000.jpg", np.full((128, 128), 255, np.uint8), check_contrast=False)
+    with pytest.raises(ValueError, match=r"masks holds no mask for any of the \d+ images: for test/r_000.png it looks "
+                                         r"for .*test/r_000.png.png \(COLMAP's naming\) or .*; the folder holds train/r_000.jpg\. "):
         load_colmap(tmp_path / "s")
 
 

@@ -236,8 +236,9 @@ def _read_model(pycolmap, model_dir: Path):
 def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     """K [3,3] and the lens distortion of a pycolmap camera: the pinhole models, and SIMPLE_RADIAL,
     RADIAL, OPENCV, FULL_OPENCV without its rational terms (k4 = k5 = k6 = 0) and the fisheye models
-    OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE and RADIAL_FISHEYE, whose images are undistorted when
-    read; other models are refused."""
+    OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, SIMPLE_FISHEYE and FISHEYE (the last two
+    equidistant, without distortion terms), whose images are undistorted when read; other models
+    are refused."""
     model = getattr(cam, "model_name", None) or cam.model.name
     p = [float(v) for v in cam.params]
     dist = Distortion()
@@ -267,13 +268,19 @@ def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
     elif model == "RADIAL_FISHEYE":
         fx, cx, cy, k1, k2 = p
         fy, dist = fx, Distortion(k1=k1, k2=k2, fisheye=True)
+    elif model == "SIMPLE_FISHEYE":  # the equidistant lens: theta_d = theta
+        fx, cx, cy = p
+        fy, dist = fx, Distortion(fisheye=True)
+    elif model == "FISHEYE":
+        fx, fy, cx, cy = p
+        dist = Distortion(fisheye=True)
     else:
         # Splatting renders an ideal pinhole; a rational or thin-prism lens is not resampled here.
         why = " with rational terms k4..k6" if model == "FULL_OPENCV" else ""
         raise ValueError(
             f"camera model {model}{why}: supported are PINHOLE, SIMPLE_PINHOLE, and SIMPLE_RADIAL, RADIAL, OPENCV, "
-            "FULL_OPENCV with k4 = k5 = k6 = 0, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE (undistorted when "
-            "read). Undistort the images first: colmap image_undistorter "
+            "FULL_OPENCV with k4 = k5 = k6 = 0, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, SIMPLE_FISHEYE, "
+            "FISHEYE (undistorted when read). Undistort the images first: colmap image_undistorter "
             "--image_path <images> --input_path <sparse/0> --output_path <out> "
             "(then load <out>, which has images/ and sparse/)")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist
@@ -464,4 +471,16 @@ def _masks(path: Path, images_dir: Path, records: list, files: dict, sources: di
                              "(a mask has its image's size)")
         src = sources.get(cam.uid)
         out[cam.uid] = UndistortedImage(found, src.undistortion) if isinstance(src, UndistortedImage) else found
+    missing = [cam for cam in records if cam.uid not in out]
+    if missing:  # a name the folder does not hold: say so, not train on what the mask would hide
+        first = Path(missing[0].name)
+        expected = f"{folder / (missing[0].name + '.png')} (COLMAP's naming) or {folder / first.with_suffix('.png')}"
+        if not out:
+            held = sorted(f.relative_to(folder).as_posix() for f in folder.rglob("*") if f.is_file())[:3]
+            raise ValueError(f"{folder} holds no mask for any of the {len(records)} images: for {first} it looks for "
+                             f"{expected}; the folder holds {', '.join(held) if held else 'nothing'}"
+                             f"{', ...' if len(held) == 3 else ''}. Rename the masks, or move the folder away to "
+                             "train on every pixel")
+        warnings.warn(f"{folder}: {len(missing)} of {len(records)} images have no mask (for {first}: {expected}); "
+                      "they count every pixel", stacklevel=3)
     return out

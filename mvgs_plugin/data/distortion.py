@@ -3,11 +3,13 @@
 Splatting renders an ideal pinhole. A capture whose camera model has lens distortion (COLMAP's
 SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV without its rational terms; nerfstudio's
 ``k1``..``k4``, ``p1``, ``p2``; and the fisheye models OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
-RADIAL_FISHEYE) is loaded as the pinhole camera with the same focal lengths whose
-image is the largest axis-aligned rectangle every pixel of which the distorted image saw, and
-each image is resampled onto it (bilinear) when it is read. COLMAP's image_undistorter does the
-same with its default settings; here it happens in memory, so the scene folder stays as it is
-and nothing is written.
+RADIAL_FISHEYE, SIMPLE_FISHEYE, FISHEYE) is loaded as the pinhole camera with the same focal
+lengths whose image is the largest axis-aligned rectangle every pixel of which the distorted
+image saw, and each image is resampled onto it (bilinear) when it is read. COLMAP's
+image_undistorter follows the same idea (same focal lengths, the border sampled at pixel
+centres; its crop is placed about the principal point, so it is not the same rectangle); here
+it happens in memory, so the scene folder stays as it is and nothing is written. An image with
+a mask is resampled as the weighted mean of its kept pixels.
 
 The model, in normalised camera coordinates (x, y) = (X / Z, Y / Z), r² = x² + y²:
 
@@ -185,6 +187,10 @@ class Undistortion:
             raise ValueError(f"{prefix}{err}") from None
         x0, x1 = inner["left"][0].max(), inner["right"][0].min()
         y0, y1 = inner["top"][1].max(), inner["bottom"][1].min()
+        if not all(np.isfinite(v) for v in (x0, x1, y0, y1)):  # an edge ray at or beyond 90 degrees off the axis
+            raise ValueError(f"{prefix}lens distortion {distortion.describe()}: the capture sees 180 degrees or more "
+                             f"across its {self.width}x{self.height} px; no pinhole image holds that view (crop the "
+                             "capture, or split it into narrower views)")
         w_out, h_out = math.floor((x1 - x0) * fx), math.floor((y1 - y0) * fy)
         if not (self.width / _MAX_GROWTH <= w_out <= _MAX_GROWTH * self.width
                 and self.height / _MAX_GROWTH <= h_out <= _MAX_GROWTH * self.height):
@@ -256,3 +262,15 @@ class UndistortedImage:
         from .images import read_mask
 
         return self.undistortion.apply(read_mask(self.path))
+
+    def read_masked(self, background: Optional[Sequence[float]], mask: "UndistortedImage") -> torch.Tensor:
+        """:meth:`read` for an image with a mask (``mask``, of the same camera): the weighted mean
+        of its kept pixels, resample(image x mask) / resample(mask), so a pixel on the mask's edge
+        takes no colour from the ignored side (0 where no kept pixel reaches)."""
+        from .images import masked_downsample, read_mask, read_rgb
+
+        image, weights = read_rgb(self.path, background), read_mask(mask.path)
+        if image.shape[:2] != weights.shape[:2]:
+            raise ValueError(f"mask {mask.path} is {weights.shape[1]}x{weights.shape[0]} but its image {self.path} is "
+                             f"{image.shape[1]}x{image.shape[0]} (a mask has its image's size)")
+        return masked_downsample(image, weights, self.undistortion.apply)[0]

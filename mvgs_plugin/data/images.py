@@ -251,12 +251,18 @@ def read_rgb(path: Path, background: Optional[Sequence[float]] = None) -> torch.
 def read_mask(path: Path) -> torch.Tensor:
     """Decode a mask image to float32 [H, W, 1]: 1 where a pixel counts, 0 where it is ignored.
 
-    nerfstudio's convention (its ``mask_path``): any non-zero value keeps the pixel, zero drops
-    it. The file is one channel (or grey with alpha, the alpha ignored), or colour whose three
-    channels are equal (masks saved as RGB); colour that differs between channels is refused,
-    as it is not a mask.
+    nerfstudio's convention (its ``mask_path``) and COLMAP's: any non-zero value keeps the pixel,
+    zero drops it. Read as such: one channel; colour whose three channels are equal (masks saved
+    as RGB); a palette image by its indices (index 0 drops, as nerfstudio reads it). A mask with
+    an alpha channel is read from its grey or colour part while the alpha is constant, and from
+    its alpha where only the alpha varies (a cut-out saved as white with transparent holes);
+    where both vary and disagree it is refused, as is colour whose channels differ: neither
+    says which pixels count.
     """
     path = Path(path)
+    indices = _palette_indices(path)
+    if indices is not None:
+        return torch.from_numpy(np.ascontiguousarray(indices[:, :, None] != 0, dtype=np.float32))
     arr = _decode(path)
     if arr.ndim == 2:
         arr = arr[:, :, None]
@@ -266,7 +272,28 @@ def read_mask(path: Path) -> torch.Tensor:
         raise ValueError(f"mask {path} is a colour image whose channels differ; a mask is one channel (or equal "
                          "RGB channels): non-zero keeps a pixel, zero ignores it")
     keep = np.asarray(grey[:, :, :1]) != 0
+    if c in (2, 4):
+        alpha = np.asarray(arr[:, :, -1:])
+        if (alpha != alpha.flat[0]).any():  # the alpha says something
+            by_alpha = alpha != 0
+            if (grey[:, :, :1] == grey.flat[0]).all():
+                keep = by_alpha
+            elif (keep != by_alpha).any():
+                raise ValueError(f"mask {path}: its grey values and its alpha channel both vary and disagree on "
+                                 f"{int((keep != by_alpha).sum())} pixels; save the mask as one channel "
+                                 "(non-zero keeps a pixel, zero ignores it)")
     return torch.from_numpy(np.ascontiguousarray(keep, dtype=np.float32))
+
+
+def _palette_indices(path: Path) -> Optional[np.ndarray]:
+    """[H, W] palette indices of a palette ("P") image, else None (the file is decoded as usual)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            return np.asarray(img) if img.mode == "P" else None
+    except Exception:  # not a file Pillow opens: _decode reports it
+        return None
 
 
 def masked_downsample(image: torch.Tensor, weights: torch.Tensor, resize) -> tuple[torch.Tensor, torch.Tensor]:

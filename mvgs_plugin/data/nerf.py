@@ -33,7 +33,8 @@ _SPLITS = ("train", "test")  # transforms_val.json, when present, is not used (a
 TEST_EVERY = 8
 # lens distortion keys (nerfstudio, instant-ngp): images with them are resampled to a pinhole
 _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
-_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "OPENCV_FISHEYE")
+# nerfstudio reads SIMPLE_RADIAL and RADIAL as perspective cameras with the same k1, k2 keys as OPENCV
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
 
 
 def _read_json(file: Path) -> tuple[list[dict], dict]:
@@ -108,7 +109,8 @@ def _distortion(frame: dict, where: str) -> Distortion:
     model = frame.get("camera_model")
     if model is not None and model not in _PINHOLE_MODELS:
         raise ValueError(f"{where}: camera_model {model!r}: supported are {', '.join(_PINHOLE_MODELS)} (OPENCV "
-                         "with lens distortion k1..k4, p1, p2, OPENCV_FISHEYE with k1..k4, undistorted when read); "
+                         "and SIMPLE_RADIAL / RADIAL with lens distortion k1..k4, p1, p2, OPENCV_FISHEYE with k1..k4, "
+                         "undistorted when read); "
                          "convert the capture to one, e.g. with COLMAP's image_undistorter")
     flag = frame.get("is_fisheye", False)
     if not isinstance(flag, bool):

@@ -312,8 +312,11 @@ class Scene:
         """The full-resolution image, cached when ``keep`` (else read and not held)."""
         key = (cam.uid, 1.0)
         if key not in self._cache:
-            src = self._sources[cam.uid]
-            img = src.read(self.background) if isinstance(src, UndistortedImage) else read_rgb(src, self.background)
+            src, mask = self._sources[cam.uid], self._mask_sources.get(cam.uid)
+            if isinstance(src, UndistortedImage):
+                img = src.read_masked(self.background, mask) if isinstance(mask, UndistortedImage) else src.read(self.background)
+            else:
+                img = read_rgb(src, self.background)
             if tuple(img.shape) != (cam.height, cam.width, 3):
                 raise ValueError(f"image {self._sources[cam.uid]} is {img.shape[1]}x{img.shape[0]} "
                                  f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
