@@ -29,7 +29,7 @@ from .densify import loss_map
 from .distributed import Collective, require_support
 from .io import load_checked, save_checked
 from .losses import photometric_loss
-from .metrics import lpips, lpips_available, masked_psnr, psnr, ssim
+from .metrics import lpips, lpips_available, masked_psnr, psnr, ssim, ssim_3dgs
 from .protocol import Adapter, DensifyReport, check_is_adapter
 from .schedule import ViewSchedule
 
@@ -142,7 +142,8 @@ class EvalResult:
     psnr: float
     ssim: float
     lpips: Optional[float]
-    per_view: List[Dict] = field(default_factory=list)  # name, psnr, ssim, lpips, image [H, W, 3] per view
+    per_view: List[Dict] = field(default_factory=list)  # name, psnr, ssim, ssim_3dgs, lpips, image [H, W, 3] per view
+    ssim_3dgs: Optional[float] = None  # the original 3DGS evaluation's SSIM (zero-padded): metrics.ssim_3dgs
 
     def __repr__(self) -> str:  # the per-view images stay out of a print
         lp = "None" if self.lpips is None else f"{self.lpips:.4f}"
@@ -442,13 +443,13 @@ class MVGS:
             gt = self.scene.image(cam, factor).float()
             mask = self.scene.mask(cam, factor) if getattr(self.scene, "has_masks", False) else None
             if mask is None:
-                rows.append({"name": cam.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt),
+                rows.append({"name": cam.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt), "ssim_3dgs": ssim_3dgs(img, gt),
                              "lpips": lpips(img, gt) if lpips_available() else None, "image": img})
             else:  # the pixels the mask keeps: PSNR of their MSE; SSIM and LPIPS of the images blacked out alike
                 w = mask.float()
                 shown, target = img * w, gt * w
                 rows.append({"name": cam.name, "psnr": masked_psnr(img, gt, w), "ssim": ssim(shown, target),
-                             "lpips": lpips(shown, target) if lpips_available() else None, "image": img})
+                             "ssim_3dgs": ssim_3dgs(shown, target), "lpips": lpips(shown, target) if lpips_available() else None, "image": img})
         finite = [r["psnr"] for r in rows if math.isfinite(r["psnr"])]
         lp = [r["lpips"] for r in rows if r["lpips"] is not None]
         return EvalResult(
@@ -456,6 +457,7 @@ class MVGS:
             ssim=sum(r["ssim"] for r in rows) / len(rows),
             lpips=sum(lp) / len(lp) if lp else None,
             per_view=rows,
+            ssim_3dgs=sum(r["ssim_3dgs"] for r in rows) / len(rows),
         )
 
     # ---- checkpoints ------------------------------------------------------------------------

@@ -117,7 +117,10 @@ def save_checked(obj: Any, path: str) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
     payload = buf.getvalue()
-    save_atomic({"format": CHECKED_FORMAT, "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}, path)
+    # the payload as a uint8 tensor: torch stores it as raw bytes beside the pickle (a bytes object
+    # is pickled by torch's protocol 2 as a latin-1 string: 1.5x the size, and refused above 4 GiB)
+    save_atomic({"format": CHECKED_FORMAT, "sha256": hashlib.sha256(payload).hexdigest(),
+                 "payload": torch.frombuffer(bytearray(payload), dtype=torch.uint8)}, path)
 
 
 def load_checked(path: str) -> Any:
@@ -132,6 +135,8 @@ def load_checked(path: str) -> Any:
     if not (isinstance(outer, dict) and outer.get("format") == CHECKED_FORMAT):
         return outer
     payload = outer.get("payload")
+    if isinstance(payload, torch.Tensor) and payload.dtype == torch.uint8 and payload.ndim == 1:
+        payload = payload.numpy().tobytes()  # (files written before kept a bytes object)
     if not isinstance(payload, bytes) or hashlib.sha256(payload).hexdigest() != outer.get("sha256"):
         raise ValueError(f"{path}: checksum mismatch, the file is damaged (sha256 recorded {outer.get('sha256')!r})")
     return torch.load(io.BytesIO(payload), weights_only=True)

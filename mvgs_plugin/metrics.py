@@ -17,7 +17,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .losses import ssim_window
+from .losses import ssim as _ssim_torch, ssim_window
 
 __all__ = ["psnr", "masked_psnr", "ssim", "lpips", "lpips_available"]
 
@@ -72,9 +72,11 @@ def masked_psnr(img1, img2, weights) -> float:
 
 
 def ssim(img1, img2) -> float:
-    """SSIM as reported by papers: scikit-image ``structural_similarity`` with
+    """SSIM as scikit-image computes it (``structural_similarity`` with
     ``gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0``, averaged
-    over channels.
+    over channels): the mean over the pixels whose whole window lies inside the image, as
+    Mip-NeRF's evaluation does. The original 3DGS's evaluation zero-pads instead and averages
+    every pixel (:func:`ssim_3dgs`), which reads higher on small images.
 
     Images [H, W, C] (or [H, W]). scikit-image refuses images smaller than its 11 x 11 window;
     for those the window shrinks to the largest odd size w <= min(H, W) with sigma = 1.5 w / 11
@@ -92,6 +94,19 @@ def ssim(img1, img2) -> float:
     return float(structural_similarity(a, b, win_size=win, sigma=sigma, gaussian_weights=True,
                                        use_sample_covariance=False, data_range=1.0,
                                        channel_axis=-1))
+
+
+def ssim_3dgs(img1, img2) -> float:
+    """SSIM as the original 3DGS code evaluates it (its metrics.py): an 11 x 11 Gaussian window
+    (sigma 1.5) over the zero-padded image, averaged over every pixel and channel; the value to
+    set beside 3DGS's and MVGS's published tables. Images [H, W, C] (or [H, W]) in [0, 1]."""
+    a, b = _as_numpy_pair(img1, img2, "ssim_3dgs")
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    if a.ndim != 3:
+        raise ValueError(f"ssim_3dgs: images must be [H,W,C] or [H,W], got {list(a.shape)}")
+    return float(_ssim_torch(torch.from_numpy(a.astype(np.float64)), torch.from_numpy(b.astype(np.float64)),
+                               padding="zero"))
 
 
 _LPIPS_BACKBONES = {"alex": "AlexNet_Weights", "vgg": "VGG16_Weights", "squeeze": "SqueezeNet1_1_Weights"}

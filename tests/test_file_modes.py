@@ -88,3 +88,34 @@ def test_a_file_that_is_not_a_checkpoint_is_named_not_unpickled(tmp_path):
     (tmp_path / "notes.txt").write_text("not a checkpoint")
     with pytest.raises(ValueError, match=r"notes.txt: not a file torch.save wrote with tensors and plain values only"):
         load_checked(str(tmp_path / "notes.txt"))
+
+
+def test_a_checked_file_holds_its_payload_raw_and_files_written_before_still_load(tmp_path):
+    """The payload (the bytes of torch.save(obj)) is kept as raw bytes: the file is the payload
+    plus a few kB of zip and pickle (a bytes object pickled by torch's protocol 2 took 1.5x, and
+    could not pass 4 GiB); a file of the earlier layout (the payload a bytes object) loads."""
+    import hashlib
+    import io
+    import os
+
+    import pytest
+    import torch
+
+    from mvgs_plugin.io import CHECKED_FORMAT, load_checked, save_atomic, save_checked
+
+    obj = {"x": torch.rand(100_000, generator=torch.Generator().manual_seed(0)), "n": 3}
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    payload = buf.getvalue()
+    save_checked(obj, str(tmp_path / "new.pt"))
+    assert len(payload) < os.path.getsize(tmp_path / "new.pt") < len(payload) + 4096
+    got = load_checked(str(tmp_path / "new.pt"))
+    assert torch.equal(got["x"], obj["x"]) and got["n"] == 3
+    save_atomic({"format": CHECKED_FORMAT, "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload},
+                str(tmp_path / "old.pt"))
+    assert os.path.getsize(tmp_path / "old.pt") > 1.3 * len(payload)
+    assert torch.equal(load_checked(str(tmp_path / "old.pt"))["x"], obj["x"])
+    save_atomic({"format": CHECKED_FORMAT, "sha256": "0" * 64, "payload": torch.frombuffer(bytearray(payload), dtype=torch.uint8)},
+                str(tmp_path / "bad.pt"))
+    with pytest.raises(ValueError, match=r"bad.pt: checksum mismatch"):
+        load_checked(str(tmp_path / "bad.pt"))

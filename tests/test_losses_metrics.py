@@ -74,6 +74,22 @@ def test_ssim_zero_padding_is_the_original_3dgs_ssim():
         assert abs(got - zero_padded_ssim(a, b)) < 1e-9
 
 
+@pytest.mark.parametrize("h,w", [(64, 48), (12, 12), (5, 7)])
+def test_the_3dgs_evaluation_ssim_is_the_zero_padded_one_and_reads_higher_than_skimages(h, w):
+    """metrics.ssim_3dgs against the scipy computation of 3DGS's metrics.py; on a noisy pair the
+    zero-padded mean counts the border pixels skimage leaves out (and reads higher here), the
+    gap larger on the smaller image."""
+    rng = np.random.default_rng(h * w)
+    a = rng.uniform(0.2, 0.8, (h, w, 3))
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+    assert metrics.ssim_3dgs(a, b) == pytest.approx(zero_padded_ssim(a, b), abs=1e-9)
+    assert metrics.ssim_3dgs(torch.from_numpy(a).float(), torch.from_numpy(a).float()) == pytest.approx(1.0, abs=1e-6)
+    if h >= 11 and w >= 11:
+        assert metrics.ssim_3dgs(a, b) > metrics.ssim(a, b)
+    with pytest.raises(ValueError, match=r"ssim_3dgs: images must be \[H,W,C\] or \[H,W\], got \[2, 2, 2, 3\]"):
+        metrics.ssim_3dgs(np.zeros((2, 2, 2, 3)), np.zeros((2, 2, 2, 3)))
+
+
 def test_batched_ssim_and_reduction():
     rng = np.random.default_rng(2)
     imgs = [structured_pair(16, 20, rng) for _ in range(3)]
