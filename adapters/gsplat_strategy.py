@@ -45,8 +45,11 @@ What reaches the wrapped strategy, and how:
   schedule's densification window, interval, opacity-reset period and size-pruning start
   (keeping their fraction of the run when the schedule's clock counts work). From then on the
   schedule alone decides when statistics are collected, when the strategy refines and when
-  opacities are reset; the loop's ``step`` only labels log lines.
-- **MVAD.** The strategy's ``grow_grad2d`` is β; each refine runs with the schedule's threshold
+  opacities are reset; the loop's ``step`` only labels log lines. The schedule counts steps
+  from 1 (as graphdeco's trainer does) where gsplat's loop counts from 0, so a refine or reset
+  comes one optimizer step before DefaultStrategy's would.
+- **MVAD.** The strategy's ``grow_grad2d`` is β (with ``clock="config"``, the config's own β,
+  with a warning when they differ); each refine runs with the schedule's threshold
   for that step (β scaled to the image width when the preset says so, halved when the step's
   cameras are far apart). The width-scaled presets (default, multiview, compact) read β as meant
   for 800-px images: β × 800 / W at W-px views; a β tuned for your full width W_full keeps its
@@ -279,6 +282,11 @@ class MVGSStrategy(DefaultStrategy):
                               "refine_start_iter / refine_stop_iter / refine_every / reset_every to the run, or pass "
                               "clock='config' (the config's own clock, compressed to the run)", stacklevel=2)
             config = adopt_strategy_clock(config, strategy, run_steps)
+        elif strategy.grow_grad2d != config.grad_threshold:  # the config's clock takes the config's threshold too
+            warnings.warn(f"clock='config' uses the config's densification threshold ({config.grad_threshold:g}), not the "
+                          f"strategy's grow_grad2d={strategy.grow_grad2d:g}"
+                          f"{' (absgrad statistics are larger)' if strategy.absgrad else ''}; to keep yours, pass "
+                          f"dataclasses.replace(config, grad_threshold={strategy.grow_grad2d:g})", stacklevel=2)
         r = _clock_per_step(config, run_steps)
         self._scale2d_until = strategy.refine_scale2d_stop_iter * r
         self._pause = strategy.pause_refine_after_reset * r
@@ -834,6 +842,10 @@ class MVGSLoader:
         if isinstance(data, DataLoader):
             if kwargs:
                 raise TypeError(f"loader(DataLoader) takes its settings from the DataLoader; got {sorted(kwargs)}")
+            if data.batch_size not in (None, 1):  # gsplat's --batch_size B also tunes its Adam for B views a step
+                raise ValueError(f"the DataLoader batches {data.batch_size} views a step, but the schedule picks each "
+                                 "step's views (one with the default preset): build it with batch_size=1 (gsplat: "
+                                 "--batch_size 1); for M views a step use a preset or MVGSConfig stages with M views")
             kwargs = dict(num_workers=data.num_workers, collate_fn=data.collate_fn, pin_memory=data.pin_memory,
                           timeout=data.timeout, worker_init_fn=data.worker_init_fn,
                           multiprocessing_context=data.multiprocessing_context, generator=data.generator,

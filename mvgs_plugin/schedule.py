@@ -323,7 +323,7 @@ class ViewSchedule:
             primitive_count = adapter.num_primitives() if primitive_count is None else primitive_count
             if bounds is None:
                 positions = adapter.positions().detach()
-                bounds = torch.stack([positions.amin(0), positions.amax(0)]).double() if len(positions) else None
+                bounds = torch.stack([positions.amin(0), positions.amax(0)]).double().cpu() if len(positions) else None
         threshold = self.base_threshold(plan)
         if cfg.mvad.enabled:
             mvad = cfg.mvad
@@ -348,7 +348,7 @@ class ViewSchedule:
             h, w = crd.window
             if crd.window_per_level:
                 h, w = max(1, round(h / plan.factor)), max(1, round(w / plan.factor))
-            maps = list(loss_maps)
+            maps = [m.detach().cpu() for m in loss_maps]  # a few [H, W] maps: the windows and rays are CPU work
             if len({tuple(m.shape) for m in maps}) == 1:
                 windows = best_windows(torch.stack(maps), (h, w))
             else:  # images of mixed sizes: one view at a time

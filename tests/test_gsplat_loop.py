@@ -997,3 +997,23 @@ def test_at_level_makes_a_masked_views_levels_as_the_package_does(tmp_path):
         assert torch.equal(out["mask"], torch.stack(plan.masks)[..., 0] > 0.5)
         strategy.plan, strategy._reported = None, 0  # (no training here)
     assert len(factors) >= 3 and any(f > 1 for f in factors)
+
+
+def test_a_batched_dataloader_and_a_threshold_the_config_clock_drops_are_said(forward):
+    """gsplat's --batch_size B (Adam tuned for B views a step) cannot silently become one view a
+    step: refused naming B. clock='config' keeps the config's threshold: a strategy whose
+    grow_grad2d differs (absgrad's 8e-4) is told so, with the value it would have had."""
+    s = DefaultStrategy(absgrad=True, grow_grad2d=8e-4)
+    with pytest.warns(UserWarning, match=r"clock='config' uses the config's densification threshold \(0.0002\), not the "
+                                         r"strategy's grow_grad2d=0.0008 \(absgrad statistics are larger\)"):
+        MVGSStrategy(s, forward, "baseline", steps=1000, clock="config")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        MVGSStrategy(DefaultStrategy(), forward, "baseline", steps=1000, clock="config")  # the same β: nothing said
+    w = MVGSStrategy(DefaultStrategy(refine_start_iter=10, refine_stop_iter=60, refine_every=10, reset_every=30),
+                     forward, "baseline", steps=100)
+    data = list(range(len(forward.train_cameras)))
+    with pytest.raises(ValueError, match=r"the DataLoader batches 4 views a step, .*batch_size=1"):
+        w.loader(torch.utils.data.DataLoader(data, batch_size=4))
+    first = next(iter(w.loader(torch.utils.data.DataLoader(data, batch_size=1)).dataloader))  # one batch
+    assert len(first) == 1  # the schedule's one view a step (the baseline)
