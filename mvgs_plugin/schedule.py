@@ -447,11 +447,13 @@ class ViewSchedule:
         return self._scaled[key]
 
     def background_value(self) -> Tuple[float, float, float]:
-        """The fixed background colour (black for "random", which has no single value)."""
+        """The fixed background colour: the test renders' and the metrics'. "random" trains on a
+        new colour every step and has no single one, so it evaluates on the scene's own (the
+        colour its images were composited on: black without one), as "auto" does."""
         bg = self.config.background
-        if bg == "auto":
+        if bg in ("auto", "random"):
             return (0.0, 0.0, 0.0) if self.scene.background is None else tuple(float(c) for c in self.scene.background)
-        return {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": (0.0, 0.0, 0.0)}.get(bg, bg)
+        return {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}.get(bg, bg)
 
     def _backgrounds(self, n: int) -> Tensor:
         if self.config.background == "random":

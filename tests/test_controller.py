@@ -996,3 +996,21 @@ def test_a_schedule_state_from_another_plan_is_refused(scene):
     same = ViewSchedule(scene, MVGSConfig.default().for_scene(scene).with_total_steps(300), load_images=False)
     same.load_state_dict(state)
     assert same.step_count == 121 and [v.name for v in same.next().cameras] == [v.name for v in a.next().cameras]
+
+
+def test_random_backgrounds_evaluate_on_the_scenes_own(scene):
+    """Training on a random colour a step has no colour to evaluate on: the test renders use the
+    one the scene's images were composited on (white here), not black. A model that covers
+    nothing renders that colour: a white test view is matched exactly (PSNR inf)."""
+    from mvgs_plugin.data import Scene
+
+    white = {c.uid: torch.ones(c.height, c.width, 3) for c in scene.cameras}
+    on_white = Scene(scene.train_cameras, scene.test_cameras, white, points=scene.points, background=(1.0, 1.0, 1.0))
+    tiny = GS3DAdapter.from_tensors(torch.tensor([[0.0, 0.0, 0.0]]), scales=torch.full((1, 3), 1e-4),
+                                    opacities=torch.tensor([1e-3]), rgb=torch.zeros(1, 3), scene_extent=1.0)
+    for bg in ("random", "auto"):
+        trainer = MVGS(tiny, on_white, MVGSConfig.baseline(background=bg).with_total_steps(10))
+        assert trainer.schedule.background_value() == (1.0, 1.0, 1.0)
+        assert trainer.evaluate().psnr > 60.0, bg
+    black = MVGS(tiny, on_white, MVGSConfig.baseline(background="black").with_total_steps(10))
+    assert black.evaluate().psnr < 1.0  # what "random" evaluated on before
