@@ -132,6 +132,10 @@ def load_checked(path: str) -> Any:
     except pickle.UnpicklingError:  # not a torch.save file (a text file), or one with objects that run code
         raise ValueError(f"{path}: not a file torch.save wrote with tensors and plain values only (a text file, another "
                          "format, or objects that would run code when loaded, which is never done here)") from None
+    except (RuntimeError, KeyError, EOFError) as err:  # torch's zip reader on a truncated or foreign file
+        said = str(err).splitlines()[0] if str(err) else ""
+        raise ValueError(f"{path}: not a whole torch.save file (truncated, or another format): "
+                         f"{type(err).__name__}: {said}") from None
     if not (isinstance(outer, dict) and outer.get("format") == CHECKED_FORMAT):
         return outer
     payload = outer.get("payload")

@@ -88,6 +88,17 @@ def test_a_file_that_is_not_a_checkpoint_is_named_not_unpickled(tmp_path):
     (tmp_path / "notes.txt").write_text("not a checkpoint")
     with pytest.raises(ValueError, match=r"notes.txt: not a file torch.save wrote with tensors and plain values only"):
         load_checked(str(tmp_path / "notes.txt"))
+    # a checkpoint cut short (a copy interrupted), and a file of five bytes: named, as ValueError
+    from mvgs_plugin.io import save_checked
+    import torch
+
+    save_checked({"x": torch.zeros(1000)}, str(tmp_path / "whole.pt"))
+    data = (tmp_path / "whole.pt").read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    (tmp_path / "five.txt").write_text("hello")
+    for name in ("cut.pt", "five.txt"):
+        with pytest.raises(ValueError, match=name + r": not a whole torch.save file \(truncated, or another format\)"):
+            load_checked(str(tmp_path / name))
 
 
 def test_a_checked_file_holds_its_payload_raw_and_files_written_before_still_load(tmp_path):

@@ -290,6 +290,8 @@ def save_checkpoint(path: Path, step: int, splats, optimizers, schedulers, strat
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "schedulers": [s.state_dict() for s in schedulers], "strategy_state": dict(strategy_state),
         "data": data_state, "rng": torch.get_rng_state(), "settings": dict(_RUN_SETTINGS),
+        # gsplat's split draws on the model's device: on CUDA its generators are part of the run
+        "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }, str(path))
 
 
@@ -327,6 +329,9 @@ def load_checkpoint(path: Path, splats, optimizers, schedulers, strategy_state) 
     strategy_state.update({k: v.to(splats["means"].device) if isinstance(v, Tensor) else v
                            for k, v in ckpt["strategy_state"].items()})
     torch.set_rng_state(ckpt["rng"])
+    cuda_states = ckpt.get("rng_cuda") or []  # none in a CPU run's checkpoint, or one of an earlier version
+    if cuda_states and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(cuda_states)
     return int(ckpt["step"]), ckpt["data"]
 
 
