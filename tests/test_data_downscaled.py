@@ -54,3 +54,27 @@ def test_a_downscaled_copy_of_a_scene_not_under_images_is_refused(tmp_path):
     (tmp_path / "s" / "images_2").mkdir()
     with pytest.raises(ValueError, match=r"its file_path 'train/r_000' does not lie in images/"):
         load_scene(tmp_path / "s", init=None, images="images_2")
+
+
+def test_a_copy_flattened_as_nerfstudio_writes_it_is_found(tmp_path):
+    """file_path images/cam0/f{k}.png with the copy at images_2/f{k}.png (nerfstudio looks for the
+    file's name directly under the copy): read, the same pixels as the sub-path copy."""
+    _nerfstudio(tmp_path)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    (tmp_path / "images" / "cam0").mkdir()
+    (tmp_path / "images_2").mkdir()
+    for f in meta["frames"]:
+        name = f["file_path"].split("/")[-1]
+        shutil.move(tmp_path / "images" / name, tmp_path / "images" / "cam0" / name)
+        f["file_path"] = f"images/cam0/{name}"
+        del f["mask_path"]
+        arr = skimage.io.imread(tmp_path / "images" / "cam0" / name)
+        skimage.io.imsave(tmp_path / "images_2" / name, arr[::2, ::2], check_contrast=False)
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match="held out"):
+        small = load_scene(tmp_path, init=None, images="images_2")
+    for cam in small.cameras:
+        name = cam.name.split("/")[-1]
+        assert cam.name == f"images_2/{name}" and (cam.width, cam.height) == (8, 8)
+        want = skimage.io.imread(tmp_path / "images" / "cam0" / name)[::2, ::2] / 255.0
+        assert np.allclose(small.image(cam).numpy(), want, atol=1e-6)

@@ -513,3 +513,29 @@ def test_training_with_masks_ignores_what_they_hide_through_every_phase(tmp_path
     for key in ("psnr", "ssim", "num_gaussians"):
         assert resumed[key] == runs["masked"][key], key
 
+
+
+def test_colmap_masks_for_a_downscaled_copy_come_from_its_own_folder(tmp_path):
+    """images_2/ read with only the full-size masks/ beside it: refused naming both sizes and
+    the masks_2/ folder looked for; with masks_2/ (the halved masks) every mask is read from it."""
+    from mvgs_plugin.data import load_colmap
+    from test_data_colmap import H, W, write_model
+
+    write_model(tmp_path)
+    for f in (tmp_path / "images").rglob("*.png"):
+        rel = f.relative_to(tmp_path / "images")
+        for folder, arr in (("images_2", skimage.io.imread(f)[::2, ::2]),
+                            ("masks", np.full((H, W), 255, np.uint8)), ("masks_2", np.full((H // 2, W // 2), 255, np.uint8))):
+            out = tmp_path / folder / (str(rel) + (".png" if folder != "images_2" else ""))
+            out.parent.mkdir(parents=True, exist_ok=True)
+            skimage.io.imsave(out, arr, check_contrast=False)
+    small = tmp_path / "images_2"
+    masks_2 = tmp_path / "masks_2"
+    masks_2.rename(tmp_path / "held")
+    with pytest.raises(ValueError, match=rf"is {W}x{H} but its image .* is {W // 2}x{H // 2} \(a mask has its image's "
+                                         r"size\) \(no masks_2/ for the images in images_2/ was found\)"):
+        load_colmap(tmp_path, images_dir=small)
+    (tmp_path / "held").rename(masks_2)
+    scene = load_colmap(tmp_path, images_dir=small)
+    assert len(scene.masked()) == len(scene.cameras)
+    assert all(Path(scene.mask_file(c)).relative_to(masks_2) for c in scene.cameras)

@@ -456,9 +456,11 @@ def _masks(path: Path, images_dir: Path, records: list, files: dict, sources: di
     """Per camera uid, its mask file (an UndistortedImage when its image is one), from the masks
     folder load_colmap describes; {} when there is none."""
     suffix = images_dir.name[len("images"):] if images_dir.name.startswith("images") else ""
-    folder = next((f for f in (path / f"masks{suffix}", path / "masks") if f.is_dir()), None)
+    places = dict.fromkeys(base / name for name in (f"masks{suffix}", "masks") for base in (images_dir.parent, path))
+    folder = next((f for f in places if f.is_dir()), None)  # beside the images, then in the scene folder
     if folder is None:
         return {}
+    copy_missing = f" (no masks{suffix}/ for the images in {images_dir.name}/ was found)" if suffix and folder.name == "masks" else ""
     out = {}
     for cam in records:
         name = Path(cam.name)
@@ -468,7 +470,7 @@ def _masks(path: Path, images_dir: Path, records: list, files: dict, sources: di
         size, want = image_size(found), image_size(files[cam.uid])
         if size != want:
             raise ValueError(f"mask {found} is {size[0]}x{size[1]} but its image {files[cam.uid]} is {want[0]}x{want[1]} "
-                             "(a mask has its image's size)")
+                             f"(a mask has its image's size){copy_missing}")
         src = sources.get(cam.uid)
         out[cam.uid] = UndistortedImage(found, src.undistortion) if isinstance(src, UndistortedImage) else found
     missing = [cam for cam in records if cam.uid not in out]

@@ -189,14 +189,21 @@ def _mask_file(frame: dict, root: Path, image: Path, width: int, height: int, wh
     return file
 
 
-def _in_copy(path: str, folder: str, copy: str, key: str, where: str) -> str:
-    """``path`` (a frame's file_path or mask_path) moved from ``folder``/ to its downscaled copy
-    ``copy``/ (nerfstudio's images/ -> images_4/, masks/ -> masks_4/)."""
+def _in_copy(path: str, folder: str, copy: str, key: str, where: str, root: Path) -> str:
+    """``path`` (a frame's file_path or mask_path) in its downscaled copy ``copy``/ (nerfstudio's
+    images/ -> images_4/, masks/ -> masks_4/): the same sub-path under the copy when that file
+    exists (images/a/b.png -> images_4/a/b.png), else the file's name directly under the copy
+    (images_4/b.png, where nerfstudio looks). A path outside ``folder``/ is refused: two frames
+    in train/ and test/ would share one name in the copy."""
     parts = normalize_name(path).split("/")
     if len(parts) < 2 or parts[0] != folder:
         raise ValueError(f"{where}: its {key} {path!r} does not lie in {folder}/, so it has no copy in {copy}/ "
                          f"(a downscaled folder replaces nerfstudio's {folder}/ folder)")
-    return "/".join([copy] + parts[1:])
+    mirrored, flat = "/".join([copy] + parts[1:]), f"{copy}/{parts[-1]}"
+    for rel in ([mirrored, flat] if flat != mirrored else [mirrored]):
+        if any((root / normalize_name(r)).is_file() for r in (rel, rel + ".png")):
+            return rel
+    return mirrored  # neither exists: the error names the mirrored file
 
 
 def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str,
@@ -208,7 +215,7 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
     original = None  # the full-size file, when the images are read from a downscaled copy
     if images is not None:
         original = fp
-        fp = _in_copy(fp, "images", images, "file_path", where)
+        fp = _in_copy(fp, "images", images, "file_path", where, root)
     rel = fp if Path(fp).suffix else fp + ".png"  # Blender scenes omit the extension
     if rel == fp and not (root / normalize_name(fp)).is_file() and (root / normalize_name(fp + ".png")).is_file():
         rel = fp + ".png"  # a name with a dot and no extension ("r.0"), the extension omitted as above
@@ -248,7 +255,7 @@ def _frame_camera(frame: dict, uid: int, root: Path, with_time: bool, where: str
     source = file
     if images is not None and isinstance(frame.get("mask_path"), str):
         copy = "masks" + images[len("images"):]
-        frame = {**frame, "mask_path": _in_copy(frame["mask_path"], "masks", copy, "mask_path", where)}
+        frame = {**frame, "mask_path": _in_copy(frame["mask_path"], "masks", copy, "mask_path", where, root)}
     mask = _mask_file(frame, root, file, width, height, where)
     try:
         K = _intrinsics(frame, full[0], full[1], where)
