@@ -102,8 +102,8 @@ class GS4DConfig:
             the box's border.
         zero_init_heads: start the field at exactly zero offset (see the module docstring).
     Learning rates (Adam, log-linear decay over fine_steps, times the scene extent):
-        lr_planes_init / lr_planes_final (1.6e-3 -> 1.6e-4), lr_mlp_init / lr_mlp_final
-        (1.6e-4 -> 1.6e-5).
+        lr_planes_init / lr_planes_final (1.6e-3 -> 1.6e-5), lr_mlp_init / lr_mlp_final
+        (1.6e-4 -> 1.6e-6): the D-NeRF configs' (4DGaussians' generic defaults end 10x higher).
     Regularisers (fine stage, once per step): plane_tv_weight (1e-4) on the space planes,
         time_smoothness_weight (1e-2) on the time planes' second difference along t,
         l1_time_planes_weight (1e-4) on |1 - P| of the time planes.
@@ -131,9 +131,9 @@ class GS4DConfig:
     min_bounds_fraction: float = 0.05
     zero_init_heads: bool = True
     lr_planes_init: float = 1.6e-3
-    lr_planes_final: float = 1.6e-4
+    lr_planes_final: float = 1.6e-5
     lr_mlp_init: float = 1.6e-4
-    lr_mlp_final: float = 1.6e-5
+    lr_mlp_final: float = 1.6e-6
     plane_tv_weight: float = 1e-4
     time_smoothness_weight: float = 1e-2
     l1_time_planes_weight: float = 1e-4

@@ -62,7 +62,10 @@ def parse_args(argv=None):
                     help="box of the extra random points (default: the scene points' box widened to a cube)")
     ap.add_argument("--export-times", type=float_above(0, inclusive=True, high=1.0), nargs="*", default=[0.0, 0.5, 1.0],
                     help="times in [0, 1] at which to bake a PLY")
-    return resolve_late_views(ap.parse_args(argv), LATE_VIEWS)
+    args = resolve_late_views(ap.parse_args(argv), LATE_VIEWS)
+    if args.lambda_dssim is None:  # 4DGS trains on L1 alone (its lambda_dssim is 0 in every config it ships)
+        args.lambda_dssim = 0.0
+    return args
 
 
 def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:

@@ -430,6 +430,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--coarse-opacity-reset", action=argparse.BooleanOptionalAction, default=None,
                     help="periodic opacity resets also at the coarser pyramid levels, or at the finest only "
                          "(MVGSConfig.coarse_opacity_reset; default: as the preset, finest only for default)")
+    ap.add_argument("--lambda-dssim", type=float_above(0, inclusive=True, high=1.0), default=None, metavar="W",
+                    help="weight of the SSIM term in the loss (1 - W) L1 + W (1 - SSIM) (MVGSConfig.lambda_dssim; "
+                         "default: 0.2 as 3DGS and Scaffold-GS; train_4dgs.py: 0, 4DGS's L1 alone)")
     ap.add_argument("--min-densify-per-reset", type=int_at_least(1), default=None, metavar="K",
                     help="a compressed schedule resets opacities no sooner than K densification calls apart "
                          "(MVGSConfig.min_densify_per_reset; default: as the preset)")
@@ -492,7 +495,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         preset_overrides = {**preset_overrides, "stages": args.stages}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
                  "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning",
-                 "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset"):
+                 "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset", "lambda_dssim"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     if getattr(args, "background", "auto") != "auto":  # the colour the scene's images were composited on
