@@ -80,7 +80,8 @@ _NEAR = 0.01
 
 @dataclass
 class ScaffoldConfig:
-    """Hyper-parameters (defaults: the released Scaffold-GS).
+    """Hyper-parameters (defaults: the released Scaffold-GS's, but for voxel_size; docs/scaffold.md
+    lists where this adapter differs).
 
     Model: voxel_size (None = the median over the scene's own points, PointCloud.own, of their
         RMS distance to their 3 nearest neighbours),
@@ -353,8 +354,12 @@ class ScaffoldAdapter:
     def visible_anchors(self, camera: Camera) -> Tensor:
         """[A] bool: the frustum prefilter. An anchor passes when the ball around it that holds
         its children's 3-sigma ellipsoids (radius: largest child offset + 3 * its largest child
-        scale bound) reaches the image widened by 15% on each side, or the camera is inside that
-        ball's depth range past the near plane. Conservative: children it drops are invisible."""
+        scale bound) meets the view's pyramid, the image widened by 15% on each side, past the
+        near plane: its signed distance to each of the pyramid's four side planes (through the
+        camera centre) is at least minus the radius. Exact for the ball, so no child it drops
+        reaches the widened image; a ball's projection is not the disc f * radius / depth off the
+        axis (it stretches there), which an earlier test assumed and so dropped visible anchors
+        just outside the image."""
         if not self.config.prefilter:
             return torch.ones(self.num_primitives(), dtype=torch.bool, device=self.anchors.device)
         with torch.no_grad():
@@ -363,14 +368,15 @@ class ScaffoldAdapter:
                 + 3 * s[:, 3:].amax(dim=1)
             w2c = camera.world_to_camera.to(self.anchors)
             p = self.anchors @ w2c[:3, :3].T + w2c[:3, 3]
-            z = p[:, 2]
-            zc = z.clamp_min(_NEAR)
-            u = camera.fx * p[:, 0] / zc + camera.cx
-            v = camera.fy * p[:, 1] / zc + camera.cy
-            ru, rv = camera.fx * reach / zc, camera.fy * reach / zc
+            x, y, z = p.unbind(-1)
             W, H = camera.width, camera.height
-            inside = (u + ru >= -0.15 * W) & (u - ru <= 1.15 * W) & (v + rv >= -0.15 * H) & (v - rv <= 1.15 * H)
-            return (z + reach > _NEAR) & (inside | (z - reach <= _NEAR))
+            keep = z + reach > _NEAR
+            # the widened image's edges as slopes x/z, y/z; a side plane's inward signed distance
+            for q, c, f, size in ((x, camera.cx, camera.fx, W), (y, camera.cy, camera.fy, H)):
+                a0, a1 = (-0.15 * size - float(c)) / float(f), (1.15 * size - float(c)) / float(f)
+                keep &= (q - a0 * z) / math.sqrt(1.0 + a0 * a0) >= -reach
+                keep &= (a1 * z - q) / math.sqrt(1.0 + a1 * a1) >= -reach
+            return keep
 
     def decode(self, camera: Camera, anchor_mask: Optional[Tensor] = None) -> Tuple[Tensor, Dict[str, Tensor]]:
         """Decode the children of the anchors in anchor_mask [A] (default: the prefilter) for
@@ -487,7 +493,8 @@ class ScaffoldAdapter:
                                    "before accumulate_stats")
             child_ids = (idx[:, None] * k + torch.arange(k, device=idx.device)).reshape(-1)[keep]
             if child_ids.numel():
-                visible = (meta["radii"][0] > 0).all(dim=-1)
+                radii = meta["radii"][0]  # [N, 2] (gsplat >= 1.5, ours) or [N] (older gsplat)
+                visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
                 ndc = grad[0].detach() * grad.new_tensor([meta["width"] / 2.0, meta["height"] / 2.0])
                 norms = ndc.norm(dim=-1).to(self.offset_grad_accum.dtype)
                 ids = child_ids[visible]
@@ -599,9 +606,9 @@ class ScaffoldAdapter:
         box_new = 0
         if ctx.boxes is not None:
             sel = boxes_contain(xyz, check_boxes(ctx.boxes))
-            cap = ctx.max_new_from_boxes
-            cap = None if cap is None else check_int("max_new_from_boxes", cap, 0)
-            cells, f = self._seed(xyz, feats, g, sel, occupied, self.voxel_size, cap, budget)
+            box_cap = ctx.max_new_from_boxes
+            box_cap = None if box_cap is None else check_int("max_new_from_boxes", box_cap, 0)
+            cells, f = self._seed(xyz, feats, g, sel, occupied, self.voxel_size, box_cap, budget)
             box_new, budget = len(cells), budget - len(cells)
             added.append((cells, f, self.voxel_size))
             occupied = torch.cat([occupied, cells])

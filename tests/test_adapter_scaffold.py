@@ -6,6 +6,7 @@ differences and direct rasterizer calls, never from recorded adapter output.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -129,6 +130,40 @@ def test_vectorised_decode_matches_per_anchor_loop(use_distance):
             assert torch.allclose(got["quats"][r], cov[j, 3:] / cov[j, 3:].norm())
 
 
+def _one_anchor(position, log_scale, prefilter):
+    """A one-anchor model whose 10 children sit on it, opaque (tanh 0.995), 0.95 of the scale bound."""
+    k = 10
+    model = ScaffoldAdapter(torch.tensor([position], dtype=torch.float32), torch.zeros(1, 32), torch.zeros(1, k, 3),
+                            torch.full((1, 6), float(log_scale)), 1.0, 0.1,
+                            ScaffoldConfig(voxel_size=0.1, prefilter=prefilter))
+    with torch.no_grad():
+        model.mlps.mlp_opacity[2].bias.fill_(3.0)
+        model.mlps.mlp_cov[2].bias.copy_(torch.tensor([3.0, 3.0, 3.0, 1.0, 0.0, 0.0, 0.0]).repeat(k))
+    return model
+
+
+def test_prefilter_never_drops_an_anchor_that_draws_a_pixel():
+    """Brute force, off the axis where a ball's projection stretches: one anchor at a time, at
+    40-85 degrees off a 40-degree half-field, large child scales; every anchor whose children
+    change a pixel when nothing is filtered passes the prefilter (and some are dropped)."""
+    f = 16 / math.tan(math.radians(40))
+    cam = Camera(0, "c", torch.tensor([[f, 0, 16.0], [0, f, 16.0], [0, 0, 1]]), torch.eye(4), 32, 32)
+    drawn = dropped = 0
+    for deg in range(40, 90, 5):
+        t = math.radians(deg)
+        for direction in ((1, 0), (0, -1), (0.7071, 0.7071)):
+            position = (math.sin(t) * direction[0], math.sin(t) * direction[1], math.cos(t))
+            for log_scale in (-3.0, -2.0, -1.0, -0.5, 0.0):
+                with torch.no_grad():
+                    image = _one_anchor(position, log_scale, False).render([cam], torch.zeros(1, 3)).images[0]
+                kept = bool(_one_anchor(position, log_scale, True).visible_anchors(cam)[0])
+                if float(image.abs().max()) > 1e-4:
+                    drawn += 1
+                    assert kept, (deg, direction, log_scale)
+                dropped += not kept
+    assert drawn > 10 and dropped > 10
+
+
 def test_prefilter_is_conservative():
     """Rendering only the prefiltered anchors gives the image of rendering them all; anchors
     behind the camera are dropped."""
@@ -176,6 +211,11 @@ def test_accumulate_stats_matches_direct_computation():
         want_o[i] = sum(max(0.0, float(o)) for o in rec["opacities"][n * k:(n + 1) * k])
     assert torch.allclose(ad.opacity_accum.double(), want_o, atol=1e-5)
     assert torch.equal(ad.anchor_denom.bool(), torch.zeros(A, dtype=torch.bool).index_fill(0, rec["anchors"], True))
+    # a rasterizer of older gsplat gives radii [C, N] (one radius): the same statistics
+    other = ScaffoldAdapter.from_scene(scene, ScaffoldConfig(offset_init_std=0.5, voxel_size=0.15))
+    flat = [{**r, "meta": {**r["meta"], "radii": r["meta"]["radii"].amin(dim=-1)}} for r in res.aux]
+    other.accumulate_stats(dataclasses.replace(res, aux=flat))
+    assert torch.equal(other.offset_denom, ad.offset_denom) and torch.equal(other.offset_grad_accum, ad.offset_grad_accum)
 
 
 def test_visit_thresholds_are_per_view():
