@@ -398,6 +398,7 @@ class GS4DAdapter(GS3DAdapter):
         config = GS4DConfig() if config is None else config
         if not isinstance(config, GS4DConfig):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
+        user_box = config.bounds is not None
         points = cls._with_random_points(scene, config) if config.init_random_points else None
         base = GS3DAdapter.from_scene(scene, config.canonical, dtype, device, points=points)
         pts = points if points is not None else getattr(scene, "points", None)
@@ -421,7 +422,36 @@ class GS4DAdapter(GS3DAdapter):
                           f"{[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}; "
                           "GS4DConfig.bounds sets it", stacklevel=2)
             config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
+        elif not user_box:
+            config = cls._thick_enough(config, scene, means, pts)
         return cls.from_canonical(base, config)
+
+    @staticmethod
+    def _thick_enough(config: GS4DConfig, scene, means: Tensor, pts) -> GS4DConfig:
+        """config with its deformation box spanning, along any axis where the initial points are
+        flat (thinner than min_bounds_fraction x their longest side: a ground-only point file),
+        the region where the cameras look: a box 5 % as thick as it is wide would have every
+        Gaussian above the ground read the planes at its top face, so motion could not vary with
+        height. Other axes keep the points' extent."""
+        own = pts.own.double() if pts is not None and pts.shell else means
+        if not len(own):
+            return config
+        lo, hi = own.min(0).values, own.max(0).values
+        flat = (hi - lo) < config.min_bounds_fraction * float((hi - lo).max())
+        if not bool(flat.any()):
+            return config
+        box = (torch.tensor(config.bounds, dtype=torch.float64) if config.bounds is not None
+               else bounds_from_points(own, config.min_bounds_fraction))
+        region = init_region(scene.train_cameras, scene.center, float(scene.extent))
+        samples = region.sample(_REGION_SAMPLES, torch.Generator().manual_seed(config.canonical.seed + 3))
+        box[0] = torch.where(flat, torch.minimum(box[0], samples.min(0).values), box[0])
+        box[1] = torch.where(flat, torch.maximum(box[1], samples.max(0).values), box[1])
+        axes = "".join(a for a, f in zip("xyz", flat.tolist()) if f)
+        warnings.warn(f"the initial points are flat along {axes} ({[round(v, 3) for v in (hi - lo).tolist()]} across): "
+                      f"the deformation box spans the region where the cameras look along it ({region.description}), "
+                      f"{[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}, so what "
+                      "moves above them is not clamped to the box's face; GS4DConfig.bounds sets it", stacklevel=3)
+        return dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
 
     @staticmethod
     def _with_random_points(scene, config: GS4DConfig) -> PointCloud:

@@ -500,3 +500,25 @@ def test_initial_points_that_span_nothing_get_the_box_where_the_cameras_look():
     out = adapter.render([scene.train_cameras[0]], torch.zeros(1, 3))
     out.images.sum().backward()
     assert all(torch.isfinite(p.grad).all() for p in adapter.field.parameters() if p.grad is not None)
+
+
+def test_a_flat_initial_cloud_gets_a_box_as_deep_as_where_the_cameras_look():
+    """Ground-only points (z = 0, the generated moving scene's point file): the box along z spans
+    the region where the cameras look (the 3DGS cube for this ring: centre +- extent), not a slab
+    5 % as thick as it is wide, in which whatever moves above the ground would read the planes at
+    its top face; x and y keep the points' extent. Said with a warning naming the axis."""
+    from mvgs_plugin.data import PointCloud
+
+    scene = synthetic_scene(time=True)
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(200, 2, generator=g, dtype=torch.float64) * 2 - 1
+    scene.points = PointCloud(xyz=torch.cat([xy, torch.zeros(200, 1, dtype=torch.float64)], 1).float(),
+                              rgb=torch.full((200, 3), 0.5))
+    with pytest.warns(UserWarning, match=r"the initial points are flat along z .* the deformation box spans the region"):
+        adapter = GS4DAdapter.from_scene(scene, tiny_config())
+    box = adapter.field.bounds.double()
+    c, e = scene.center.double(), float(scene.extent)
+    assert torch.allclose(box[:, :2], torch.stack([xy.min(0).values, xy.max(0).values]), atol=1e-6)
+    assert float(box[0, 2]) <= float(c[2] - 0.9 * e) and float(box[1, 2]) >= float(c[2] + 0.9 * e)
+    flat = GS4DAdapter.from_scene(scene, tiny_config(bounds=((-1, -1, -0.05), (1, 1, 0.05))))  # given: kept
+    assert torch.allclose(flat.field.bounds.double(), torch.tensor([[-1, -1, -0.05], [1, 1, 0.05]], dtype=torch.float64))
