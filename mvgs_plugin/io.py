@@ -72,6 +72,7 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: 
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        _sync_folder(folder)  # the rename itself on disk: after a power loss the new file, not the old
     except Exception as err:
         # Ctrl-C inside a writer that turns it into its own error (torch.save's zip writer raises
         # RuntimeError "unexpected pos" with the KeyboardInterrupt as its context): an interrupt,
@@ -82,6 +83,21 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool, make_folder: 
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _sync_folder(folder: str) -> None:
+    """fsync a folder, so a rename in it survives a power loss (POSIX); a no-op where folders
+    cannot be opened (Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some file systems refuse to sync a folder: the file itself is synced
+        pass
+    finally:
+        os.close(fd)
 
 
 def _interrupted(err: BaseException) -> bool:

@@ -130,3 +130,24 @@ def test_a_checked_file_holds_its_payload_raw_and_files_written_before_still_loa
                 str(tmp_path / "bad.pt"))
     with pytest.raises(ValueError, match=r"bad.pt: checksum mismatch"):
         load_checked(str(tmp_path / "bad.pt"))
+
+
+def test_the_folder_is_synced_after_the_rename(tmp_path, monkeypatch):
+    """The rename reaches the disk too: the folder is fsynced once the new file is in place."""
+    import os
+
+    from mvgs_plugin import io as mio
+
+    seen = []
+    real = os.fsync
+
+    def spy(fd):
+        target = os.readlink(f"/proc/self/fd/{fd}") if os.path.exists(f"/proc/self/fd/{fd}") else None
+        seen.append((target, (tmp_path / "x.txt").exists() and (tmp_path / "x.txt").read_text() == "new"))
+        return real(fd)
+
+    (tmp_path / "x.txt").write_text("old")
+    monkeypatch.setattr(os, "fsync", spy)
+    mio.write_atomic(tmp_path / "x.txt", lambda f: f.write("new"), binary=False)
+    assert seen[-1] == (str(tmp_path), True)  # the folder, after the file was replaced
+    assert seen[0][1] is False  # the temporary file first, before the rename
