@@ -157,10 +157,14 @@ class CameraViews:
                            "(MVGSStrategy.batch_sampler / loader) and bring them to the level with at_level")
 
 
+def _host(x) -> Tensor:
+    """A float64 CPU tensor of an array or a tensor on any device (a Dataset may hold CUDA ones)."""
+    return (x.detach().cpu() if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x))).to(torch.float64)
+
+
 def _camera(uid: int, name: str, camtoworld, K, width: int, height: int) -> Camera:
-    c2w = torch.as_tensor(np.asarray(camtoworld), dtype=torch.float64)
-    return Camera(uid=uid, name=name, K=torch.as_tensor(np.asarray(K), dtype=torch.float64),
-                  world_to_camera=torch.linalg.inv(c2w), width=int(width), height=int(height))
+    return Camera(uid=uid, name=name, K=_host(K), world_to_camera=torch.linalg.inv(_host(camtoworld)),
+                  width=int(width), height=int(height))
 
 
 def views_of(data) -> Any:
@@ -256,6 +260,10 @@ class MVGSStrategy(DefaultStrategy):
                              f"{strategy.key_for_gradient!r}")
         if clock not in ("strategy", "config"):
             raise ValueError(f"clock must be 'strategy' or 'config', got {clock!r}")
+        if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_world_size() > 1:
+            raise RuntimeError(f"MVGSStrategy runs in one process: under gsplat's distributed mode "
+                               f"({torch.distributed.get_world_size()} ranks) every rank's schedule would draw the same "
+                               "views; the package's own trainers run MVGS on several processes (docs/distributed.md)")
         if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
             raise ValueError(f"steps must be a positive int (the loop's max_steps), got {steps!r}")
         if isinstance(config, str):
