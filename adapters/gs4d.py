@@ -398,59 +398,55 @@ class GS4DAdapter(GS3DAdapter):
         config = GS4DConfig() if config is None else config
         if not isinstance(config, GS4DConfig):
             raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
-        user_box = config.bounds is not None
         points = cls._with_random_points(scene, config) if config.init_random_points else None
         base = GS3DAdapter.from_scene(scene, config.canonical, dtype, device, points=points)
-        pts = points if points is not None else getattr(scene, "points", None)
-        if config.bounds is None and pts is not None and pts.shell:
-            # the deformation box of the scene's own points: the far background shell (static,
-            # at twice the rig's radius) would spread the planes' cells over empty space; its
-            # Gaussians fall outside the box, where lookups clamp to the border. Own points that
-            # span nothing keep the box of every point.
-            own = pts.own.double()
-            if len(own) and float((own.max(0).values - own.min(0).values).max()) > 0:
-                box = bounds_from_points(own, config.min_bounds_fraction)
-                config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
-        means = base.params["means"].detach().double()
-        if config.bounds is None and not (len(means) and float((means.max(0).values - means.min(0).values).max()) > 0):
-            # points that span nothing (one point, a repeated one): the box where the cameras look
-            region = init_region(scene.train_cameras, scene.center, float(scene.extent))
-            gen = torch.Generator().manual_seed(config.canonical.seed + 3)
-            box = bounds_from_points(torch.cat([region.sample(_REGION_SAMPLES, gen), means]), config.min_bounds_fraction)
-            warnings.warn(f"the {len(means)} initial point(s) span no volume (all at {means[0].tolist() if len(means) else '-'}): "
-                          f"the deformation box is where the cameras look instead ({region.description}): "
-                          f"{[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}; "
-                          "GS4DConfig.bounds sets it", stacklevel=2)
-            config = dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
-        elif not user_box:
-            config = cls._thick_enough(config, scene, means, pts)
+        if config.bounds is None:
+            pts = points if points is not None else getattr(scene, "points", None)
+            config = cls._deformation_box(config, scene, pts, base.params["means"].detach().double())
         return cls.from_canonical(base, config)
 
     @staticmethod
-    def _thick_enough(config: GS4DConfig, scene, means: Tensor, pts) -> GS4DConfig:
-        """config with its deformation box spanning, along any axis where the initial points are
-        flat (thinner than min_bounds_fraction x their longest side: a ground-only point file),
-        the region where the cameras look: a box 5 % as thick as it is wide would have every
-        Gaussian above the ground read the planes at its top face, so motion could not vary with
-        height. Other axes keep the points' extent."""
-        own = pts.own.double() if pts is not None and pts.shell else means
-        if not len(own):
-            return config
-        lo, hi = own.min(0).values, own.max(0).values
-        flat = (hi - lo) < config.min_bounds_fraction * float((hi - lo).max())
+    def _deformation_box(config: GS4DConfig, scene, pts, means: Tensor) -> GS4DConfig:
+        """config with the deformation box the initial model asks for (config.bounds None):
+        - the box of the scene's own points when it has a far background shell (static, at twice
+          the rig's radius, it would spread the planes' cells over empty space; its Gaussians fall
+          outside the box, where lookups clamp to the border), else of every initial Gaussian
+          (config unchanged: from_canonical takes that box); own points that span nothing keep
+          the box of every Gaussian;
+        - along an axis where those points are flat (thinner than min_bounds_fraction x their
+          longest side: a ground-only point file) the box spans the region where the cameras
+          look, with a warning: a slab would have every Gaussian above the ground read the planes
+          at its top face, so motion could not vary with height;
+        - points that span nothing at all (one point, a repeated one): the region's box, with a
+          warning."""
+        def span(x: Tensor) -> Tensor:
+            return x.max(0).values - x.min(0).values if len(x) else torch.zeros(3, dtype=torch.float64)
+
+        own = pts.own.double() if pts is not None and pts.shell else None
+        shell_box = own is not None and float(span(own).max()) > 0
+        cloud = own if shell_box else means
+        extent = span(cloud)
+        longest = float(extent.max())
+        flat = extent < config.min_bounds_fraction * longest if longest > 0 else torch.ones(3, dtype=torch.bool)
         if not bool(flat.any()):
-            return config
-        box = (torch.tensor(config.bounds, dtype=torch.float64) if config.bounds is not None
-               else bounds_from_points(own, config.min_bounds_fraction))
+            if not shell_box:
+                return config
+            return dataclasses.replace(config, bounds=tuple(map(tuple, bounds_from_points(own, config.min_bounds_fraction).tolist())))
         region = init_region(scene.train_cameras, scene.center, float(scene.extent))
         samples = region.sample(_REGION_SAMPLES, torch.Generator().manual_seed(config.canonical.seed + 3))
-        box[0] = torch.where(flat, torch.minimum(box[0], samples.min(0).values), box[0])
-        box[1] = torch.where(flat, torch.maximum(box[1], samples.max(0).values), box[1])
-        axes = "".join(a for a, f in zip("xyz", flat.tolist()) if f)
-        warnings.warn(f"the initial points are flat along {axes} ({[round(v, 3) for v in (hi - lo).tolist()]} across): "
-                      f"the deformation box spans the region where the cameras look along it ({region.description}), "
-                      f"{[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}, so what "
-                      "moves above them is not clamped to the box's face; GS4DConfig.bounds sets it", stacklevel=3)
+        if longest > 0:
+            box = bounds_from_points(cloud, config.min_bounds_fraction)
+            box[0] = torch.where(flat, torch.minimum(box[0], samples.min(0).values), box[0])
+            box[1] = torch.where(flat, torch.maximum(box[1], samples.max(0).values), box[1])
+            said = (f"the initial points are flat along {''.join(a for a, f in zip('xyz', flat.tolist()) if f)} "
+                    f"({[round(v, 3) for v in extent.tolist()]} across): the deformation box spans the region where "
+                    f"the cameras look along it ({region.description})")
+        else:
+            box = bounds_from_points(torch.cat([samples, cloud]), config.min_bounds_fraction)
+            said = (f"the {len(cloud)} initial point(s) span no volume (all at {cloud[0].tolist() if len(cloud) else '-'}): "
+                    f"the deformation box is where the cameras look instead ({region.description})")
+        warnings.warn(f"{said}: {[round(v, 3) for v in box[0].tolist()]} to {[round(v, 3) for v in box[1].tolist()]}; "
+                      "GS4DConfig.bounds sets it", stacklevel=3)
         return dataclasses.replace(config, bounds=tuple(map(tuple, box.tolist())))
 
     @staticmethod

@@ -739,7 +739,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
     return {
         "psnr": result.psnr,
         "ssim": result.ssim,
-        "ssim_3dgs": getattr(result, "ssim_3dgs", None),
+        "ssim_3dgs": result.ssim_3dgs,
         "lpips": result.lpips,
         "train_seconds": train_seconds,
         "cpu_seconds": getattr(trainer, "cpu_seconds", None),

@@ -156,7 +156,7 @@ def load_checked(path: str) -> Any:
         return outer
     payload = outer.get("payload")
     if isinstance(payload, torch.Tensor) and payload.dtype == torch.uint8 and payload.ndim == 1:
-        payload = payload.numpy().tobytes()  # (files written before kept a bytes object)
+        payload = payload.numpy().tobytes()  # save_checked's layout (files written before hold a bytes object)
     if not isinstance(payload, bytes) or hashlib.sha256(payload).hexdigest() != outer.get("sha256"):
         raise ValueError(f"{path}: checksum mismatch, the file is damaged (sha256 recorded {outer.get('sha256')!r})")
     return torch.load(io.BytesIO(payload), weights_only=True)

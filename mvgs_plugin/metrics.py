@@ -19,7 +19,7 @@ import torch
 
 from .losses import ssim as _ssim_torch, ssim_window
 
-__all__ = ["psnr", "masked_psnr", "ssim", "lpips", "lpips_available"]
+__all__ = ["psnr", "masked_psnr", "ssim", "ssim_3dgs", "lpips", "lpips_available"]
 
 
 def _as_numpy_pair(a, b, what: str) -> tuple[np.ndarray, np.ndarray]:

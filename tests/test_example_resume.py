@@ -54,6 +54,20 @@ class Crash(RuntimeError):
     pass
 
 
+def record_steps(monkeypatch) -> list:
+    """A list that gets the StepInfo of every MVGS.step() the test runs (clear it between runs)."""
+    infos = []
+    step = controller.MVGS.step
+
+    def recording(self):
+        info = step(self)
+        infos.append(info)
+        return info
+
+    monkeypatch.setattr(controller.MVGS, "step", recording)
+    return infos
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("script, extra, views, steps, every", [
     # 3DGS's unscaled threshold: at 16 px the default's (meant for 800 px) grows nothing
@@ -73,15 +87,8 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     base = ["--preset", "default", "--steps", str(steps), "--threads", "1", "--no-progress", *extra]
     base += ["--views", str(views)] if views else []
 
-    infos = []
-    step = controller.MVGS.step
-
-    def recording(self):
-        info = step(self)
-        infos.append(info)
-        return info
-
-    monkeypatch.setattr(controller.MVGS, "step", recording)
+    step = controller.MVGS.step  # the real one, for the crash and the resume below
+    infos = record_steps(monkeypatch)
     whole = example.main(base + ["--out", str(tmp_path / "whole")])
     # the run went through every phase
     levels = len(DEFAULT_SHARES)  # the default's pyramid levels; 4DGS adds its late 2-view stage
@@ -107,8 +114,8 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     checkpoint = tmp_path / "cut" / "checkpoint.pt"
     assert checkpoint.exists() and not (tmp_path / "cut" / "metrics.json").exists()
 
-    infos.clear()
-    monkeypatch.setattr(controller.MVGS, "step", recording)
+    monkeypatch.setattr(controller.MVGS, "step", step)
+    infos = record_steps(monkeypatch)  # the resumed run's steps, from the real step
     resumed = example.main(base + ["--out", str(tmp_path / "resumed"), "--resume", str(checkpoint)])
     assert [i.step for i in infos] == list(range(every + 1, steps + 1))  # only the steps after the checkpoint
     for key in ("psnr", "ssim", "steps", "work", "num_gaussians"):

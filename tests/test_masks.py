@@ -25,7 +25,7 @@ from mvgs_plugin.data import Scene, load_scene
 from mvgs_plugin.data.images import read_mask
 from mvgs_plugin.metrics import masked_psnr, psnr
 from mvgs_plugin.testing import synthetic_scene
-from test_example_resume import Crash, _example  # the example loader and the simulated kill of the resume tests
+from test_example_resume import Crash, _example, record_steps  # the example loader and the simulated kill of the resume tests
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLETOP = ROOT / "examples" / "scenes" / "tabletop"
@@ -472,15 +472,8 @@ def test_training_with_masks_ignores_what_they_hide_through_every_phase(tmp_path
     base = ["--preset", "default", "--steps", str(steps), "--threads", "1", "--no-progress", "--resolution-scale", "8",
             "--threshold-width", "0", "--min-densify-per-reset", "10"]
     example = _example("train_3dgs.py")
-    infos = []
-    step = controller_module.MVGS.step
-
-    def recording(self):
-        info = step(self)
-        infos.append(info)
-        return info
-
-    monkeypatch.setattr(controller_module.MVGS, "step", recording)
+    step = controller_module.MVGS.step  # the real one, for the crash and the resume below
+    infos = record_steps(monkeypatch)
     runs = {}
     for name, masks, occluded in (("clean", True, False), ("masked", True, True), ("unmasked", False, True)):
         data = _occluded_tabletop(tmp_path / name, with_masks=masks, occluded=occluded)
