@@ -696,7 +696,7 @@ class GS4DAdapter(GS3DAdapter):
 
     def load_deformation(self, path: str) -> None:
         """Load a save_deformation() file into this model (its field shape must match)."""
-        data = torch.load(path, weights_only=True)
+        data = torch.load(path, weights_only=True, map_location="cpu")  # copied onto the field's device below
         if not isinstance(data, dict) or data.get("format") != _DEFORMATION_FORMAT:
             raise ValueError(f"{path} is not a {_DEFORMATION_FORMAT} file")
         for k in _FIELD_SHAPE_KEYS:

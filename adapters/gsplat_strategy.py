@@ -448,7 +448,7 @@ class MVGSStrategy(DefaultStrategy):
         self._close_step()
         plan, before = self._next_queued(len(pixels), image_ids)
         out_pixels, out_Ks = self._scale(plan, pixels, Ks)
-        self._start(plan, out_pixels, before)
+        self._start(plan, out_pixels, before, out_Ks)
         return out_pixels, out_Ks
 
     def at_level_dict(self, data: Dict[str, Any]) -> Dict[str, Any]:
@@ -475,7 +475,7 @@ class MVGSStrategy(DefaultStrategy):
         if isinstance(data.get("points"), Tensor):
             out["points"] = data["points"] * torch.tensor([w2 / w, h2 / h], dtype=data["points"].dtype,
                                                            device=data["points"].device)
-        self._start(plan, out["image"] / 255.0, before)
+        self._start(plan, out["image"] / 255.0, before, out["K"])
         return out
 
     def chunks(self) -> List[Tuple[slice, float]]:
@@ -526,8 +526,16 @@ class MVGSStrategy(DefaultStrategy):
         if self._pending is not None:
             self._run_pending()
 
-    def _start(self, plan: StepPlan, targets: Optional[Tensor], before: Dict[str, Any]) -> None:
-        """Begin `plan` (after _close_step)."""
+    def _start(self, plan: StepPlan, targets: Optional[Tensor], before: Dict[str, Any],
+               Ks: Optional[Tensor] = None) -> None:
+        """Begin `plan` (after _close_step). With the loop's batch (targets [M, H, W, 3] and the
+        Ks it renders with), the plan's cameras become the views as rendered: that size and K.
+        A parser's imsize_dict can be a pixel off its images (gsplat's Parser scales it with a
+        truncating int()), and the loss maps of cross-ray densification are the renders' size."""
+        if Ks is not None and targets is not None:
+            h, w = targets.shape[1:3]
+            plan.cameras = [dataclasses.replace(cam, K=_host(k), width=int(w), height=int(h))
+                            for cam, k in zip(plan.cameras, Ks)]
         self.plan, self._targets, self._reported, self._before = plan, targets, 0, before
 
     def _draw(self) -> StepPlan:

@@ -139,12 +139,14 @@ def save_checked(obj: Any, path: str) -> None:
                  "payload": torch.frombuffer(bytearray(payload), dtype=torch.uint8)}, path)
 
 
-def load_checked(path: str) -> Any:
+def load_checked(path: str, map_location: Any = "cpu") -> Any:
     """Load a save_checked() file with torch.load(weights_only=True) (no code runs on load) and
     verify its checksum; a file without the wrapper (older checkpoints) loads as it is. Raises
-    ValueError naming the file when the checksum does not match."""
+    ValueError naming the file when the checksum does not match. Tensors load on map_location
+    (torch.load's meaning): the CPU by default, so a checkpoint written on a GPU opens on a
+    machine without one; whoever restores it moves each tensor to its own device."""
     try:
-        outer = torch.load(path, weights_only=True)
+        outer = torch.load(path, weights_only=True, map_location=map_location)
     except pickle.UnpicklingError:  # not a torch.save file (a text file), or one with objects that run code
         raise ValueError(f"{path}: not a file torch.save wrote with tensors and plain values only (a text file, another "
                          "format, or objects that would run code when loaded, which is never done here)") from None
@@ -159,4 +161,4 @@ def load_checked(path: str) -> Any:
         payload = payload.numpy().tobytes()  # save_checked's layout (files written before hold a bytes object)
     if not isinstance(payload, bytes) or hashlib.sha256(payload).hexdigest() != outer.get("sha256"):
         raise ValueError(f"{path}: checksum mismatch, the file is damaged (sha256 recorded {outer.get('sha256')!r})")
-    return torch.load(io.BytesIO(payload), weights_only=True)
+    return torch.load(io.BytesIO(payload), weights_only=True, map_location=map_location)

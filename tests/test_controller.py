@@ -1,6 +1,7 @@
 """The MVGS controller driving the 3DGS adapter: summed-gradient step, statistics, stages,
 checkpoints, guards, the three-line wrap and the conformance suite."""
 
+import contextlib
 import dataclasses
 import difflib
 import importlib.util
@@ -348,6 +349,46 @@ def test_checkpoint_resume_matches_uninterrupted_training(scene, tmp_path, prese
     resumed = MVGS(make(scene), scene, config)
     resumed.load_checkpoint(str(path))
     assert resumed.step_count == cut
+    resumed.fit(progress=False)
+    assert resumed.adapter.num_primitives() == full.adapter.num_primitives()
+    assert torch.allclose(resumed.adapter.positions(), full.adapter.positions(), atol=1e-6)
+
+
+@contextlib.contextmanager
+def storages_tagged_cuda():
+    """torch.save as a GPU run writes: every storage is recorded on cuda:0 (torch's own location
+    registry, consulted first while this is open), so a plain torch.load of the file on a
+    machine without CUDA fails as it would for a checkpoint from a GPU."""
+    from torch import serialization
+
+    def tag(obj):
+        return "cuda:0"
+    serialization.register_package(0, tag, lambda obj, location: None)
+    try:
+        yield
+    finally:
+        serialization._package_registry[:] = [e for e in serialization._package_registry if e[1] is not tag]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA: a CUDA-tagged file opens there")
+def test_a_checkpoint_written_on_a_gpu_resumes_on_the_cpu(scene, tmp_path):
+    config = MVGSConfig.from_preset("default", densify_from=1, densify_every=4, densify_until=30_000,
+                                    grad_threshold_width=None).with_total_steps(30)
+    full = MVGS(make(scene), scene, config)
+    torch.manual_seed(7)
+    full.fit(progress=False)
+
+    first = MVGS(make(scene), scene, config)
+    torch.manual_seed(7)
+    first.fit(steps=15, progress=False)
+    path = tmp_path / "gpu.pt"
+    with storages_tagged_cuda():
+        first.save_checkpoint(str(path))
+    with pytest.raises(RuntimeError, match="CUDA"):  # the file really says cuda:0
+        torch.load(str(path), weights_only=True)
+    resumed = MVGS(make(scene), scene, config)
+    resumed.load_checkpoint(str(path))
+    assert resumed.step_count == 15 and resumed.adapter.positions().device.type == "cpu"
     resumed.fit(progress=False)
     assert resumed.adapter.num_primitives() == full.adapter.num_primitives()
     assert torch.allclose(resumed.adapter.positions(), full.adapter.positions(), atol=1e-6)

@@ -615,6 +615,35 @@ def test_cross_ray_boxes_reach_the_strategy_through_renders(tabletop):
     assert strategy.last_refine["boxes"] == 0
 
 
+def test_a_parser_size_a_pixel_off_its_images_densifies_across_rays_at_the_renders_size(forward):
+    """gsplat's Parser scales imsize_dict with a truncating int(), so it can say a pixel more or
+    less than its images hold. The plan's cameras are the views as the loop rendered them (the
+    batch's size and K), so cross-ray densification's loss maps fit them and boxes are found."""
+    parser = common.Parser(FORWARD)
+    parser.imsize_dict = {i: (w + 1, h - 1) for i, (w, h) in parser.imsize_dict.items()}
+    trainset = common.Dataset(parser, "train")
+    cfg, splats, optimizers = fresh_model(forward)
+    config = MVGSConfig.multiview(crd=CRDConfig(enabled=True, max_new=1.0)).with_views(2)
+    strategy = MVGSStrategy(small_clock(), trainset, config, steps=12)
+    state = strategy.initialize_state(scene_scale=forward.extent)
+    found = []
+    for step, data in zip(range(6), strategy.loader(torch.utils.data.DataLoader(trainset))):
+        pixels = data["image"] / 255.0
+        h, w = pixels.shape[1:3]
+        assert all((c.width, c.height) == (w, h) for c in strategy.plan.cameras)
+        assert torch.allclose(torch.stack([c.K for c in strategy.plan.cameras]), data["K"].double())
+        colors, _, info = common.rasterize_splats(splats, cfg, None, data["camtoworld"], data["K"], w, h, sh_degree=0)
+        strategy.step_pre_backward(splats, optimizers, state, step, info)
+        F.l1_loss(colors, pixels).backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        strategy.step_post_backward(splats, optimizers, state, step, info, renders=colors)
+        if strategy.plan.densify:
+            found.append(strategy.last_refine["boxes"])
+    assert found and max(found) > 0
+
+
 # ---- the example loops end to end ---------------------------------------------------------------
 def example_config(tmp_path, steps, preset, **kw):
     cfg = common.Config(data_dir=FORWARD, result_dir=tmp_path, mvgs_preset=preset, sh_degree=1, **kw)
