@@ -69,6 +69,11 @@ def max_log_scale(dtype: torch.dtype) -> float:
 
 MAX_LOG_SCALE = max_log_scale(torch.float32)
 MAX_MEAN_EXTENTS = 1e4
+# GS3DConfig.opacity_reset_scope "inside": resets leave the Gaussians at least this fraction of
+# far_distance (the initial model's farthest mean) from the scene centre; with the examples'
+# background shell at twice the rig's radius, that is beyond 1.5 rig radii: the far background
+FAR_RESET_FRACTION = 0.75
+OPACITY_RESET_SCOPES = ("all", "inside")
 # GS3DConfig.means_lr_rule: how a mean's Adam step scales with its distance from the scene centre
 MEANS_LR_RULES = ("auto", "extent", "distance", "disparity")
 
@@ -129,6 +134,15 @@ class GS3DConfig:
             so this rule never fires there (the authors kept it so to preserve their results,
             graphdeco-inria/gaussian-splatting#123); 20.0 turns on the rule the paper describes.
         opacity_reset_value: reset_opacity() caps opacities at this value.
+        opacity_reset_scope: "all" (3DGS: every Gaussian) or "inside": a reset leaves the
+            Gaussians at FAR_RESET_FRACTION (3/4) of far_distance or more from the scene centre as
+            they are (with the examples' background shell at twice the rig's radius: the far
+            background beyond 1.5 rig radii). A reset is there to remove floaters in front of
+            the cameras; on a 360-degree rig most of the far background is seen by one training
+            view, gets a gradient on one step in V, and does not come back in time from a reset
+            before the next: the test views that see it between the training views get holes.
+            Without a scene_center (or an initial model) it is "all". Measured in
+            docs/equal_compute.md ("Resets that spare the far background").
         max_gaussians: cap on the number of Gaussians growth may reach (None = no cap).
     Rendering:
         rasterize: a function with gsplat's ``rasterization`` call shape.
@@ -159,6 +173,7 @@ class GS3DConfig:
     means_lr_rule: str = "auto"
     max_screen_size: Optional[float] = None
     opacity_reset_value: float = 0.01
+    opacity_reset_scope: str = "all"
     max_gaussians: Optional[int] = None
     rasterize: Callable[..., Any] = rasterization
     rasterize_kwargs: Dict[str, Any] = field(default_factory=dict)
@@ -185,6 +200,9 @@ class GS3DConfig:
                 check_float(name, getattr(self, name), positive=True)
         if self.world_size_rule not in ("extent", "distance"):
             raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {self.world_size_rule!r}")
+        if self.opacity_reset_scope not in OPACITY_RESET_SCOPES:
+            raise ValueError(f"opacity_reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, "
+                             f"got {self.opacity_reset_scope!r}")
         if self.means_lr_rule not in MEANS_LR_RULES:
             raise ValueError(f"means_lr_rule must be one of {', '.join(map(repr, MEANS_LR_RULES))}, "
                              f"got {self.means_lr_rule!r}")
@@ -835,10 +853,26 @@ class GS3DAdapter:
     def reset_opacity(self) -> None:
         """Cap every opacity at config.opacity_reset_value (0.01) and zero the opacity group's
         Adam moments, as the original. Like the original, the opacity tensor is replaced, so its
-        current gradient is dropped (the other groups keep theirs)."""
+        current gradient is dropped (the other groups keep theirs). With
+        config.opacity_reset_scope "inside", the far background (far_reset_mask) keeps its
+        opacities."""
         v = self.config.opacity_reset_value
-        capped = torch.clamp_max(self.params["opacities"].detach(), math.log(v / (1.0 - v)))
+        opacities = self.params["opacities"].detach()
+        capped = torch.clamp_max(opacities, math.log(v / (1.0 - v)))
+        spared = self.far_reset_mask()
+        if spared is not None:
+            capped = torch.where(spared.reshape(-1, *[1] * (opacities.ndim - 1)), opacities, capped)
         self._swap_group("opacities", capped, None, zero_moments=True)
+
+    def far_reset_mask(self) -> Optional[Tensor]:
+        """[N] bool: the Gaussians a reset leaves alone (config.opacity_reset_scope "inside":
+        at least FAR_RESET_FRACTION * far_distance from scene_center), or None when a reset
+        caps every one ("all", or no scene_center / far_distance)."""
+        if self.config.opacity_reset_scope == "all" or self.scene_center is None or self.far_distance is None:
+            return None
+        means = self.params["means"].detach()
+        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
+        return d >= FAR_RESET_FRACTION * self.far_distance
 
     # ---- optimisation ---------------------------------------------------------------------
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:
@@ -958,7 +992,8 @@ class GS3DAdapter:
         if unknown:
             raise ValueError(f"state config has unknown fields {sorted(unknown)}")
         ref = self.params["means"]
-        saved = {"means_lr_rule": "extent", **state["config"]}  # an earlier release moved every mean by 3DGS's rule
+        # an earlier release moved every mean by 3DGS's rule, and reset every opacity
+        saved = {"means_lr_rule": "extent", "opacity_reset_scope": "all", **state["config"]}
         config = dataclasses.replace(self.config, **saved)
         raw = {k: state["params"][k].to(device=ref.device, dtype=ref.dtype) for k in PARAM_NAMES}
         old_config, self.config = self.config, config

@@ -35,6 +35,8 @@ size rule, "coarse-mv4" (4 views per step at 1/4, 2 at 1/2, no budget) and "coar
 "default-cap" (the same and the default at the budget --max-gaussians N). "baseline-r10" and
 "default-r10" are the two with the floor on opacity resets before 2026-11-27 (10 densification
 calls apart in a compressed clock, MVGSConfig.min_densify_per_reset; now 30).
+"baseline-reset-inside" and "default-reset-inside" are the two with opacity resets that leave the
+far background alone (--opacity-reset-scope inside).
 """
 
 from __future__ import annotations
@@ -78,6 +80,10 @@ RUNS = {
     # docs/equal_compute.md, "Opacity resets that leave time to recover")
     "baseline-r10": ["--preset", "baseline", "--threshold-width", "800", "--min-densify-per-reset", "10"],
     "default-r10": ["--preset", "default", "--min-densify-per-reset", "10"],
+    # the baseline and the default with resets that leave the far background alone
+    # (GS3DConfig.opacity_reset_scope "inside"; docs/equal_compute.md, "Resets that spare the far background")
+    "baseline-reset-inside": ["--preset", "baseline", "--threshold-width", "800", "--opacity-reset-scope", "inside"],
+    "default-reset-inside": ["--preset", "default", "--opacity-reset-scope", "inside"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

@@ -52,7 +52,8 @@ def build_adapter(args, scene, config: MVGSConfig) -> GS3DAdapter:
     compressed with the run; also what benchmarks/bench_view_cost.py times)."""
     model = model_config(config, args.seed, rasterize=rasterize_function(args),
                          world_size_rule=args.world_size_rule,
-                         means_lr_rule=args.means_lr_rule)
+                         means_lr_rule=args.means_lr_rule,
+                         opacity_reset_scope=args.opacity_reset_scope)
     return GS3DAdapter.from_scene(scene, model, device=args.device)
 
 

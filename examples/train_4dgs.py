@@ -75,7 +75,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
     canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
                              world_size_rule=args.world_size_rule,
-                             means_lr_rule=args.means_lr_rule)
+                             means_lr_rule=args.means_lr_rule,
+                             opacity_reset_scope=args.opacity_reset_scope)
     return GS4DConfig.for_run(config, args.coarse_fraction, canonical, init_random_points=args.init_random,
                               init_box=box)
 

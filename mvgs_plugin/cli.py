@@ -179,14 +179,15 @@ def check_renders_spare_images(out: Path, scene) -> None:
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
-                 world_size_rule=None, means_lr_rule=None) -> GS3DConfig:
+                 world_size_rule=None, means_lr_rule=None, opacity_reset_scope=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
     growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
-    world_size_rule, means_lr_rule: GS3DConfig's (None: its default)."""
+    world_size_rule, means_lr_rule, opacity_reset_scope: GS3DConfig's (None: its default)."""
     extra = {} if rasterize is None else {"rasterize": rasterize}
-    for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule)):
+    for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule),
+                        ("opacity_reset_scope", opacity_reset_scope)):
         if value is not None:
             extra[name] = value
     return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
@@ -302,7 +303,7 @@ def check_out(out: Path) -> None:
 
 
 def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """--world-size-rule and --means-lr-rule, for the examples whose model is 3DGS's
+    """--world-size-rule, --means-lr-rule and --opacity-reset-scope, for the examples whose model is 3DGS's
     (train_3dgs, train_4dgs; Scaffold-GS prunes anchors by opacity only and places its neural
     Gaussians by offsets from fixed anchors)."""
     ap.add_argument("--world-size-rule", choices=("extent", "distance"), default=None,
@@ -316,6 +317,11 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
                          "scales the part along the line of sight by f^2 (uniform in 1/d); extent is 3DGS's rule, "
                          "the same step everywhere; auto is disparity on a forward-facing rig, extent elsewhere "
                          "(default: GS3DConfig's, auto)")
+    ap.add_argument("--opacity-reset-scope", choices=("all", "inside"), default=None,
+                    help="which opacities a reset caps: inside leaves the far background (3/4 of the initial model's "
+                         "farthest distance from the rig's centre or more: beyond 1.5 rig radii with the background "
+                         "shell) as it is, since most of it is seen by one training view and does not recover before "
+                         "the next reset; all is 3DGS's rule (default: GS3DConfig's, %s)" % GS3DConfig().opacity_reset_scope)
     return ap
 
 
