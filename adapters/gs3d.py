@@ -854,17 +854,17 @@ class GS3DAdapter:
         """Cap every opacity at config.opacity_reset_value (0.01) and zero the opacity group's
         Adam moments, as the original. Like the original, the opacity tensor is replaced, so its
         current gradient is dropped (the other groups keep theirs). With
-        config.opacity_reset_scope "inside", the far background (far_reset_mask) keeps its
+        config.opacity_reset_scope "inside", the far background (_far_reset_mask) keeps its
         opacities."""
         v = self.config.opacity_reset_value
         opacities = self.params["opacities"].detach()
         capped = torch.clamp_max(opacities, math.log(v / (1.0 - v)))
-        spared = self.far_reset_mask()
+        spared = self._far_reset_mask()
         if spared is not None:
-            capped = torch.where(spared.reshape(-1, *[1] * (opacities.ndim - 1)), opacities, capped)
+            capped = torch.where(spared, opacities, capped)
         self._swap_group("opacities", capped, None, zero_moments=True)
 
-    def far_reset_mask(self) -> Optional[Tensor]:
+    def _far_reset_mask(self) -> Optional[Tensor]:
         """[N] bool: the Gaussians a reset leaves alone (config.opacity_reset_scope "inside":
         at least FAR_RESET_FRACTION * far_distance from scene_center), or None when a reset
         caps every one ("all", or no scene_center / far_distance)."""

@@ -130,6 +130,24 @@ def test_auto_is_disparity_on_a_forward_facing_rig_and_extent_around_a_scene():
     assert model("auto").means_step_scale() is None  # a centre but no rig: 3DGS's step
 
 
+def whole_and_resumed(make_adapter, scene, config, cut, path):
+    """The adapters of a whole controller run and of a run resumed from the checkpoint another
+    run wrote after `cut` steps (each run's adapter made by make_adapter())."""
+    def run(steps=None, resume=None):
+        adapter = make_adapter()
+        trainer = MVGS(adapter, scene, config)
+        if resume is not None:
+            trainer.load_checkpoint(resume)
+        trainer.fit(steps, progress=False)
+        return trainer, adapter
+
+    _, whole = run()
+    half, _ = run(steps=cut)
+    half.save_checkpoint(str(path))
+    _, resumed = run(resume=str(path))
+    return whole, resumed
+
+
 def test_a_run_with_far_content_stays_finite_and_resumes_exactly(tmp_path):
     """A short controller run whose points lie far outside the rig's extent (the factor reaches
     ~10): every step finite, and a resume from the middle ends where the whole run ends."""
@@ -137,21 +155,13 @@ def test_a_run_with_far_content_stays_finite_and_resumes_exactly(tmp_path):
     scene.points.xyz.mul_(50.0)  # a shell of radius 30 about a ring of radius 3 (extent 3.3)
     config = MVGSConfig.baseline(seed=0).with_total_steps(60)
 
-    def run(steps=None, resume=None):
+    def make():
         adapter = GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=60, means_lr_rule="disparity"))
         assert float(adapter.means_step_scale().max()) > 5.0
-        trainer = MVGS(adapter, scene, config)
-        if resume is not None:
-            trainer.load_checkpoint(resume)
-        trainer.fit(steps, progress=False)
-        return trainer, adapter
+        return adapter
 
-    whole, a = run()
+    a, b = whole_and_resumed(make, scene, config, 30, tmp_path / "ck.pt")
     assert bool(torch.isfinite(a.params["means"]).all())
-    half, _ = run(steps=30)
-    path = str(tmp_path / "ck.pt")
-    half.save_checkpoint(path)
-    _, b = run(resume=path)
     assert torch.equal(a.params["means"], b.params["means"])
 
 

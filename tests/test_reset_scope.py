@@ -115,8 +115,9 @@ def test_a_training_run_spares_the_far_background_at_every_reset_and_resumes_exa
     the Gaussians at 3/4 of the initial farthest distance or more keep their opacity, the others
     are capped (distances computed here from the means at that moment), and the resumed run ends
     where the whole run ends."""
-    from mvgs_plugin import MVGS, MVGSConfig
+    from mvgs_plugin import MVGSConfig
     from mvgs_plugin.testing import synthetic_scene
+    from test_means_lr_rule import whole_and_resumed  # the whole run, and one cut and resumed
 
     scene = synthetic_scene(n_train=6, n_points=120, size=16, seed=4)
     scene.points.xyz[:40] *= 4.0  # a third of the points far out: a background
@@ -124,11 +125,10 @@ def test_a_training_run_spares_the_far_background_at_every_reset_and_resumes_exa
     config = MVGSConfig.baseline(seed=0, densify_from=1500, densify_every=1500, densify_until=24000,
                                  opacity_reset_every=9000, min_densify_per_reset=1,
                                  grad_threshold_width=None).with_total_steps(100)
-    seen = []
 
-    def run(steps=None, resume=None):
+    def make():
         adapter = GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=100, opacity_reset_scope="inside"))
-        reset = adapter.reset_opacity
+        reset, adapter.seen = adapter.reset_opacity, []
 
         def watched():
             center, far = adapter.scene_center.float(), adapter.far_distance
@@ -137,23 +137,16 @@ def test_a_training_run_spares_the_far_background_at_every_reset_and_resumes_exa
             reset()
             after = adapter.get_opacities().detach()
             outside = torch.linalg.vector_norm(means - center, dim=1) >= FAR_RESET_FRACTION * far
-            seen.append((int(outside.sum()), int((~outside).sum())))
+            adapter.seen.append((int(outside.sum()), int((~outside).sum())))
             assert torch.equal(after[outside], before[outside])
             assert bool((after[~outside] <= RESET * (1 + 1e-5)).all())
         adapter.reset_opacity = watched
-        trainer = MVGS(adapter, scene, config)
-        if resume is not None:
-            trainer.load_checkpoint(resume)
-        trainer.fit(steps, progress=False)
-        return trainer, adapter
+        return adapter
 
-    whole, a = run()
+    a, b = whole_and_resumed(make, scene, config, 45, tmp_path / "ck.pt")
+    seen = a.seen  # the whole run's resets
     assert len(seen) == 2 and all(o > 0 and i > 0 for o, i in seen), seen  # resets at 30 and 60, both sides
     assert a.num_primitives() != 120  # densified
-    half, _ = run(steps=45)
-    path = str(tmp_path / "ck.pt")
-    half.save_checkpoint(path)
-    _, b = run(resume=path)
     assert b.config.opacity_reset_scope == "inside"
     for k in a.params:
         assert torch.equal(a.params[k], b.params[k]), k
