@@ -36,7 +36,8 @@ size rule, "coarse-mv4" (4 views per step at 1/4, 2 at 1/2, no budget) and "coar
 "default-r10" are the two with the floor on opacity resets before 2026-11-27 (10 densification
 calls apart in a compressed clock, MVGSConfig.min_densify_per_reset; now 30).
 "baseline-reset-inside" and "default-reset-inside" are the two with opacity resets that leave the
-far background alone (--opacity-reset-scope inside).
+far background alone (--opacity-reset-scope inside, every kind's default since 2026-11-28);
+"baseline-reset-all" and "default-reset-all" reset every opacity, as 3DGS (the default before).
 """
 
 from __future__ import annotations
@@ -81,9 +82,12 @@ RUNS = {
     "baseline-r10": ["--preset", "baseline", "--threshold-width", "800", "--min-densify-per-reset", "10"],
     "default-r10": ["--preset", "default", "--min-densify-per-reset", "10"],
     # the baseline and the default with resets that leave the far background alone
-    # (GS3DConfig.opacity_reset_scope "inside"; docs/equal_compute.md, "Resets that spare the far background")
+    # (GS3DConfig.opacity_reset_scope "inside", every kind's since 2026-11-28; docs/equal_compute.md,
+    # "Resets that spare the far background"), and with 3DGS's reset of every opacity (before it)
     "baseline-reset-inside": ["--preset", "baseline", "--threshold-width", "800", "--opacity-reset-scope", "inside"],
     "default-reset-inside": ["--preset", "default", "--opacity-reset-scope", "inside"],
+    "baseline-reset-all": ["--preset", "baseline", "--threshold-width", "800", "--opacity-reset-scope", "all"],
+    "default-reset-all": ["--preset", "default", "--opacity-reset-scope", "all"],
     "multiview": ["--preset", "multiview"],
     "multiview-rules-off": ["--preset", "multiview", "--no-mvad", "--no-crd"],
     # multiview with Grendel-GS's batch rule for the optimizer; with the sparse-view guard

@@ -321,7 +321,7 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
                     help="which opacities a reset caps: inside leaves the far background (3/4 of the initial model's "
                          "farthest distance from the rig's centre or more: beyond 1.5 rig radii with the background "
                          "shell) as it is, since most of it is seen by one training view and does not recover before "
-                         "the next reset; all is 3DGS's rule (default: GS3DConfig's, all)")
+                         "the next reset; all is 3DGS's rule (default: GS3DConfig's, inside)")
     return ap
 
 

@@ -142,9 +142,10 @@ def test_the_spelled_out_plans_are_the_defaults_now_and_before(tmp_path):
     assert stages("default") == now and MVGSConfig.default().with_budget(3000).stages[0].factor == 2
 
 
-def test_the_reset_inside_kinds_reach_the_model_and_keep_their_presets():
-    """baseline-reset-inside / default-reset-inside: the examples' parser gives the model
-    opacity_reset_scope "inside", and each stays its preset."""
+def test_the_reset_scope_kinds_reach_the_model_and_keep_their_presets():
+    """baseline-reset-inside / default-reset-inside (and the plain kinds, since "inside" is the
+    default) give the model opacity_reset_scope "inside", the -reset-all kinds 3DGS's "all";
+    each stays its preset."""
     import importlib.util
 
     from mvgs_plugin import cli
@@ -153,10 +154,11 @@ def test_the_reset_inside_kinds_reach_the_model_and_keep_their_presets():
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
     for kind, preset in (("baseline-reset-inside", "baseline"), ("default-reset-inside", "default"),
-                         ("baseline", "baseline")):
+                         ("baseline", "baseline"), ("default", "default"),
+                         ("baseline-reset-all", "baseline"), ("default-reset-all", "default")):
         args = example.parse_args(bench.run_argv(kind, 3000, 4, 0, 1))
         config = cli.config_from_args(args)
         model = cli.model_config(config, 0, opacity_reset_scope=args.opacity_reset_scope)
         assert config.preset == preset
-        assert model.opacity_reset_scope == ("all" if kind == "baseline" else "inside")
+        assert model.opacity_reset_scope == ("all" if kind.endswith("-all") else "inside")
         assert (len(config.stages) == 1) == (preset == "baseline")  # the default keeps its pyramid

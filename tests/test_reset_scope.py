@@ -101,7 +101,8 @@ def test_the_flag_reaches_the_model(capsys):
 
     ap = world_size_arg(common_args(argparse.ArgumentParser(), out="out"))
     cfg = MVGSConfig.baseline().with_total_steps(100)
-    assert model_config(cfg, 0, opacity_reset_scope=ap.parse_args([]).opacity_reset_scope).opacity_reset_scope == "all"
+    default = model_config(cfg, 0, opacity_reset_scope=ap.parse_args([]).opacity_reset_scope)
+    assert default.opacity_reset_scope == "inside" == GS3DConfig().opacity_reset_scope
     for scope in ("all", "inside"):
         args = ap.parse_args(["--opacity-reset-scope", scope])
         assert model_config(cfg, 0, opacity_reset_scope=args.opacity_reset_scope).opacity_reset_scope == scope
