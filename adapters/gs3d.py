@@ -287,7 +287,8 @@ class GS3DAdapter:
             raise ValueError(f"config must be a GS3DConfig, got {type(self.config).__name__}")
         self.scene_extent = check_float("scene_extent", scene_extent, positive=True)
         self.scene_center = _check_center(scene_center)
-        # the initial model's farthest mean from the centre: the step rules' factor stops growing there
+        # the initial model's farthest mean from the centre: the step rules' factor stops growing there,
+        # and 3/4 of it is where opacity_reset_scope "inside"'s far background begins
         self.far_distance: Optional[float] = None
         if self.scene_center is not None and means.shape[0]:
             far = torch.linalg.vector_norm(means.detach().double().cpu() - self.scene_center, dim=1).max()
@@ -853,11 +854,11 @@ class GS3DAdapter:
         self.params[name] = swap_param(self.optimizer, name, value, src, zero_moments)
 
     def reset_opacity(self) -> None:
-        """Cap every opacity at config.opacity_reset_value (0.01) and zero the opacity group's
+        """Cap the opacities at config.opacity_reset_value (0.01) and zero the opacity group's
         Adam moments, as the original. Like the original, the opacity tensor is replaced, so its
         current gradient is dropped (the other groups keep theirs). With
-        config.opacity_reset_scope "inside", the far background (_far_reset_mask) keeps its
-        opacities."""
+        config.opacity_reset_scope "inside" (the default) the far background (_far_reset_mask)
+        keeps its opacities; "all" caps every one, as the original."""
         v = self.config.opacity_reset_value
         opacities = self.params["opacities"].detach()
         capped = torch.clamp_max(opacities, math.log(v / (1.0 - v)))
