@@ -44,6 +44,7 @@ __all__ = [
     "metrics_record", "model_config", "write_json", "int_at_least", "float_above", "scene_folder",
     "parse_stages", "checkpoint_file", "out_folder", "check_device", "check_out", "rasterize_function",
     "save_test_renders", "load_scene", "scene_from_args", "MAX_STEPS", "MAX_INIT_POINTS",
+    "background_colour", "scene_background",
 ]
 
 # The bundled scene ships with the repository (examples/scenes/tabletop), not inside the package:
@@ -136,7 +137,7 @@ def scene_from_args(args, dynamic_model: bool = False):
     cache = args.init_cache if args.init_cache is not None else Path(args.out) / "init"
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
-                           background_points=args.background_points, background=getattr(args, "background", "auto"),
+                           background_points=args.background_points, background=scene_background(args),
                            images=getattr(args, "images", None))
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
         if args.init_cache is not None and str(args.init_cache) in str(err):
@@ -230,8 +231,8 @@ def float_above(low: float, inclusive: bool = False, high: float = math.inf) -> 
 
 
 def background_colour(text: str):
-    """An argparse type for --background: "auto", "black", "white" or "R,G,B" (floats in [0, 1])."""
-    named = {"auto": "auto", "black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+    """An argparse type for --background: "auto", "black", "white", "random" or "R,G,B" (floats in [0, 1])."""
+    named = {"auto": "auto", "random": "random", "black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
     if text.strip().lower() in named:
         return named[text.strip().lower()]
     parts = text.split(",")
@@ -240,9 +241,17 @@ def background_colour(text: str):
     except ValueError:
         rgb = ()
     if len(rgb) != 3 or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in rgb):
-        raise argparse.ArgumentTypeError(f"expected auto, black, white or R,G,B with each in [0, 1] "
+        raise argparse.ArgumentTypeError(f"expected auto, black, white, random or R,G,B with each in [0, 1] "
                                          f"(e.g. 0.5,0.5,0.5), got {text!r}")
     return rgb
+
+
+def scene_background(args):
+    """The colour --background asks the scene's RGBA images to be composited on: "random" trains
+    in front of a new colour every view and step (MVGSConfig.background) and composites on the
+    scene's own, as "auto" does."""
+    bg = getattr(args, "background", "auto")
+    return "auto" if bg == "random" else bg
 
 
 def check_device(args) -> None:
@@ -378,11 +387,14 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="N more initial points on a sphere twice the rig's radius for the far background (sky, "
                          "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
                          "(3DGS's init). A forward-facing rig gets none")
-    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|R,G,B",
+    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|random|R,G,B",
                     help="the colour behind the Gaussians, and the one RGBA images are composited on. auto: a "
                          "NeRF-style scene's RGBA images on white; images without alpha on the colour their borders "
                          "show when it is one colour (they were composited on it), else white; a COLMAP scene black "
-                         "(alpha dropped). Default: auto")
+                         "(alpha dropped). random (3DGS's --random_background): the renders of a training step in "
+                         "front of a new colour every view and step, so what the model leaves transparent is penalised "
+                         "instead of showing a fixed colour that matches; the images and the test renders keep "
+                         "auto's. Default: auto")
     ap.add_argument("--images", type=str, default=None, metavar="DIR",
                     help="a COLMAP scene's image folder, relative to --data: a copy downscaled by one factor, such "
                          "as Mip-NeRF 360's images_4, scales the cameras to it (default: --data/images when there is "
@@ -756,8 +768,10 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "init": getattr(trainer.scene, "points_origin", None),
         "masks": _masks_said(trainer.scene),
         "background": {"colour": list(trainer.schedule.background_value()),
-                       "origin": ("--background" if getattr(args, "background", "auto") != "auto"
-                                  else getattr(trainer.scene, "background_origin", None))},
+                       "origin": ("--background" if getattr(args, "background", "auto") not in ("auto", "random")
+                                  else getattr(trainer.scene, "background_origin", None)),
+                       **({"training": "random: a new colour every view and step (--background random)"}
+                          if getattr(args, "background", "auto") == "random" else {})},
         **extra,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "preset": args.preset,

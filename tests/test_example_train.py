@@ -9,6 +9,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
+import torch
 from plyfile import PlyData
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_3dgs.py"
@@ -77,6 +78,70 @@ def test_a_nerfstudio_folder_composited_on_black_trains_in_front_of_black(tmp_pa
         assert render.size != (48, 36) and abs(render.size[0] - 48) <= 4
     assert told["background"] == {"colour": [0.2, 0.4, 0.6], "origin": "--background"}
     assert told["config"]["background"] == [0.2, 0.4, 0.6]
+
+
+def _spy_backgrounds(monkeypatch):
+    """Every ViewSchedule._backgrounds call recorded as (config.background, the colours drawn)."""
+    from mvgs_plugin.schedule import ViewSchedule
+
+    seen, draw = [], ViewSchedule._backgrounds
+
+    def spy(self, n):
+        out = draw(self, n)
+        seen.append((self.config.background, out.clone()))
+        return out
+
+    monkeypatch.setattr(ViewSchedule, "_backgrounds", spy)
+    return seen
+
+
+def test_random_background_draws_a_colour_per_training_view_and_evaluates_on_the_scenes(tmp_path, capsys,
+                                                                                         monkeypatch):
+    """--background random (3DGS's --random_background): the training views of a step are drawn
+    in front of colours drawn for them, every one different; the images are composited as auto
+    composites them (black, found in the borders) and the metrics and test renders use that colour."""
+    import warnings
+
+    from test_data_transforms import _frames, _object_on, _write
+
+    frames, _ = _frames(9, tmp_path / "scene", paint=_object_on((0, 0, 0)))
+    _write(tmp_path / "scene", frames)
+    seen = _spy_backgrounds(monkeypatch)
+    example = load_example()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the random init's
+        saved = example.main(["--data", str(tmp_path / "scene"), "--preset", "baseline", "--steps", "6", "--views", "2",
+                              "--init", "random", "--background", "random", "--out", str(tmp_path / "o"),
+                              "--no-progress"])
+    assert "borders are one colour, (0.000, 0.000, 0.000)" in capsys.readouterr().err  # auto's rule found black
+    colours = torch.cat([c for bg, c in seen])
+    assert {bg for bg, _ in seen} == {"random"} and len(colours) == 6 * 2
+    assert len({tuple(c.tolist()) for c in colours}) == len(colours)  # a new colour for every view of every step
+    assert ((colours >= 0) & (colours <= 1)).all() and colours.std(0).min() > 0.1
+    assert saved["background"]["colour"] == [0.0, 0.0, 0.0] and "borders" in saved["background"]["origin"]
+    assert saved["background"]["training"].startswith("random") and saved["config"]["background"] == "random"
+
+
+@pytest.mark.filterwarnings("ignore:this run densifies at no step")  # 3 steps: it is the background's test
+def test_graphdeco_loop_passes_random_background_to_its_schedule(monkeypatch, capsys):
+    """The graphdeco-shaped loop's --background random reaches its ViewSchedule (colours drawn per
+    view), while its scene is loaded with auto's colour (the forward scene's: black)."""
+    import runpy
+
+    from mvgs_plugin.data import load_scene
+
+    loaded = []
+    monkeypatch.setattr("mvgs_plugin.data.load_scene", lambda *a, **k: loaded.append(k) or load_scene(*a, **k))
+    seen = _spy_backgrounds(monkeypatch)
+    script = Path(__file__).resolve().parents[1] / "examples" / "graphdeco_loop" / "train_mvgs.py"
+    data = Path(__file__).resolve().parent / "data" / "forward64"
+    monkeypatch.setattr(sys, "argv", [str(script), "--data", str(data), "--steps", "3", "--background", "random"])
+    monkeypatch.syspath_prepend(str(script.parent))
+    runpy.run_path(str(script), run_name="__main__")
+    assert "PSNR" in capsys.readouterr().out
+    assert [k["background"] for k in loaded] == ["auto"]
+    colours = torch.cat([c for bg, c in seen])
+    assert {bg for bg, _ in seen} == {"random"} and len({tuple(c.tolist()) for c in colours}) == len(colours) >= 3
 
 
 def test_bad_data_folder_is_named(tmp_path):

@@ -36,7 +36,8 @@ from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-from mvgs_plugin.cli import BUNDLED, MAX_STEPS, HelpFormatter, background_colour, int_at_least, scene_folder  # noqa: E402
+from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, HelpFormatter, background_colour, int_at_least,  # noqa: E402
+                             scene_background, scene_folder)
 
 
 def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
@@ -151,14 +152,16 @@ if __name__ == "__main__":
     ap.add_argument("--images", type=str, default=None, metavar="DIR",
                     help="3DGS's -i: a COLMAP scene's image folder, relative to --data; a downscaled copy (images_4) "
                          "scales the cameras to it (default: images/, else --data)")
-    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|R,G,B",
+    ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|random|R,G,B",
                     help="3DGS's -w is white: the colour behind the Gaussians and the one RGBA images are composited "
-                         "on (default: auto, the scene's: see docs/data.md)")
+                         "on (default: auto, the scene's: see docs/data.md); random is 3DGS's --random_background "
+                         "(a new colour behind every training view, images composited as with auto)")
     args = ap.parse_args()
     try:  # a scene without points gets them (triangulated, else drawn where the cameras look)
-        scene = load_scene(args.data, images=args.images, background=args.background)
+        scene = load_scene(args.data, images=args.images, background=scene_background(args))
     except (ValueError, OSError) as err:
         ap.error(f"--data {args.data}: {err}")
-    model, log = training(scene, args.steps, args.preset, views=args.views)
+    random_bg = {"background": "random"} if args.background == "random" else {}  # MVGS: ViewSchedule draws them
+    model, log = training(scene, args.steps, args.preset, views=args.views, **random_bg)
     print(f"PSNR {evaluate(model, scene):.2f} dB, {model.get_xyz.shape[0]} Gaussians, densified at "
           f"{len(log['densify'])} steps, opacity resets at {log['reset']}, {log['from_boxes']} cloned from boxes")
