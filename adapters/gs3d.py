@@ -74,6 +74,8 @@ MAX_MEAN_EXTENTS = 1e4
 # background shell at twice the rig's radius, that is beyond 1.5 rig radii: the far background
 FAR_RESET_FRACTION = 0.75
 OPACITY_RESET_SCOPES = ("all", "inside")
+# GS3DConfig.budget_growth_order: how growth candidates are ordered when a Gaussian budget binds
+BUDGET_GROWTH_ORDERS = ("auto", "inside-first", "score")
 # GS3DConfig.means_lr_rule: how a mean's Adam step scales with its distance from the scene centre
 MEANS_LR_RULES = ("auto", "extent", "distance", "disparity")
 
@@ -145,6 +147,19 @@ class GS3DConfig:
             2026-11-28: with it the baseline no longer falls from 2k to 3k to 10k steps on any
             generated scene. Measured in docs/equal_compute.md ("Resets that spare the far
             background", and "... made the default").
+        budget_growth_order: the order in which growth candidates take the room a Gaussian
+            budget leaves (config.max_gaussians or DensifyContext.max_primitives, when the
+            candidates outnumber it). "score": by densify_scores(ctx.rank_by) alone.
+            "inside-first": every candidate nearer the scene centre than the far line
+            (FAR_RESET_FRACTION of far_distance, opacity_reset_scope's line) before any beyond
+            it, each group by score; without a scene_center it is "score". Under a quarter of
+            the baseline's count on a 360-degree rig, "score" gave half the budget to the far
+            background (10-30 % of a view's pixels): its many evenly seen, textured Gaussians
+            outscore the object's detail. "auto" (default): from_scene resolves it to
+            "inside-first" on a rig that surrounds the scene and to "score" on a forward-facing
+            one (is_forward_facing), where the far part is the scene's own back wall, seen in
+            every view; an adapter built without from_scene keeps "auto", which orders by score.
+            Measured in docs/equal_compute.md ("A budget that grows the object first").
         max_gaussians: cap on the number of Gaussians growth may reach (None = no cap).
     Rendering:
         rasterize: a function with gsplat's ``rasterization`` call shape.
@@ -176,6 +191,7 @@ class GS3DConfig:
     max_screen_size: Optional[float] = None
     opacity_reset_value: float = 0.01
     opacity_reset_scope: str = "inside"
+    budget_growth_order: str = "auto"
     max_gaussians: Optional[int] = None
     rasterize: Callable[..., Any] = rasterization
     rasterize_kwargs: Dict[str, Any] = field(default_factory=dict)
@@ -205,6 +221,9 @@ class GS3DConfig:
         if self.opacity_reset_scope not in OPACITY_RESET_SCOPES:
             raise ValueError(f"opacity_reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, "
                              f"got {self.opacity_reset_scope!r}")
+        if self.budget_growth_order not in BUDGET_GROWTH_ORDERS:
+            raise ValueError(f"budget_growth_order must be one of {', '.join(map(repr, BUDGET_GROWTH_ORDERS))}, "
+                             f"got {self.budget_growth_order!r}")
         if self.means_lr_rule not in MEANS_LR_RULES:
             raise ValueError(f"means_lr_rule must be one of {', '.join(map(repr, MEANS_LR_RULES))}, "
                              f"got {self.means_lr_rule!r}")
@@ -406,7 +425,8 @@ class GS3DAdapter:
         """Initialise from ``scene.points`` (or ``points``, a PointCloud given in their place) as
         the original 3DGS, or randomly without points.
 
-        config.means_lr_rule "auto" is resolved here for the scene's rig (see GS3DConfig).
+        config.means_lr_rule and config.budget_growth_order "auto" are resolved here for the
+        scene's rig (see GS3DConfig).
         SH DC from the point colours, higher bands 0; isotropic scales sqrt(mean squared distance
         to the 3 nearest other points), floored at 1e-7 before the square root; identity
         rotations; opacity config.init_opacity. Without points: config.random_init points where the
@@ -414,9 +434,12 @@ class GS3DAdapter:
         generator seeded with config.seed).
         """
         config = GS3DConfig() if config is None else config
-        if config.means_lr_rule == "auto":  # the rig decides (GS3DConfig.means_lr_rule); no centre, no rule
+        if "auto" in (config.means_lr_rule, config.budget_growth_order):  # the rig decides (GS3DConfig)
             forward = getattr(scene, "center", None) is not None and is_forward_facing(scene.train_cameras)
-            config = dataclasses.replace(config, means_lr_rule="disparity" if forward else "extent")
+            if config.means_lr_rule == "auto":  # no centre, no rule
+                config = dataclasses.replace(config, means_lr_rule="disparity" if forward else "extent")
+            if config.budget_growth_order == "auto":
+                config = dataclasses.replace(config, budget_growth_order="score" if forward else "inside-first")
         points = getattr(scene, "points", None) if points is None else points
         if points is None or len(points) == 0:
             xyz, rgb = cls._random_points(scene, config)
@@ -674,8 +697,9 @@ class GS3DAdapter:
         nothing grows); otherwise, when the candidates' growth exceeds the room left, up to
         floor(ctx.swap_share x cap) of the lowest keep_scores() among the other rows are removed
         to make more room (the swap: _swap_out), and the candidates of 1-3 are ranked by
-        densify_scores(ctx.rank_by) together and the best whose growth fits the room are kept
-        (each adds 1, a split adds samples - 1).
+        densify_scores(ctx.rank_by) together (with config.budget_growth_order "inside-first",
+        those inside the far line before those beyond it) and the best whose growth fits the
+        room are kept (each adds 1, a split adds samples - 1).
         New rows start with zero statistics, a zero radius and zero Adam moments; surviving rows
         keep theirs. As in the original, the parameters are new tensors without gradients, so an
         optimizer step right after densify leaves them unchanged for that step. The statistics
@@ -721,7 +745,8 @@ class GS3DAdapter:
             if excess <= 0:  # a model that had to shrink to the cap swaps nothing
                 swapped = self._swap_out(box_sel, clone_sel, split_sel, gone, room, cap, ctx.swap_share)
                 shed, gone, room = shed | swapped, gone | swapped, room + int(swapped.sum())
-            box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room)
+            box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room,
+                                                                          self._growth_tier())
 
         new_rows = self._new_rows(box_sel, clone_sel, split_sel)
         n_new = new_rows["means"].shape[0]
@@ -782,10 +807,21 @@ class GS3DAdapter:
         out[order] = True
         return out
 
-    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int):
-        """Rank all growth candidates by `score` (largest first, ties in row order) and keep the
-        longest prefix whose net growth fits `room` (a box clone or clone adds 1, a split adds
-        split_samples - 1). Returns the three masks and how many candidates fell."""
+    def _growth_tier(self) -> Optional[Tensor]:
+        """[N] bool: the rows that grow only after every other candidate under a binding budget
+        (config.budget_growth_order "inside-first": those at FAR_RESET_FRACTION * far_distance
+        or more from scene_center), or None (order by score alone)."""
+        if self.config.budget_growth_order != "inside-first" or self.scene_center is None or self.far_distance is None:
+            return None
+        means = self.params["means"].detach()
+        return torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1) >= FAR_RESET_FRACTION * self.far_distance
+
+    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int,
+                    last: Optional[Tensor] = None):
+        """Rank all growth candidates by `score` (largest first, ties in row order), those in
+        `last` (an [N] bool, or None) after all others, and keep the longest prefix whose net
+        growth fits `room` (a box clone or clone adds 1, a split adds split_samples - 1).
+        Returns the three masks and how many candidates fell."""
         masks = [box_sel, clone_sel, split_sel]
         costs = [1, 1, self.config.split_samples - 1]
         idx = [m.nonzero().squeeze(1) for m in masks]
@@ -793,6 +829,8 @@ class GS3DAdapter:
         cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=score.device)
                           for i, c in zip(idx, costs)])
         order = torch.sort(ranked, descending=True, stable=True).indices
+        if last is not None:  # a stable sort by tier keeps the score order within each
+            order = order[torch.sort(torch.cat([last[i] for i in idx])[order].to(torch.uint8), stable=True).indices]
         fits = torch.zeros_like(ranked, dtype=torch.bool)
         fits[order] = torch.cumsum(cost[order], 0) <= room
         out, start = [], 0
@@ -995,8 +1033,8 @@ class GS3DAdapter:
         if unknown:
             raise ValueError(f"state config has unknown fields {sorted(unknown)}")
         ref = self.params["means"]
-        # an earlier release moved every mean by 3DGS's rule, and reset every opacity
-        saved = {"means_lr_rule": "extent", "opacity_reset_scope": "all", **state["config"]}
+        # an earlier release moved every mean by 3DGS's rule, reset every opacity and grew by score
+        saved = {"means_lr_rule": "extent", "opacity_reset_scope": "all", "budget_growth_order": "score", **state["config"]}
         config = dataclasses.replace(self.config, **saved)
         raw = {k: state["params"][k].to(device=ref.device, dtype=ref.dtype) for k in PARAM_NAMES}
         old_config, self.config = self.config, config

@@ -38,6 +38,9 @@ calls apart in a compressed clock, MVGSConfig.min_densify_per_reset; now 30).
 "baseline-reset-inside" and "default-reset-inside" are the two with opacity resets that leave the
 far background alone (--opacity-reset-scope inside, every kind's default since 2026-11-28);
 "baseline-reset-all" and "default-reset-all" reset every opacity, as 3DGS (the default before).
+"baseline-cap" and "baseline-score-cap" are the baseline at --max-gaussians N, its growth ordered
+as GS3DConfig.budget_growth_order "auto" orders it (inside the far line first, on a rig round the
+scene; the default since 2026-11-28) and by score alone (before).
 """
 
 from __future__ import annotations
@@ -123,6 +126,11 @@ RUNS = {
     "coarse-mv4": ["--preset", "default", *COARSE_MV4],
     "coarse-mv4-cap": ["--preset", "default", *COARSE_MV4],
     "default-cap": ["--preset", "default"],
+    # the baseline at the budget --max-gaussians N: growth under it orders candidates as
+    # GS3DConfig.budget_growth_order "auto" does (the object before the far background on a rig
+    # round the scene, since 2026-11-28), and by score alone (the order before)
+    "baseline-cap": ["--preset", "baseline", "--threshold-width", "800"],
+    "baseline-score-cap": ["--preset", "baseline", "--threshold-width", "800", "--budget-growth-order", "score"],
 }
 CAPPED = tuple(k for k in RUNS if k.endswith("-cap"))  # the kinds that take --max-gaussians
 

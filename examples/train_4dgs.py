@@ -76,7 +76,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
                              world_size_rule=args.world_size_rule,
                              means_lr_rule=args.means_lr_rule,
-                             opacity_reset_scope=args.opacity_reset_scope)
+                             opacity_reset_scope=args.opacity_reset_scope,
+                             budget_growth_order=args.budget_growth_order)
     return GS4DConfig.for_run(config, args.coarse_fraction, canonical, init_random_points=args.init_random,
                               init_box=box)
 

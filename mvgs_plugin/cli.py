@@ -180,15 +180,17 @@ def check_renders_spare_images(out: Path, scene) -> None:
 
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
-                 world_size_rule=None, means_lr_rule=None, opacity_reset_scope=None) -> GS3DConfig:
+                 world_size_rule=None, means_lr_rule=None, opacity_reset_scope=None,
+                 budget_growth_order=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
     growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
-    world_size_rule, means_lr_rule, opacity_reset_scope: GS3DConfig's (None: its default)."""
+    world_size_rule, means_lr_rule, opacity_reset_scope, budget_growth_order: GS3DConfig's (None:
+    its default)."""
     extra = {} if rasterize is None else {"rasterize": rasterize}
     for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule),
-                        ("opacity_reset_scope", opacity_reset_scope)):
+                        ("opacity_reset_scope", opacity_reset_scope), ("budget_growth_order", budget_growth_order)):
         if value is not None:
             extra[name] = value
     return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
@@ -312,7 +314,7 @@ def check_out(out: Path) -> None:
 
 
 def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """--world-size-rule, --means-lr-rule and --opacity-reset-scope, for the examples whose model is 3DGS's
+    """--world-size-rule, --means-lr-rule, --opacity-reset-scope and --budget-growth-order, for the examples whose model is 3DGS's
     (train_3dgs, train_4dgs; Scaffold-GS prunes anchors by opacity only and places its neural
     Gaussians by offsets from fixed anchors)."""
     ap.add_argument("--world-size-rule", choices=("extent", "distance"), default=None,
@@ -331,6 +333,12 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
                          "farthest distance from the rig's centre or more: beyond 1.5 rig radii with the background "
                          "shell) as it is, since most of it is seen by one training view and does not recover before "
                          "the next reset; all is 3DGS's rule (default: GS3DConfig's, inside)")
+    ap.add_argument("--budget-growth-order", choices=("auto", "inside-first", "score"), default=None,
+                    help="under a Gaussian budget (--max-gaussians, --pixels-per-gaussian), which candidates grow "
+                         "first: inside-first grows every one inside the line --opacity-reset-scope uses before any "
+                         "of the far background beyond it, each group by score; score ranks them all by score "
+                         "(--densify-rank); auto is inside-first on a rig that surrounds the scene, score on a "
+                         "forward-facing one (default: GS3DConfig's, auto)")
     return ap
 
 

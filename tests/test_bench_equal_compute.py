@@ -162,3 +162,26 @@ def test_the_reset_scope_kinds_reach_the_model_and_keep_their_presets():
         assert config.preset == preset
         assert model.opacity_reset_scope == ("all" if kind.endswith("-all") else "inside")
         assert (len(config.stages) == 1) == (preset == "baseline")  # the default keeps its pyramid
+
+
+def test_the_baseline_cap_kinds_order_growth_as_named():
+    """baseline-cap runs the baseline at --max-gaussians N with GS3DConfig's growth order ("auto":
+    the object first on a rig round the scene), baseline-score-cap by score alone; both need N."""
+    import importlib.util
+
+    from mvgs_plugin import cli
+    from mvgs_plugin.adapters.gs3d import GS3DAdapter
+    from mvgs_plugin.testing import synthetic_scene
+
+    spec = importlib.util.spec_from_file_location("train_3dgs_bench_cap", ROOT / "examples" / "train_3dgs.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    around = synthetic_scene(n_train=8, n_test=2, size=16, n_points=80)
+    for kind, order in (("baseline-cap", "inside-first"), ("baseline-score-cap", "score")):
+        args = example.parse_args(bench.run_argv(kind, 3000, 4, 0, 1, max_gaussians=777))
+        config = cli.config_from_args(args)
+        assert config.preset == "baseline" and config.max_gaussians == 777 and len(config.stages) == 1
+        model = cli.model_config(config, 0, budget_growth_order=args.budget_growth_order)
+        assert GS3DAdapter.from_scene(around, model).config.budget_growth_order == order
+        with pytest.raises(ValueError, match="needs --max-gaussians"):
+            bench.run_argv(kind, 3000, 4, 0, 1)
