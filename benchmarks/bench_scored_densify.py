@@ -14,8 +14,9 @@ SH degree 3. Per N, medians over --repeats of:
              3DGS three-statistic update written out here);
   densify    one densification call after 20 views were folded in, with a threshold that makes
              the top tenth of the visible Gaussians candidates: uncapped (3DGS's rule), and
-             with a cap that binds (growth ranked by the consistency score into the room left),
-             with the same cap and a swap of 2 % of it (MVGSConfig.budget_swap: the lowest keep
+             with a cap that binds (growth ranked by the consistency score into the room left,
+             inside the far line first: GS3DConfig.budget_growth_order on this 360-degree rig;
+             and by score alone), with the same cap and a swap of 2 % of it (MVGSConfig.budget_swap: the lowest keep
              scores make way for more candidates), and with a cap below the count (the lowest
              keep scores are cut);
   optimizer  the adapter's optimizer step (Adam on every group) with GS3DConfig.means_lr_rule
@@ -111,9 +112,9 @@ def measure(n: int, repeats: int) -> dict:
     beta = float(torch.quantile(adapter.mean_grads()[seen].double(), 0.9))
     base = dict(step=500, grad_threshold=beta, scene_extent=float(scene.extent))
 
-    def densify(**kw):
+    def densify(state=saved, **kw):
         def run():
-            adapter.load_state_dict(saved)
+            adapter.load_state_dict(state)
             with torch.no_grad():
                 adapter.densify(DensifyContext(**base, **kw))
         return run
@@ -127,6 +128,12 @@ def measure(n: int, repeats: int) -> dict:
     rows["densify, no cap"] = timed(densify(), repeats) - load
     rows[f"densify, cap binds ({max(1, free_growth // 2)} of {free_growth} new)"] = timed(
         densify(max_primitives=n + max(1, free_growth // 2)), repeats) - load
+    # the tabletop's rig surrounds it: growth under the cap is inside-first (budget_growth_order "auto");
+    # the same call ordered by score alone, the order before 2026-11-28
+    by_score = copy.deepcopy(saved)
+    by_score["config"]["budget_growth_order"] = "score"
+    rows[f"densify, cap binds, by score alone ({max(1, free_growth // 2)} of {free_growth} new)"] = timed(
+        densify(by_score, max_primitives=n + max(1, free_growth // 2)), repeats) - load
     rows[f"densify, cap binds, swap 2 % ({max(1, free_growth // 2) + n // 50} new)"] = timed(
         densify(max_primitives=n + max(1, free_growth // 2), swap_share=0.02), repeats) - load
     rows[f"densify, cut to {n // 2}"] = timed(densify(max_primitives=n // 2), repeats) - load
