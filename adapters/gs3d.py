@@ -811,10 +811,7 @@ class GS3DAdapter:
         """[N] bool: the rows that grow only after every other candidate under a binding budget
         (config.budget_growth_order "inside-first": those at FAR_RESET_FRACTION * far_distance
         or more from scene_center), or None (order by score alone)."""
-        if self.config.budget_growth_order != "inside-first" or self.scene_center is None or self.far_distance is None:
-            return None
-        means = self.params["means"].detach()
-        return torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1) >= FAR_RESET_FRACTION * self.far_distance
+        return self._beyond_far_line() if self.config.budget_growth_order == "inside-first" else None
 
     def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int,
                     last: Optional[Tensor] = None):
@@ -909,11 +906,15 @@ class GS3DAdapter:
         """[N] bool: the Gaussians a reset leaves alone (config.opacity_reset_scope "inside":
         at least FAR_RESET_FRACTION * far_distance from scene_center), or None when a reset
         caps every one ("all", or no scene_center / far_distance)."""
-        if self.config.opacity_reset_scope == "all" or self.scene_center is None or self.far_distance is None:
+        return None if self.config.opacity_reset_scope == "all" else self._beyond_far_line()
+
+    def _beyond_far_line(self) -> Optional[Tensor]:
+        """[N] bool: the Gaussians at least FAR_RESET_FRACTION * far_distance from scene_center
+        (the far background of a rig round the scene), or None without a centre or an initial model."""
+        if self.scene_center is None or self.far_distance is None:
             return None
         means = self.params["means"].detach()
-        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
-        return d >= FAR_RESET_FRACTION * self.far_distance
+        return torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1) >= FAR_RESET_FRACTION * self.far_distance
 
     # ---- optimisation ---------------------------------------------------------------------
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:
