@@ -745,8 +745,7 @@ class GS3DAdapter:
             if excess <= 0:  # a model that had to shrink to the cap swaps nothing
                 swapped = self._swap_out(box_sel, clone_sel, split_sel, gone, room, cap, ctx.swap_share)
                 shed, gone, room = shed | swapped, gone | swapped, room + int(swapped.sum())
-            box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room,
-                                                                          self._growth_tier())
+            box_sel, clone_sel, split_sel, dropped_cap = self._cap_growth(box_sel, clone_sel, split_sel, score, room)
 
         new_rows = self._new_rows(box_sel, clone_sel, split_sel)
         n_new = new_rows["means"].shape[0]
@@ -807,18 +806,11 @@ class GS3DAdapter:
         out[order] = True
         return out
 
-    def _growth_tier(self) -> Optional[Tensor]:
-        """[N] bool: the rows that grow only after every other candidate under a binding budget
-        (config.budget_growth_order "inside-first": those at FAR_RESET_FRACTION * far_distance
-        or more from scene_center), or None (order by score alone)."""
-        return self._beyond_far_line() if self.config.budget_growth_order == "inside-first" else None
-
-    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int,
-                    last: Optional[Tensor] = None):
-        """Rank all growth candidates by `score` (largest first, ties in row order), those in
-        `last` (an [N] bool, or None) after all others, and keep the longest prefix whose net
-        growth fits `room` (a box clone or clone adds 1, a split adds split_samples - 1).
-        Returns the three masks and how many candidates fell."""
+    def _cap_growth(self, box_sel: Tensor, clone_sel: Tensor, split_sel: Tensor, score: Tensor, room: int):
+        """Rank all growth candidates by `score` (largest first, ties in row order; with
+        config.budget_growth_order "inside-first", those beyond the far line after all others)
+        and keep the longest prefix whose net growth fits `room` (a box clone or clone adds 1, a
+        split adds split_samples - 1). Returns the three masks and how many candidates fell."""
         masks = [box_sel, clone_sel, split_sel]
         costs = [1, 1, self.config.split_samples - 1]
         idx = [m.nonzero().squeeze(1) for m in masks]
@@ -826,8 +818,11 @@ class GS3DAdapter:
         cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=score.device)
                           for i, c in zip(idx, costs)])
         order = torch.sort(ranked, descending=True, stable=True).indices
-        if last is not None:  # a stable sort by tier keeps the score order within each
-            order = order[torch.sort(torch.cat([last[i] for i in idx])[order].to(torch.uint8), stable=True).indices]
+        # the order matters only when some candidates must fall: only then, and only for them, the far line
+        far = (self._beyond_far_line(torch.cat(idx)) if self.config.budget_growth_order == "inside-first"
+               and int(cost.sum()) > room else None)
+        if far is not None:  # a stable sort by tier keeps the score order within each
+            order = order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
         fits = torch.zeros_like(ranked, dtype=torch.bool)
         fits[order] = torch.cumsum(cost[order], 0) <= room
         out, start = [], 0
@@ -908,13 +903,16 @@ class GS3DAdapter:
         caps every one ("all", or no scene_center / far_distance)."""
         return None if self.config.opacity_reset_scope == "all" else self._beyond_far_line()
 
-    def _beyond_far_line(self) -> Optional[Tensor]:
-        """[N] bool: the Gaussians at least FAR_RESET_FRACTION * far_distance from scene_center
-        (the far background of a rig round the scene), or None without a centre or an initial model."""
+    def _beyond_far_line(self, rows: Optional[Tensor] = None) -> Optional[Tensor]:
+        """bool per Gaussian (of `rows`, default all): at least FAR_RESET_FRACTION * far_distance
+        from scene_center (the far background of a rig round the scene); None without a centre
+        or an initial model."""
         if self.scene_center is None or self.far_distance is None:
             return None
         means = self.params["means"].detach()
-        return torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1) >= FAR_RESET_FRACTION * self.far_distance
+        means = means if rows is None else means[rows]
+        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
+        return d >= FAR_RESET_FRACTION * self.far_distance
 
     # ---- optimisation ---------------------------------------------------------------------
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:

@@ -776,7 +776,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "init": getattr(trainer.scene, "points_origin", None),
         "masks": _masks_said(trainer.scene),
         "background": {"colour": list(trainer.schedule.background_value()),
-                       "origin": ("--background" if getattr(args, "background", "auto") not in ("auto", "random")
+                       "origin": ("--background" if scene_background(args) != "auto"
                                   else getattr(trainer.scene, "background_origin", None)),
                        **({"training": "random: a new colour every view and step (--background random)"}
                           if getattr(args, "background", "auto") == "random" else {})},
