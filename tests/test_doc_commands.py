@@ -16,7 +16,7 @@ there fails the test, so a new script has to be placed):
 - "main": the parser is built inside main() or under `if __name__ == "__main__"` with no separate
   function; the file is run as __main__ (runpy) with sys.argv set, and
   argparse.ArgumentParser.parse_args is wrapped so that the N-th successful parse (N = 1, or 2 for
-  bench_view_cost.py, whose second parse is the named example's parser on the flags after `--`)
+  bench_view_cost.py and probe_view_cells.py, whose second parse is the example's parser on the flags after `--`)
   stops the script with the namespace before any work. Checks a main() makes after its parse
   are not reached. Every script a doc runs has a parser reached this way: NOT_PARSED (scripts
   skipped by name, with the reason) is empty.
@@ -77,7 +77,7 @@ SCRIPTS = {
     "examples/three_line_wrap/mvgs.py": "main",
     **{f"benchmarks/{p.name}": "main" for p in sorted((ROOT / "benchmarks").glob("*.py"))},
 }
-PARSES_BEFORE_STOP = {"benchmarks/bench_view_cost.py": 2}
+PARSES_BEFORE_STOP = {"benchmarks/bench_view_cost.py": 2, "benchmarks/probe_view_cells.py": 2}
 # Scripts whose parser cannot be called without running them: none at present (name -> reason)
 NOT_PARSED: dict = {}
 # Scripts that import an optional package: their lines are skipped, said so, when it is missing
