@@ -27,10 +27,10 @@ from typing import List, Tuple
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-from mvgs_plugin import schedule as schedule_module  # noqa: E402
-from mvgs_plugin.camera import Camera  # noqa: E402
+from mvgs_plugin import schedule as schedule_module
+from mvgs_plugin.camera import Camera
 
+ROOT = Path(__file__).resolve().parents[1]
 GRIDS = {1: (2, 2), 2: (2, 1), 4: (2, 2)}  # views per step -> cells across, down
 
 

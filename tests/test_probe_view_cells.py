@@ -5,6 +5,7 @@ independent computation)."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -22,9 +23,8 @@ from mvgs_plugin.camera import Camera  # noqa: E402
 
 def camera(uid: int, width: int = 48, height: int = 32) -> Camera:
     # looking down +z from z = -4, turned a little about y so that views differ
-    a = 0.1 * uid
-    R = torch.tensor([[torch.cos(torch.tensor(a)), 0.0, -torch.sin(torch.tensor(a))], [0.0, 1.0, 0.0],
-                      [torch.sin(torch.tensor(a)), 0.0, torch.cos(torch.tensor(a))]], dtype=torch.float64)
+    c, s = math.cos(0.1 * uid), math.sin(0.1 * uid)
+    R = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
     w2c = torch.eye(4, dtype=torch.float64)
     w2c[:3, :3] = R
     w2c[:3, 3] = torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64)
