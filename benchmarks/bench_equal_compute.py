@@ -76,9 +76,11 @@ RUNS = {
     # the default with its periodic opacity resets at the 1/2 level too (before 2026-11-27, evening;
     # docs/equal_compute.md, "No opacity reset at the coarse level")
     "default-coarse-reset": ["--preset", "default", "--coarse-opacity-reset"],
-    # the default's pyramid with 10 % of the work at 1/2 instead of 30 % (docs/equal_compute.md, "Opacity
-    # resets that leave time to recover": a smaller coarse share at 10k does not hold on every scene)
+    # the default's pyramid with 10 % of the work at 1/2 at every budget (docs/equal_compute.md, "Opacity
+    # resets that leave time to recover"; at a budget of 10k it is today's default, "A warm-up of fixed length")
     "default-coarse10": ["--preset", "default", "--stages", "2:1:5455,1:1:27000"],
+    # the default before its warm-up was held to 1000 views' work (2026-11-28): 30 % at 1/2 at every budget
+    "default-warmup-shares": ["--preset", "default", "--warmup-work-cap", "0"],
     # the baseline and the default with the floor on opacity resets before 2026-11-27 (night): no sooner
     # than 10 densification calls apart when the schedule is compressed (now 30, 3DGS's own ratio;
     # docs/equal_compute.md, "Opacity resets that leave time to recover")

@@ -415,6 +415,10 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="replace the preset's stage plan: pyramid factor, views per step and recipe steps per "
                          "stage, e.g. 8:16:1000,4:8:1000,2:4:1000,1:1:30000 (then rescaled by --steps or --budget; default: "
                          "the preset's plan)")
+    ap.add_argument("--warmup-work-cap", type=float_above(0, inclusive=True), default=None, metavar="W",
+                    help="the most work (full-resolution view renders) the coarser pyramid levels get in a run; "
+                         "beyond it their share goes to full resolution (MVGSConfig.warmup_work_cap; 0: no cap; "
+                         "default: as the preset, 1000 for default, none for the others and with --stages)")
     ap.add_argument("--mvad", action=argparse.BooleanOptionalAction, default=None,
                     help="multi-view augmented densification on/off (default: as the preset)")
     ap.add_argument("--crd", action=argparse.BooleanOptionalAction, default=None,
@@ -517,8 +521,10 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
     """The MVGSConfig the common CLI asks for: preset, --views, resolved for the scene's rig
     (MVGSConfig.for_scene with --forward-rig, when a scene is given), rescaled to --steps (or run on --budget),
     --mvad/--crd, --threshold-width, and every pyramid factor times --resolution-scale."""
-    if getattr(args, "stages", None):
-        preset_overrides = {**preset_overrides, "stages": args.stages}
+    if getattr(args, "stages", None):  # the user's plan, run as given unless a cap is asked for too
+        preset_overrides = {**preset_overrides, "stages": args.stages, "warmup_work_cap": None}
+    if getattr(args, "warmup_work_cap", None) is not None:
+        preset_overrides = {**preset_overrides, "warmup_work_cap": args.warmup_work_cap or None}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
                  "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning",
                  "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset", "lambda_dssim"):

@@ -176,7 +176,9 @@ class MVGS:
             raise TypeError(f"config must be an MVGSConfig or None, got {type(config).__name__} {config!r}{hint}")
         self.adapter = adapter
         self.scene = scene
-        self.schedule = ViewSchedule(scene, config or MVGSConfig.default())
+        # without a config: the default recipe run at its own length, 30k views' work (with_budget
+        # applies its warm-up cap, as --budget 30000 would)
+        self.schedule = ViewSchedule(scene, config or MVGSConfig.default().with_budget(30_000))
         self.config = self.schedule.config  # resolved for the scene (MVGSConfig.for_scene)
         self._warn_other_clock(adapter)
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):

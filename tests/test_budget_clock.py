@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from mvgs_plugin.config import DEFAULT_SHARES, CRDConfig, MVGSConfig
+from mvgs_plugin.config import DEFAULT_SHARES, CRDConfig, MVGSConfig, Stage
 from mvgs_plugin.schedule import ViewSchedule
 from mvgs_plugin.testing import synthetic_scene
 
@@ -112,18 +112,22 @@ def test_stages_from_shares_gives_each_stage_its_share_of_the_work():
             stages_from_shares(bad)
 
 
-@pytest.mark.parametrize("budget", [1000, 3000, 10_000])
-def test_default_is_coarse_to_fine_with_one_view_and_keeps_its_shares_on_any_budget(budget):
+@pytest.mark.parametrize("budget", [1000, 3000, 3333, 10_000, 30_000])
+def test_default_is_coarse_to_fine_with_one_view_and_a_warmup_of_30_percent_up_to_1000_views(budget):
     config = MVGSConfig.default().with_budget(budget)
     assert [(s.factor, s.views) for s in config.stages] == [(2, 1), (1, 1)]
     assert not config.mvad and not config.crd and config.grad_threshold_width == 800
     work = [s.steps * (0.1 + 0.9 / s.factor) for s in config.stages]
-    assert [w / budget for w in work] == pytest.approx([0.3, 0.7], abs=1e-3)
+    # The 1/2 level gets 30 % of the budget, but never more than 1000 full-resolution views' work;
+    # full resolution gets the rest, and the budget is spent (each to within a step's rounding).
+    warmup = min(0.3 * budget, 1000.0)
+    assert work[0] == pytest.approx(warmup, abs=0.55)
+    assert sum(work) == pytest.approx(budget, abs=1.0)
     # Coarse steps are cheap: the run makes more optimizer steps than a baseline on the budget.
-    assert config.total_steps == pytest.approx(budget * (0.3 / 0.55 + 0.7), rel=1e-3)
-    # Full resolution starts at 30 % of the budget, before densification ends (at 50 %).
-    assert work[0] / budget == pytest.approx(0.3, abs=1e-3)
+    assert config.total_steps == round(warmup / 0.55) + round(budget - warmup)
+    # Densification ends at 50 % of the budget, after full resolution has begun.
     assert config.densify_until / budget == pytest.approx(0.5, abs=1e-3)
+    assert work[0] < config.densify_until
     multiview = MVGSConfig.multiview().with_views(4)
     assert [(s.factor, s.views) for s in multiview.stages] == [(8, 24), (4, 12), (2, 6), (1, 4)]
     assert multiview.mvad and not multiview.crd  # CRD: paper() only (issue 27)
@@ -141,7 +145,12 @@ def test_default_on_steps_keeps_its_clocks_at_the_same_fractions_of_the_work(sce
     total = sum(work_of)
     assert config.clock_length == round(total)
     full_res_from = sum(work_of[:-1])
-    assert full_res_from / total == pytest.approx(0.3, abs=0.01)
+    # The recipe's proportions (16364 steps at 1/2, 21000 at full: 30 % of the work at 1/2), with
+    # the 1/2 level held to 1000 views' work (warmup_work_cap) once that is less.
+    proportional = round(steps * 16364 / 37364) * 0.55
+    assert full_res_from == pytest.approx(min(proportional, 1000.0), abs=0.55)
+    if proportional < 1000:
+        assert full_res_from / total == pytest.approx(0.3, abs=0.01)
     assert config.densify_until == max(1, round(15_000 * total / 30_000))
     got, schedule = plans(scene, config)
     full = [p for p in got if p.factor == 1]
@@ -212,3 +221,50 @@ def test_views_per_step_keep_the_default_clocks_at_their_shares_of_the_work(view
     # the multi-view preset counts steps: its clocks are steps whatever M is
     steps = MVGSConfig.multiview().with_total_steps(6000)
     assert steps.with_views(views).densify_until == steps.densify_until
+
+
+def test_the_warmup_cap_keeps_coarse_stages_in_proportion_and_a_step_count_as_given():
+    # Three levels at 1/4, 1/2, 1: per-step work 0.325, 0.55 and 1 (a + b / f, view_cost (0.1, 0.9)).
+    plan = (Stage(4, 1, 4000), Stage(2, 2, 3000), Stage(1, 1, 20_000))
+    cost = {4: 0.325, 2: 0.55, 1: 1.0}
+    config = MVGSConfig(stages=plan, clock_unit="work", warmup_work_cap=600.0)
+    coarse = [s.steps * s.views * cost[s.factor] for s in plan[:2]]  # 1300 and 3300 of 24600
+    budget = 24_600 * 3  # the coarse levels would get 3900 + 9900 of it: capped to 600 in all
+    run = config.with_budget(budget)
+    got = [s.steps * s.views * cost[s.factor] for s in run.stages]
+    assert sum(got[:2]) == pytest.approx(600, abs=2 * 1.1)
+    assert got[0] / got[1] == pytest.approx(coarse[0] / coarse[1], rel=0.01)  # each keeps its share of the cap
+    assert sum(got) == pytest.approx(budget, abs=2.0)  # full resolution takes the work they gave up
+    # A step count stays a step count: the finest stage takes the steps the coarse ones gave up.
+    steps = config.with_total_steps(30_000)
+    assert steps.total_steps == 30_000
+    assert sum(s.steps * s.views * cost[s.factor] for s in steps.stages[:2]) == pytest.approx(600, abs=2 * 1.1)
+    # Below the cap, or without one, the plan is the proportional one.
+    small = config.with_budget(2000)
+    assert small.stages == dataclasses.replace(config, warmup_work_cap=None).with_budget(2000).stages
+    uncapped = dataclasses.replace(config, warmup_work_cap=None).with_budget(budget)
+    assert [s.steps * s.views * cost[s.factor] for s in uncapped.stages][:2] == pytest.approx(
+        [3 * c for c in coarse], abs=1.1)
+    # A plan with no coarser stage has nothing to cap.
+    flat = MVGSConfig(stages=(Stage(1, 1, 30_000),), warmup_work_cap=1.0)
+    assert flat.with_budget(10_000).stages == (Stage(1, 1, 10_000),)
+    for bad in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="warmup_work_cap"):
+            MVGSConfig(warmup_work_cap=bad)
+
+
+def test_the_cli_runs_a_given_stage_plan_uncapped_unless_asked():
+    import argparse
+
+    from mvgs_plugin.cli import common_args, config_from_args
+
+    def config(*argv):
+        ap = argparse.ArgumentParser()
+        common_args(ap, "out")
+        return config_from_args(ap.parse_args(list(argv)))
+
+    assert config("--budget", "10000").stages == (Stage(2, 1, 1818), Stage(1, 1, 9000))
+    assert config("--budget", "10000", "--warmup-work-cap", "0").stages == (Stage(2, 1, 5455), Stage(1, 1, 7000))
+    given = ("--budget", "10000", "--stages", "2:1:16364,1:1:21000")
+    assert config(*given).stages == (Stage(2, 1, 5455), Stage(1, 1, 7000))
+    assert config(*given, "--warmup-work-cap", "550").stages == (Stage(2, 1, 1000), Stage(1, 1, 9450))

@@ -36,7 +36,13 @@ def pixels(scene) -> int:
 def test_compact_is_the_default_with_a_data_budget(orbit):
     compact, default = MVGSConfig.compact(), MVGSConfig.default()
     differ = {f.name for f in dataclasses.fields(MVGSConfig) if getattr(compact, f.name) != getattr(default, f.name)}
-    assert differ == {"preset", "pixels_per_gaussian", "forward_rig_budget"}
+    assert differ == {"preset", "pixels_per_gaussian", "forward_rig_budget", "warmup_work_cap"}
+    # compact keeps the default's 30 % at 1/2 at every budget (its 10k evidence); the default's
+    # warm-up is held to 1000 views' work beyond a budget of 3333
+    assert compact.warmup_work_cap is None and default.warmup_work_cap == 1000
+    for budget in (3000, 10_000):
+        plan = compact.with_budget(budget).stages
+        assert plan[0].steps * 0.55 == pytest.approx(0.3 * budget, abs=0.55)
     assert compact.preset == "compact" and compact.forward_rig_budget is False
     assert not is_forward_facing(orbit.train_cameras)
     assert pixels(orbit) == 8 * 32 * 32

@@ -207,6 +207,9 @@ def test_train_3dgs_on_a_budget(tmp_path):
     argv = {preset: ["--preset", preset, "--budget", "600", *views, "--resolution-scale", "4", "--threads", "1",
                      "--out", str(tmp_path / preset), "--no-progress"]
             for preset, views in (("baseline", []), ("default", []), ("multiview", ["--views", "2"]))}
+    # the default with its warm-up held to 60 views' work (warmup_work_cap binds: 30 % would be 180)
+    argv["capped"] = [*argv["default"][:-3], "--warmup-work-cap", "60", "--out", str(tmp_path / "capped"),
+                      "--no-progress"]
     # three independent runs, two at a time in their own processes (one thread each)
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
         runs = {preset: pool.submit(_run_example, args) for preset, args in argv.items()}
@@ -217,11 +220,15 @@ def test_train_3dgs_on_a_budget(tmp_path):
         # Each stage's step count is rounded to whole steps: within half a step's work per stage.
         assert saved["work"] == pytest.approx(600, abs=4)
         assert saved["num_gaussians"] != 4000  # densified / pruned from the 4000 scene points
-    base, default, multiview = runs["baseline"], runs["default"], runs["multiview"]
+    base, default, multiview, capped = runs["baseline"], runs["default"], runs["multiview"], runs["capped"]
     assert base["steps"] == 600 and multiview["steps"] < 600  # multi-view steps cost more views each
     # The default's coarse-to-fine warm-up (30 % of the work at 1/2 resolution) makes cheap
     # steps: a step at 1/2 costs 0.1 + 0.9 / 2 = 0.55 of a full one, so 180 / 0.55 + 420.
     assert default["steps"] == pytest.approx(180 / 0.55 + 420, abs=2)
+    # Held to 60 views' work, the warm-up gives the rest to full resolution: 60 / 0.55 + 540 steps.
+    assert capped["steps"] == pytest.approx(60 / 0.55 + 540, abs=2)
+    plan = json.loads((tmp_path / "capped" / "metrics.json").read_text())["config"]["stages"]
+    assert [(s["factor"], s["steps"]) for s in plan] == [(8, round(60 / 0.55)), (4, 540)]
     with pytest.raises(SystemExit) as err:  # argparse's usage error, before any work
         example.main(["--budget", "-3", "--out", str(tmp_path / "bad"), "--no-progress"])
     assert err.value.code == 2 and not (tmp_path / "bad").exists()
