@@ -35,14 +35,18 @@ from .schedule import ViewSchedule
 
 # MVGSConfig fields a resumed run may change (speed, memory and guards, not what it trains)
 RUNTIME_FIELDS = ("chunk_size", "chunk_memory_mb", "divergence_factor")
+# MVGSConfig fields that only shape the stage plan when a run's length is set (with_budget,
+# with_total_steps): the plan they made is compared itself (stages), so a checkpoint saved before
+# such a field existed, or with the same plan made another way, resumes
+PLAN_FIELDS = ("warmup_work_cap",)
 
 
 def config_differences(saved: MVGSConfig, current: MVGSConfig) -> List[tuple]:
-    """(field, saved value, current value) for every field but RUNTIME_FIELDS that differs,
-    the preset's name included."""
+    """(field, saved value, current value) for every field but RUNTIME_FIELDS and PLAN_FIELDS
+    that differs, the preset's name included."""
     a, b = _flat_dict(saved.to_dict()), _flat_dict(current.to_dict())
     return [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b))
-            if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
+            if k not in RUNTIME_FIELDS + PLAN_FIELDS and a.get(k) != b.get(k)]
 
 
 def _flat_dict(d: dict) -> dict:
@@ -505,7 +509,8 @@ class MVGS:
                              f"(the checkpoint's plan: {plan(saved.stages)}; this run's: {plan(self.config.stages)}). "
                              "The plan follows the preset and the run's length (--steps / --budget), and the "
                              "flags that change its levels or views (--resolution-scale, --views, --stages, "
-                             "--late-views): resume with the ones the checkpoint was written with")
+                             "--late-views, --warmup-work-cap): resume with the ones the checkpoint was written with "
+                             "(a default run of a budget above 3333 saved before the warm-up cap: --warmup-work-cap 0)")
         differ = config_differences(saved, self.config)
         if differ:
             said = "; ".join(f"{name}: checkpoint {a!r}, this run {b!r}" for name, a, b in differ)

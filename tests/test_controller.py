@@ -1055,3 +1055,31 @@ def test_random_backgrounds_evaluate_on_the_scenes_own(scene):
         assert trainer.evaluate().psnr > 60.0, bg
     black = MVGS(tiny, on_white, MVGSConfig.baseline(background="black").with_total_steps(10))
     assert black.evaluate().psnr < 1.0  # what "random" evaluated on before
+
+
+def test_a_checkpoint_from_before_the_warmup_cap_resumes_when_its_plan_is_the_same(scene, tmp_path):
+    """warmup_work_cap only shapes the plan once a run's length is set; the plan itself (stages)
+    is what a resume compares. A default run saved before the field (its config reads None) with
+    the plan today's default makes resumes; one whose plan the cap changed is refused, naming the
+    flag that gives the checkpoint's plan back."""
+    old = MVGSConfig.default(warmup_work_cap=None, densify_from=1, densify_every=4, densify_until=30_000,
+                             grad_threshold_width=None)
+    short, long = old.with_budget(30), old.with_budget(4000)  # the cap binds from 3334 up
+    path = tmp_path / "old.pt"
+    first = MVGS(make(scene), scene, short)
+    first.fit(steps=5, progress=False)
+    first.save_checkpoint(str(path))
+    today = MVGSConfig.default(densify_from=1, densify_every=4, densify_until=30_000,
+                               grad_threshold_width=None).with_budget(30)
+    assert today.stages == short.stages and today.warmup_work_cap == 1000
+    resumed = MVGS(make(scene), scene, today)
+    resumed.load_checkpoint(str(path))
+    assert resumed.step_count == 5
+    # a plan the cap changed: 30 % of a budget of 4000 at 1/2 was 2,182 steps there, 1,818 today
+    assert long.stages != dataclasses.replace(old, warmup_work_cap=1000.0).with_budget(4000).stages
+    first = MVGS(make(scene), scene, long)
+    first.step()
+    first.save_checkpoint(str(path))
+    capped = dataclasses.replace(old, warmup_work_cap=1000.0).with_budget(4000)
+    with pytest.raises(ValueError, match="--warmup-work-cap 0"):
+        MVGS(make(scene), scene, capped).load_checkpoint(str(path))
