@@ -620,9 +620,8 @@ class MVGSConfig:
         steps[-1] = max(1, total - sum(steps[:-1]))
         stages = self._capped_warmup(tuple(Stage(s.factor, s.views, n) for s, n in zip(self.stages, steps)),
                                      keep_steps=True)
-        steps = [s.steps for s in stages]
         if self.clock_unit == "work":  # the clocks keep their fractions of the work
-            work = sum(n * self.step_work(s) for s, n in zip(stages, steps))
+            work = sum(s.steps * self.step_work(s) for s in stages)
             return dataclasses.replace(self, stages=stages, **self._scaled_clocks(work / self.total_work))
         clock_ratio = (stages[-1].steps if self.restart_per_stage else total) / ref
         return dataclasses.replace(self, stages=stages, **self._scaled_clocks(clock_ratio))
@@ -633,7 +632,7 @@ class MVGSConfig:
         keeps its share of the cap (at least one step) and the first finest stage takes over the
         steps they gave up (keep_steps: a step count stays) or their work (a budget stays)."""
         cap = self.warmup_work_cap
-        finest = min(s.factor for s in stages)
+        finest = self.finest_factor  # rescaling keeps every stage's factor
         coarse = [i for i, s in enumerate(stages) if s.factor != finest]
         work = sum(stages[i].steps * self.step_work(stages[i]) for i in coarse)
         if cap is None or work <= cap:
