@@ -99,11 +99,12 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
-from mvgs_plugin.adapters.gs3d import consistency_of, keep_scores_of
+from mvgs_plugin.adapters.gs3d import BUDGET_GROWTH_ORDERS, FAR_RESET_FRACTION, consistency_of, keep_scores_of
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
 from mvgs_plugin.data.images import downsample_batch, masked_downsample
+from mvgs_plugin.data.init import is_forward_facing
 from mvgs_plugin.data.scene import camera_normalization
 from mvgs_plugin.densify import boxes_contain, top_by_score
 from mvgs_plugin.schedule import StepPlan, ViewSchedule
@@ -241,14 +242,23 @@ class MVGSStrategy(DefaultStrategy):
             None: the config's own length (30k steps for the presets).
         clock: "strategy" (adopt the strategy's clock and threshold, see adopt_strategy_clock)
             or "config" (keep the config's own).
+        budget_growth_order: under a binding config.max_gaussians, the order in which growth
+            candidates take the room left, as GS3DConfig.budget_growth_order: "score" (by the
+            densify score alone), "inside-first" (candidates nearer the scene centre than the far
+            line, FAR_RESET_FRACTION of the initial model's farthest mean, before those beyond it,
+            each group by score) or "auto" (default: "score" on a forward-facing rig or without
+            a scene centre, else "inside-first"). The far line is taken at the first
+            check_sanity (before the run's first step, before the budget's cut), or at the first
+            refine when the loop never called it.
 
     Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, ``plan`` (the
-    current step's StepPlan), and after each refine ``last_refine`` (dict: step, threshold,
-    boxes, from_boxes, before, after).
+    current step's StepPlan), ``budget_growth_order`` (resolved: "score" or "inside-first"),
+    ``far_distance`` (None until taken), and after each refine ``last_refine`` (dict: step,
+    threshold, boxes, from_boxes, before, after).
     """
 
     def __init__(self, strategy: DefaultStrategy, scene, config: Union[MVGSConfig, str] = "default",
-                 steps: Optional[int] = None, clock: str = "strategy"):
+                 steps: Optional[int] = None, clock: str = "strategy", budget_growth_order: str = "auto"):
         if isinstance(strategy, MVGSStrategy):
             raise TypeError("strategy is already an MVGSStrategy: wrap the DefaultStrategy itself, once")
         if not isinstance(strategy, DefaultStrategy):
@@ -260,6 +270,9 @@ class MVGSStrategy(DefaultStrategy):
                              f"{strategy.key_for_gradient!r}")
         if clock not in ("strategy", "config"):
             raise ValueError(f"clock must be 'strategy' or 'config', got {clock!r}")
+        if budget_growth_order not in BUDGET_GROWTH_ORDERS:
+            raise ValueError(f"budget_growth_order must be one of {', '.join(map(repr, BUDGET_GROWTH_ORDERS))}, "
+                             f"got {budget_growth_order!r}")
         if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_world_size() > 1:
             raise RuntimeError(f"MVGSStrategy runs in one process: under gsplat's distributed mode "
                                f"({torch.distributed.get_world_size()} ranks) every rank's schedule would draw the same "
@@ -311,6 +324,16 @@ class MVGSStrategy(DefaultStrategy):
         self._pending: Optional[Dict[str, Any]] = None  # end-of-step work deferred to the next batch
         self._warned: set = set()
         self._shares: Dict[int, List[Tensor]] = {}
+        self._order_given = budget_growth_order != "auto"
+        center = getattr(views, "center", None)
+        self.scene_center: Optional[Tensor] = None if center is None else torch.as_tensor(center, dtype=torch.float64).reshape(3)
+        if budget_growth_order == "auto":  # the rig decides, as GS3DAdapter.from_scene
+            forward = self.scene_center is None or is_forward_facing(views.train_cameras)
+            budget_growth_order = "score" if forward else "inside-first"
+        if self.scene_center is None:
+            budget_growth_order = "score"
+        self.budget_growth_order = budget_growth_order
+        self.far_distance: Optional[float] = None
 
     @property
     def total_steps(self) -> int:
@@ -326,12 +349,27 @@ class MVGSStrategy(DefaultStrategy):
         # before the run's first step (plans a DataLoader drew ahead have not started)
         first = self.plan is None and (self._queue[0][1]["step"] if self._queue else sched.step_count) == 0
         budget = self.config.initial_cap() if first else self.config.max_gaussians
+        if first:  # the far line of budget_growth_order: the initial model's farthest mean, before the cut
+            self._take_far_distance(params["means"])
         if budget is not None and len(params["means"]) > budget:
             self._shed(params, optimizers, {}, budget)
         if first:  # the budget's growth schedule starts from the count the run starts with
             sched.primitive_count = len(params["means"])
             if sched.initial_count is not None:  # taken by a plan drawn ahead, before the cut
                 sched.initial_count = sched.primitive_count
+
+    def _take_far_distance(self, means: Tensor) -> None:
+        if self.scene_center is not None and len(means):
+            d = torch.linalg.vector_norm(means.detach().double().cpu() - self.scene_center, dim=1)
+            self.far_distance = float(d.max())
+
+    def _beyond_far_line(self, means: Tensor) -> Optional[Tensor]:
+        """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from the scene
+        centre (GS3DAdapter's line); None without a centre or far_distance."""
+        if self.scene_center is None or self.far_distance is None:
+            return None
+        d = torch.linalg.vector_norm(means.detach() - self.scene_center.to(means), dim=1)
+        return d >= FAR_RESET_FRACTION * self.far_distance
 
     @staticmethod
     def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:
@@ -615,10 +653,12 @@ class MVGSStrategy(DefaultStrategy):
         state["mvgs_grad2d_sq"].index_add_(0, ids, norms.square().to(state["mvgs_grad2d_sq"]))
         state["mvgs_coverage"].index_add_(0, ids, (math.pi * r.float().square() / float(w * h)).to(state["mvgs_coverage"]))
 
-    def _rank_growth(self, state, threshold: float, room: int) -> int:
+    def _rank_growth(self, state, threshold: float, room: int, means: Optional[Tensor] = None) -> int:
         """Keep only the `room` growth candidates (mean gradient >= threshold) with the best
-        densify score (config.densify_rank, as GS3DAdapter.densify_scores): the others' grad2d is
-        zeroed before the strategy's refine, so it does not grow them. Returns how many fell."""
+        densify score (config.densify_rank, as GS3DAdapter.densify_scores; with
+        budget_growth_order "inside-first" and the rows' `means`, those inside the far line
+        before any beyond it): the others' grad2d is zeroed before the strategy's refine, so it
+        does not grow them. Returns how many fell."""
         grad2d, count = state.get("grad2d"), state.get("count")
         if not isinstance(grad2d, Tensor):
             return 0
@@ -632,6 +672,11 @@ class MVGSStrategy(DefaultStrategy):
             score = mean * consistency_of(grad2d, sq, count)
         order = torch.sort(torch.where(cand, score, torch.full_like(score, -math.inf)), descending=True,
                            stable=True).indices
+        far = (self._beyond_far_line(means) if self.budget_growth_order == "inside-first" and means is not None
+               and len(means) == len(mean) else None)
+        if far is not None:  # a stable sort by tier keeps the score order within each (non-candidates stay last)
+            tier = torch.where(cand, far.to(torch.uint8), torch.full_like(far, 2, dtype=torch.uint8))
+            order = order[torch.sort(tier[order], stable=True).indices]
         dropped = order[room:int(cand.sum())]
         grad2d[dropped] = 0
         return len(dropped)
@@ -643,9 +688,11 @@ class MVGSStrategy(DefaultStrategy):
         before = len(means)
         cap, dropped, shed, swapped = ctx.max_primitives, 0, 0, 0
         if cap is not None:  # growth ranked into the room the budget leaves (a grow adds one row)
+            if self.far_distance is None and self.budget_growth_order == "inside-first":  # check_sanity never ran
+                self._take_far_distance(means)
             room = max(0, cap - before)
             swapped = self._swap_out(params, optimizers, state, float(ctx.grad_threshold), room, cap, ctx.swap_share)
-            dropped = self._rank_growth(state, float(ctx.grad_threshold), room + swapped)
+            dropped = self._rank_growth(state, float(ctx.grad_threshold), room + swapped, params["means"])
         from_boxes = 0
         if ctx.boxes is not None and len(ctx.boxes):
             from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes)
@@ -794,7 +841,8 @@ class MVGSStrategy(DefaultStrategy):
             w = self._pending
             pending = {"plan_step": w["plan"].step, "densify": w["densify"], "reset": w["reset"], "step": w["step"],
                        "maps": [t.cpu() for t in w["plan"].recorded], "before": w["before"]}
-        return {"schedule": sched, "config": self.config.to_dict(), "pending": pending}
+        return {"schedule": sched, "config": self.config.to_dict(), "pending": pending,
+                "growth": {"order": self.budget_growth_order, "far_distance": self.far_distance}}
 
     def load_state_dict(self, state: Dict[str, Any], params=None, optimizers=None, strategy_state=None) -> None:
         """Restore a state_dict(). When it holds deferred end-of-step work, pass the run's
@@ -804,6 +852,15 @@ class MVGSStrategy(DefaultStrategy):
             raise ValueError("the checkpoint's MVGS config differs from this run's: "
                              + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diff))
         self.schedule.load_state_dict(state["schedule"])
+        # a checkpoint from before budget_growth_order ranked by score alone: its run goes on so
+        growth = state.get("growth") or {"order": "score", "far_distance": None}
+        if growth["order"] not in ("inside-first", "score"):
+            raise ValueError(f"the checkpoint's budget_growth_order {growth['order']!r} is not 'inside-first' or 'score'")
+        if self._order_given and growth["order"] != self.budget_growth_order:
+            raise ValueError(f"the checkpoint's run grew with budget_growth_order={growth['order']!r}, this strategy was "
+                             f"given {self.budget_growth_order!r}: resume with the checkpoint's (or 'auto')")
+        self.budget_growth_order = growth["order"]
+        self.far_distance = None if growth["far_distance"] is None else float(growth["far_distance"])
         self._queue.clear()
         self.plan, self._reported, self._pending, self._targets = None, 0, None, None
         pending = state.get("pending")

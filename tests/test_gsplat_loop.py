@@ -645,8 +645,8 @@ def test_a_parser_size_a_pixel_off_its_images_densifies_across_rays_at_the_rende
 
 
 # ---- the example loops end to end ---------------------------------------------------------------
-def example_config(tmp_path, steps, preset, **kw):
-    cfg = common.Config(data_dir=FORWARD, result_dir=tmp_path, mvgs_preset=preset, sh_degree=1, **kw)
+def example_config(tmp_path, steps, preset, data=FORWARD, **kw):
+    cfg = common.Config(data_dir=data, result_dir=tmp_path, mvgs_preset=preset, sh_degree=1, **kw)
     cfg.adjust_steps(steps)
     cfg.make_strategy(Spy)
     return cfg
@@ -910,6 +910,120 @@ def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward
         assert torch.equal(sp["means"].detach(), splats["means"].detach()[kept])
         assert torch.equal(st["grad2d"], grad2d[kept]) and len(st["mvgs_coverage"]) == n - want
     assert strategy._swap_out(splats, optimizers, dict(state), threshold, int(cand.sum()), n, 0.5) == 0  # room enough
+
+
+# budget_growth_order in the wrap: rows at these distances from the scene centre; the farthest
+# (8) sets far_distance, so the far line is at 6 and rows 4-7 are beyond it. Every row is a growth
+# candidate and the far rows pull hardest, as a textured background does.
+ROW_DISTANCES = [0.5, 1.0, 3.0, 5.5, 6.5, 7.0, 7.5, 8.0]
+ROW_GRADS = [3e-4, 5e-4, 4e-4, 2.5e-4, 9e-4, 8e-4, 1e-3, 7e-4]
+
+
+def rows_at_distances(center):
+    n = len(ROW_DISTANCES)
+    g = torch.Generator().manual_seed(0)
+    direction = F.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=1)
+    means = (center + torch.tensor(ROW_DISTANCES, dtype=torch.float64)[:, None] * direction).float()
+    splats = torch.nn.ParameterDict({"means": means, "scales": torch.full((n, 3), -5.0), "quats": F.normalize(torch.randn(n, 4, generator=g), dim=1),
+                                     "opacities": torch.zeros(n), "sh0": torch.zeros(n, 1, 3), "shN": torch.zeros(n, 3, 3)})
+    optimizers = {k: torch.optim.Adam([splats[k]], lr=1e-3) for k in splats}
+    return splats, optimizers
+
+
+@pytest.mark.parametrize("order,room", [("auto", 2), ("auto", 4), ("auto", 5), ("inside-first", 7), ("score", 3), ("score", 5)])
+def test_the_wraps_growth_order_fills_the_room_as_ranked_by_hand(tabletop, order, room):
+    """MVGSStrategy(budget_growth_order=...) on a rig round the scene ("auto": inside-first):
+    the candidates kept are the first `room` of the rows sorted here by (beyond 3/4 of the
+    farthest initial distance, -gradient), or by -gradient alone with "score"; the far line is
+    taken at check_sanity, from the model before any cut."""
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(max_gaussians=100), steps=12,
+                            budget_growth_order=order)
+    resolved = "inside-first" if order == "auto" else order
+    assert strategy.budget_growth_order == resolved
+    center = torch.as_tensor(tabletop.center, dtype=torch.float64)
+    splats, optimizers = rows_at_distances(center)
+    strategy.check_sanity(splats, optimizers)
+    assert strategy.far_distance == pytest.approx(max(ROW_DISTANCES), rel=1e-6)
+    state = {"grad2d": torch.tensor(ROW_GRADS), "count": torch.ones(len(ROW_GRADS))}
+    rows = range(len(ROW_DISTANCES))
+    if resolved == "inside-first":
+        ranked = sorted(rows, key=lambda i: (ROW_DISTANCES[i] >= 0.75 * max(ROW_DISTANCES), -ROW_GRADS[i]))
+    else:
+        ranked = sorted(rows, key=lambda i: -ROW_GRADS[i])
+    assert strategy._rank_growth(state, 2e-4, room, splats["means"]) == len(ROW_GRADS) - room
+    assert sorted(torch.nonzero(state["grad2d"]).squeeze(1).tolist()) == sorted(ranked[:room])
+    if resolved == "inside-first" and room <= 4:  # every far row outscores the inside ones, and none grew
+        assert all(ROW_DISTANCES[i] < 6.0 for i in torch.nonzero(state["grad2d"]).squeeze(1).tolist())
+    state = {"grad2d": torch.tensor(ROW_GRADS), "count": torch.ones(len(ROW_GRADS))}  # room for all: nothing falls
+    assert strategy._rank_growth(state, 2e-4, len(ROW_GRADS), splats["means"]) == 0
+
+
+def test_the_wraps_growth_order_follows_the_rig_and_the_checkpoint(forward, tabletop):
+    """"auto" ranks by score on a forward-facing rig; a checkpoint keeps the order and far line
+    it grew with, one saved before the order existed resumes by score, and an order given that
+    differs from the checkpoint's is refused by name."""
+    assert MVGSStrategy(small_clock(), forward, "default", steps=12).budget_growth_order == "score"
+    with pytest.raises(ValueError, match="budget_growth_order must be one of"):
+        MVGSStrategy(small_clock(), tabletop, "default", steps=12, budget_growth_order="far-first")
+    a = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(max_gaussians=100), steps=12)
+    splats, optimizers = rows_at_distances(torch.as_tensor(tabletop.center, dtype=torch.float64))
+    a.check_sanity(splats, optimizers)
+    saved = a.state_dict()
+    assert saved["growth"] == {"order": "inside-first", "far_distance": a.far_distance}
+    b = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(max_gaussians=100), steps=12)
+    b.load_state_dict(saved)
+    assert (b.budget_growth_order, b.far_distance) == ("inside-first", a.far_distance)
+    old = {k: v for k, v in saved.items() if k != "growth"}
+    b.load_state_dict(old)
+    assert (b.budget_growth_order, b.far_distance) == ("score", None)
+    c = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(max_gaussians=100), steps=12, budget_growth_order="score")
+    with pytest.raises(ValueError, match="grew with budget_growth_order='inside-first'"):
+        c.load_state_dict(saved)
+
+
+def test_inside_first_holds_the_budget_through_a_tabletop_run_and_resumes_exactly(tmp_path, tabletop):
+    """The MVGS loop on a rig round the scene under a budget: "auto" is inside-first; at every
+    refine where candidates fell, no candidate beyond the far line grew while one inside fell
+    (checked on the ranking's own inputs, by distance here), the count never exceeds the budget,
+    and a run resumed from a checkpoint is the same run."""
+    steps, budget = 240, 400
+    mvgs = MVGSConfig.default(max_gaussians=budget)
+    cfg = example_config(tmp_path / "a", steps, mvgs, data=TABLETOP, save_steps=[100])
+    torch.manual_seed(0)
+    runner = simple_trainer_mvgs.Runner(cfg)
+    strategy = runner.cfg.strategy
+    assert strategy.budget_growth_order == "inside-first" and strategy.far_distance is not None
+    line = 0.75 * strategy.far_distance
+    center = strategy.scene_center
+    checked, refines = [], []
+    rank, refine = strategy._rank_growth, strategy._refine
+
+    def rank_spy(state, threshold, room, means=None):
+        mean = state["grad2d"] / state["count"].clamp_min(1)
+        cand = mean > threshold
+        dropped = rank(state, threshold, room, means)
+        if dropped:
+            far = torch.linalg.vector_norm(means.detach().double() - center, dim=1) >= line
+            kept = state["grad2d"] > 0
+            fell = cand & ~kept
+            checked.append((bool((cand & far).any()), bool((cand & ~far).any())))
+            assert not ((kept & cand & far).any() and (fell & ~far).any())
+        return dropped
+
+    def refine_spy(params, optimizers, state, plan, step):
+        refine(params, optimizers, state, plan, step)
+        refines.append(dict(strategy.last_refine))
+
+    strategy._rank_growth, strategy._refine = rank_spy, refine_spy
+    runner.train()
+    assert checked and any(far and inside for far, inside in checked)  # both kinds competed for the room
+    assert refines and all(r["after"] <= budget for r in refines)
+    resumed_cfg = example_config(tmp_path / "b", steps, mvgs, data=TABLETOP, resume=tmp_path / "a" / "ckpt_100.pt")
+    torch.manual_seed(123)
+    resumed = simple_trainer_mvgs.Runner(resumed_cfg)
+    resumed.train()
+    for k in runner.splats.keys():
+        assert torch.equal(resumed.splats[k], runner.splats[k]), k
 
 
 def test_the_parser_reads_gsplats_data_factor_as_the_images_folder(tmp_path):
