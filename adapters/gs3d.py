@@ -267,6 +267,29 @@ def keep_scores_of(opacity: Tensor, coverage: Tensor) -> Tensor:
     return opacity * draw.to(opacity)
 
 
+def farthest_distance(means: Tensor, center: Optional[Tensor]) -> Optional[float]:
+    """far_distance: the largest distance of `means` [N, 3] from `center` [3] (float64, taken on
+    the CPU); None without a centre or rows. Its FAR_RESET_FRACTION is the far line."""
+    if center is None or not len(means):
+        return None
+    return float(torch.linalg.vector_norm(means.detach().double().cpu() - center, dim=1).max())
+
+
+def beyond_far_line(means: Tensor, center: Optional[Tensor], far_distance: Optional[float]) -> Optional[Tensor]:
+    """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from `center` (the far
+    background of a rig round the scene); None without a centre or far_distance."""
+    if center is None or far_distance is None:
+        return None
+    d = torch.linalg.vector_norm(means.detach() - center.to(means), dim=1)
+    return d >= FAR_RESET_FRACTION * far_distance
+
+
+def far_last(order: Tensor, far: Tensor) -> Tensor:
+    """`order` (row indices) with the rows `far` marks after all others, each group in its order
+    (budget_growth_order "inside-first": a stable sort by tier)."""
+    return order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
+
+
 def _check_center(center) -> Optional[Tensor]:
     """A scene centre as a [3] float64 tensor (None stays None), or ValueError naming it."""
     if center is None:
@@ -308,10 +331,7 @@ class GS3DAdapter:
         self.scene_center = _check_center(scene_center)
         # the initial model's farthest mean from the centre: the step rules' factor stops growing there,
         # and 3/4 of it is where opacity_reset_scope "inside"'s far background begins
-        self.far_distance: Optional[float] = None
-        if self.scene_center is not None and means.shape[0]:
-            far = torch.linalg.vector_norm(means.detach().double().cpu() - self.scene_center, dim=1).max()
-            self.far_distance = float(far)
+        self.far_distance: Optional[float] = farthest_distance(means, self.scene_center)
         raw = dict(means=means, sh0=sh0, shN=shN, scales=scales, quats=quats, opacities=opacities)
         self._check_raw(raw)
         self._generator = torch.Generator().manual_seed(self.config.seed)
@@ -821,8 +841,8 @@ class GS3DAdapter:
         # the order matters only when some candidates must fall: only then, and only for them, the far line
         far = (self._beyond_far_line(torch.cat(idx)) if self.config.budget_growth_order == "inside-first"
                and int(cost.sum()) > room else None)
-        if far is not None:  # a stable sort by tier keeps the score order within each
-            order = order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
+        if far is not None:
+            order = far_last(order, far)
         fits = torch.zeros_like(ranked, dtype=torch.bool)
         fits[order] = torch.cumsum(cost[order], 0) <= room
         out, start = [], 0
@@ -907,12 +927,8 @@ class GS3DAdapter:
         """bool per Gaussian (of `rows`, default all): at least FAR_RESET_FRACTION * far_distance
         from scene_center (the far background of a rig round the scene); None without a centre
         or an initial model."""
-        if self.scene_center is None or self.far_distance is None:
-            return None
         means = self.params["means"].detach()
-        means = means if rows is None else means[rows]
-        d = torch.linalg.vector_norm(means - self.scene_center.to(means), dim=1)
-        return d >= FAR_RESET_FRACTION * self.far_distance
+        return beyond_far_line(means if rows is None else means[rows], self.scene_center, self.far_distance)
 
     # ---- optimisation ---------------------------------------------------------------------
     def named_gradients(self) -> Dict[str, Optional[Tensor]]:

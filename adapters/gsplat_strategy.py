@@ -99,7 +99,8 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
-from mvgs_plugin.adapters.gs3d import BUDGET_GROWTH_ORDERS, FAR_RESET_FRACTION, consistency_of, keep_scores_of
+from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, beyond_far_line, consistency_of, far_last, farthest_distance,
+                                       keep_scores_of)
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
@@ -327,11 +328,10 @@ class MVGSStrategy(DefaultStrategy):
         self._order_given = budget_growth_order != "auto"
         center = getattr(views, "center", None)
         self.scene_center: Optional[Tensor] = None if center is None else torch.as_tensor(center, dtype=torch.float64).reshape(3)
-        if budget_growth_order == "auto":  # the rig decides, as GS3DAdapter.from_scene
-            forward = self.scene_center is None or is_forward_facing(views.train_cameras)
-            budget_growth_order = "score" if forward else "inside-first"
-        if self.scene_center is None:
+        if self.scene_center is None:  # no far line to order by
             budget_growth_order = "score"
+        elif budget_growth_order == "auto":  # the rig decides, as GS3DAdapter.from_scene
+            budget_growth_order = "score" if is_forward_facing(views.train_cameras) else "inside-first"
         self.budget_growth_order = budget_growth_order
         self.far_distance: Optional[float] = None
 
@@ -350,26 +350,13 @@ class MVGSStrategy(DefaultStrategy):
         first = self.plan is None and (self._queue[0][1]["step"] if self._queue else sched.step_count) == 0
         budget = self.config.initial_cap() if first else self.config.max_gaussians
         if first:  # the far line of budget_growth_order: the initial model's farthest mean, before the cut
-            self._take_far_distance(params["means"])
+            self.far_distance = farthest_distance(params["means"], self.scene_center)
         if budget is not None and len(params["means"]) > budget:
             self._shed(params, optimizers, {}, budget)
         if first:  # the budget's growth schedule starts from the count the run starts with
             sched.primitive_count = len(params["means"])
             if sched.initial_count is not None:  # taken by a plan drawn ahead, before the cut
                 sched.initial_count = sched.primitive_count
-
-    def _take_far_distance(self, means: Tensor) -> None:
-        if self.scene_center is not None and len(means):
-            d = torch.linalg.vector_norm(means.detach().double().cpu() - self.scene_center, dim=1)
-            self.far_distance = float(d.max())
-
-    def _beyond_far_line(self, means: Tensor) -> Optional[Tensor]:
-        """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from the scene
-        centre (GS3DAdapter's line); None without a centre or far_distance."""
-        if self.scene_center is None or self.far_distance is None:
-            return None
-        d = torch.linalg.vector_norm(means.detach() - self.scene_center.to(means), dim=1)
-        return d >= FAR_RESET_FRACTION * self.far_distance
 
     @staticmethod
     def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:
@@ -672,12 +659,12 @@ class MVGSStrategy(DefaultStrategy):
             score = mean * consistency_of(grad2d, sq, count)
         order = torch.sort(torch.where(cand, score, torch.full_like(score, -math.inf)), descending=True,
                            stable=True).indices
-        far = (self._beyond_far_line(means) if self.budget_growth_order == "inside-first" and means is not None
-               and len(means) == len(mean) else None)
-        if far is not None:  # a stable sort by tier keeps the score order within each (non-candidates stay last)
-            tier = torch.where(cand, far.to(torch.uint8), torch.full_like(far, 2, dtype=torch.uint8))
-            order = order[torch.sort(tier[order], stable=True).indices]
-        dropped = order[room:int(cand.sum())]
+        order = order[:int(cand.sum())]  # the candidates, best first
+        far = (beyond_far_line(means, self.scene_center, self.far_distance) if self.budget_growth_order == "inside-first"
+               and means is not None and len(means) == len(mean) else None)
+        if far is not None:
+            order = far_last(order, far)
+        dropped = order[room:]
         grad2d[dropped] = 0
         return len(dropped)
 
@@ -689,7 +676,7 @@ class MVGSStrategy(DefaultStrategy):
         cap, dropped, shed, swapped = ctx.max_primitives, 0, 0, 0
         if cap is not None:  # growth ranked into the room the budget leaves (a grow adds one row)
             if self.far_distance is None and self.budget_growth_order == "inside-first":  # check_sanity never ran
-                self._take_far_distance(means)
+                self.far_distance = farthest_distance(means, self.scene_center)
             room = max(0, cap - before)
             swapped = self._swap_out(params, optimizers, state, float(ctx.grad_threshold), room, cap, ctx.swap_share)
             dropped = self._rank_growth(state, float(ctx.grad_threshold), room + swapped, params["means"])

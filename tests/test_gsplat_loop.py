@@ -912,11 +912,10 @@ def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward
     assert strategy._swap_out(splats, optimizers, dict(state), threshold, int(cand.sum()), n, 0.5) == 0  # room enough
 
 
-# budget_growth_order in the wrap: rows at these distances from the scene centre; the farthest
-# (8) sets far_distance, so the far line is at 6 and rows 4-7 are beyond it. Every row is a growth
-# candidate and the far rows pull hardest, as a textured background does.
-ROW_DISTANCES = [0.5, 1.0, 3.0, 5.5, 6.5, 7.0, 7.5, 8.0]
-ROW_GRADS = [3e-4, 5e-4, 4e-4, 2.5e-4, 9e-4, 8e-4, 1e-3, 7e-4]
+# budget_growth_order in the wrap, on the rows of the adapter's test (test_budget_growth_order.py):
+# the farthest (8) sets far_distance, so the far line is at 6 and rows 4-7 are beyond it; every
+# row is a growth candidate and the far rows pull hardest, as a textured background does.
+from test_budget_growth_order import BETA, DISTANCES as ROW_DISTANCES, GRADS as ROW_GRADS, expected_clones  # noqa: E402
 
 
 def rows_at_distances(center):
@@ -945,17 +944,12 @@ def test_the_wraps_growth_order_fills_the_room_as_ranked_by_hand(tabletop, order
     strategy.check_sanity(splats, optimizers)
     assert strategy.far_distance == pytest.approx(max(ROW_DISTANCES), rel=1e-6)
     state = {"grad2d": torch.tensor(ROW_GRADS), "count": torch.ones(len(ROW_GRADS))}
-    rows = range(len(ROW_DISTANCES))
-    if resolved == "inside-first":
-        ranked = sorted(rows, key=lambda i: (ROW_DISTANCES[i] >= 0.75 * max(ROW_DISTANCES), -ROW_GRADS[i]))
-    else:
-        ranked = sorted(rows, key=lambda i: -ROW_GRADS[i])
-    assert strategy._rank_growth(state, 2e-4, room, splats["means"]) == len(ROW_GRADS) - room
-    assert sorted(torch.nonzero(state["grad2d"]).squeeze(1).tolist()) == sorted(ranked[:room])
+    assert strategy._rank_growth(state, BETA, room, splats["means"]) == len(ROW_GRADS) - room
+    assert sorted(torch.nonzero(state["grad2d"]).squeeze(1).tolist()) == sorted(expected_clones(room, resolved))
     if resolved == "inside-first" and room <= 4:  # every far row outscores the inside ones, and none grew
         assert all(ROW_DISTANCES[i] < 6.0 for i in torch.nonzero(state["grad2d"]).squeeze(1).tolist())
     state = {"grad2d": torch.tensor(ROW_GRADS), "count": torch.ones(len(ROW_GRADS))}  # room for all: nothing falls
-    assert strategy._rank_growth(state, 2e-4, len(ROW_GRADS), splats["means"]) == 0
+    assert strategy._rank_growth(state, BETA, len(ROW_GRADS), splats["means"]) == 0
 
 
 def test_the_wraps_growth_order_follows_the_rig_and_the_checkpoint(forward, tabletop):
