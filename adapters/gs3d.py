@@ -258,11 +258,73 @@ def consistency_of(grad_sum: Tensor, grad_sq_sum: Tensor, visits: Tensor) -> Ten
     return torch.where((grad_sq_sum <= 0) & (grad_sum > 0), torch.ones_like(ratio), ratio.clamp(max=1.0))
 
 
-def keep_scores_of(opacity: Tensor, coverage: Tensor) -> Tensor:
+SPREAD_LEVELS = 21  # spread_order's grid levels: 2^21 cells a side, a cell's code fits 63 bits
+
+
+def spread_order(positions: Tensor) -> Tensor:
+    """[N] scores in (0, 1] whose descending order lists `positions` [N, 3] coarse to fine, so
+    that every prefix is spread over space: on grids of 2^j cells a side over the points'
+    bounding cube (j = 0 .. SPREAD_LEVELS - 1), each occupied cell has one representative, its
+    point with the smallest key of a uniform draw (generator seed 0); a point's level is the
+    coarsest grid it represents (the grids nest, so it represents every finer one too), and its
+    score (SPREAD_LEVELS - level + 1 - key) / (SPREAD_LEVELS + 1). The first K of the order hold
+    one point of every occupied cell of the finest grid with at most K occupied cells: where
+    points crowd, the cut thins them; a point alone in its region stays. Points at one
+    position share the last level. Computed in float64 on the CPU."""
+    p = positions.detach().double().cpu()
+    n = p.shape[0]
+    key = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    level = torch.full((n,), SPREAD_LEVELS, dtype=torch.long)
+    if n:
+        lo = p.min(dim=0).values
+        span = max(float((p.max(dim=0).values - lo).max()), 1e-300)
+        unplaced = torch.ones(n, dtype=torch.bool)
+        for j in range(SPREAD_LEVELS):
+            c = ((p - lo) / span * 2 ** j).floor().long().clamp(0, 2 ** j - 1)
+            _, cell = torch.unique((c[:, 0] << (2 * j)) | (c[:, 1] << j) | c[:, 2], return_inverse=True)
+            first = torch.full((int(cell.max()) + 1,), math.inf, dtype=torch.float64)
+            first = first.scatter_reduce(0, cell, key, reduce="amin")
+            rep = key == first[cell]
+            level[rep & unplaced] = j
+            unplaced &= ~rep
+            if not bool(unplaced.any()):
+                break
+    return ((SPREAD_LEVELS - level).double() + 1.0 - key) / (SPREAD_LEVELS + 1)
+
+
+def even_cut_order(positions: Tensor, center: Optional[Tensor] = None) -> Tensor:
+    """[N] scores in (0, 1] for a cut before any view (largest kept): within each of two groups,
+    the rows beyond the far line (FAR_RESET_FRACTION of these positions' own farthest distance
+    from `center`) and the others, the group's own spread_order as 1 - rank / group size. So a cut keeps
+    each group's share of the rows (the scene's points are spread as its views' pixels are; a
+    far background shell's few points cover a large area and would take a world-space spread's
+    first places) and, within each, a subset spread over its extent. Without a center: one
+    group, spread_order."""
+    p = positions.detach().double().cpu()
+    center = None if center is None else torch.as_tensor(center, dtype=torch.float64).cpu().reshape(3)
+    far = beyond_far_line(p, center, farthest_distance(p, center))
+    if far is None:
+        return spread_order(p)
+    out = torch.empty(len(p), dtype=torch.float64)
+    for g in (far, ~far):
+        idx = g.nonzero().squeeze(1)
+        rank = torch.empty(len(idx), dtype=torch.float64)
+        rank[torch.sort(spread_order(p[idx]), descending=True, stable=True).indices] = torch.arange(
+            len(idx), dtype=torch.float64)
+        out[idx] = 1.0 - rank / max(len(idx), 1)
+    return out
+
+
+def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Optional[Tensor] = None,
+                   center: Optional[Tensor] = None) -> Tensor:
     """opacity x coverage (a Gaussian's summed footprint over the window's views), or, when no
-    view was folded in (coverage all 0), opacity x U(0, 1) drawn from a generator of seed 0."""
+    view was folded in (coverage all 0), opacity x even_cut_order(positions, center): a cut
+    before any view keeps the object's and the far background's shares, each spread over its
+    extent (without positions: opacity x U(0, 1) of a generator of seed 0, a random subset)."""
     if bool((coverage > 0).any()):
         return opacity * coverage.to(opacity)
+    if positions is not None:
+        return opacity * even_cut_order(positions, center).to(opacity)
     draw = torch.rand(len(opacity), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     return opacity * draw.to(opacity)
 
@@ -690,10 +752,12 @@ class GS3DAdapter:
         kept): opacity times the footprint summed over the views since the last densification
         (coverage_accum, shares of each view), so a Gaussian that covers much of many views
         outranks one seen in a single view or nearly transparent. Before any view was folded in
-        (all coverage 0) nothing says which Gaussian helps: opacity times a uniform draw of a
-        fixed seed, so a cut keeps a random subset of the points (size is no guide: the largest
-        initial Gaussians are the isolated ones, and size pruning removes them later)."""
-        return keep_scores_of(self.get_opacities().detach(), self.coverage_accum)
+        (all coverage 0) no view says which Gaussian helps: opacity times
+        even_cut_order(means, scene_center), so a cut keeps the object's and the far background's
+        shares of the points, each spread over its extent (a seeded random subset kept the shares
+        but left holes where the draw thinned; docs/equal_compute.md, "A first cut spread over
+        the model")."""
+        return keep_scores_of(self.get_opacities().detach(), self.coverage_accum, self.params["means"], self.scene_center)
 
     # ---- densification -------------------------------------------------------------------
     def densify(self, ctx: DensifyContext) -> DensifyReport:

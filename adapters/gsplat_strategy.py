@@ -359,16 +359,18 @@ class MVGSStrategy(DefaultStrategy):
                 sched.initial_count = sched.primitive_count
 
     @staticmethod
-    def keep_scores(params, state: Optional[Dict[str, Any]] = None) -> Tensor:
+    def keep_scores(params, state: Optional[Dict[str, Any]] = None, center: Optional[Tensor] = None) -> Tensor:
         """[N] the order in which Gaussians are kept when the model must shrink to the budget
         (largest kept): opacity times the summed footprint of the window's views (pi radius^2 /
-        (W H) per visit, state["mvgs_coverage"]) when any was folded in, else opacity times a
-        uniform draw of a fixed seed (a random subset), as GS3DAdapter.keep_scores."""
+        (W H) per visit, state["mvgs_coverage"]) when any was folded in, else opacity times
+        gs3d.even_cut_order(means, center) (the strategy passes its scene centre: inside and
+        beyond the far line each keep their share, spread over their extent), as
+        GS3DAdapter.keep_scores."""
         opacity = torch.sigmoid(params["opacities"].detach().reshape(-1))
         coverage = None if state is None else state.get("mvgs_coverage")
         if not (isinstance(coverage, Tensor) and len(coverage) == len(opacity)):
             coverage = torch.zeros_like(opacity)
-        return keep_scores_of(opacity, coverage)
+        return keep_scores_of(opacity, coverage, params["means"], center)
 
     def _shed(self, params, optimizers, state, cap: int) -> int:
         """Remove the lowest keep scores down to `cap` (gsplat's ops.remove); returns how many."""
@@ -376,7 +378,7 @@ class MVGSStrategy(DefaultStrategy):
         if excess <= 0:
             return 0
         mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
-        mask[torch.sort(self.keep_scores(params, state), stable=True).indices[:excess]] = True
+        mask[torch.sort(self.keep_scores(params, state, self.scene_center), stable=True).indices[:excess]] = True
         remove(params=params, optimizers=optimizers, state=state, mask=mask)
         return excess
 
@@ -710,7 +712,7 @@ class MVGSStrategy(DefaultStrategy):
         want = min(int(cand.sum()) - room, math.floor(share * cap), int((~cand).sum()))
         if want <= 0:
             return 0
-        score = torch.where(cand, torch.full_like(grad2d, math.inf), self.keep_scores(params, state).to(grad2d))
+        score = torch.where(cand, torch.full_like(grad2d, math.inf), self.keep_scores(params, state, self.scene_center).to(grad2d))
         mask = torch.zeros(len(grad2d), dtype=torch.bool, device=grad2d.device)
         mask[torch.sort(score, stable=True).indices[:want]] = True
         remove(params=params, optimizers=optimizers, state=state, mask=mask)

@@ -576,7 +576,7 @@ class ScaffoldAdapter:
           candidates dropped);
           prune: old anchors with anchor_denom > t_a and opacity_accum < min_opacity *
           anchor_denom; when the survivors alone exceed the cap, the ones with the lowest
-          keep_scores() go too (nothing grows then).
+          keep_scores(ctx.scene_center) go too (nothing grows then).
         Statistics: judged children and judged anchors restart from 0; new rows start at 0;
         views_seen restarts. Adam moments follow their rows (new rows 0); the MLPs' state is left
         alone. The anchor rows are new tensors without gradients (as in 3DGS densification).
@@ -597,7 +597,7 @@ class ScaffoldAdapter:
         prune = (self.anchor_denom > t_anchor) & (self.opacity_accum < self.config.min_opacity * self.anchor_denom)
         shed = torch.zeros_like(prune)
         if cap is not None and a0 - int(prune.sum()) > cap:  # shrink to the cap: the lowest keep scores go
-            score = torch.where(prune, torch.full_like(self.opacity_accum, math.inf), self.keep_scores())
+            score = torch.where(prune, torch.full_like(self.opacity_accum, math.inf), self.keep_scores(ctx.scene_center))
             shed[torch.sort(score, stable=True).indices[:a0 - int(prune.sum()) - cap]] = True
             prune = prune | shed
         budget = math.inf if cap is None else max(0, cap - (a0 - int(prune.sum())))
@@ -631,13 +631,14 @@ class ScaffoldAdapter:
                                     "visit_thresholds": (t_child, t_anchor), "shed_to_cap": int(shed.sum()),
                                     "cap": cap})
 
-    def keep_scores(self) -> Tensor:
+    def keep_scores(self, center: Optional[Tensor] = None) -> Tensor:
         """[A] the order in which anchors are kept when the model must shrink to a cap (largest
         kept): the opacity their children showed summed over the views since the last
         densification (opacity_accum), so an anchor that shows in many views outranks one seen in
-        a single view. Before any view was folded in, a uniform draw of a fixed seed (a random
-        subset of the anchors is kept)."""
-        return keep_scores_of(torch.ones_like(self.opacity_accum), self.opacity_accum)
+        a single view. Before any view was folded in, gs3d.even_cut_order of the anchors with
+        `center` (the scene's; densify passes DensifyContext.scene_center): the anchors inside and
+        beyond the far line each keep their share, spread over their extent."""
+        return keep_scores_of(torch.ones_like(self.opacity_accum), self.opacity_accum, self.anchors, center)
 
     def _seed(self, xyz: Tensor, feats: Tensor, g: Tensor, sel: Tensor, occupied: Tensor, size: float,
               cap: Optional[int], budget: float) -> Tuple[Tensor, Tensor]:

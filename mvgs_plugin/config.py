@@ -325,8 +325,9 @@ class MVGSConfig:
         -3.60 on the 360-degree scenes (those with size pruning on). GS3DAdapter, GS4DAdapter and
         MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
     budget_initial_share: the share of max_gaussians the initial model may hold: a model that
-        starts above floor(share x N) is cut to it before the first step (lowest keep scores,
-        a seeded random subset before any view), so that the rest of the budget is grown by the
+        starts above floor(share x N) is cut to it before the first step (lowest keep scores;
+        before any view, gs3d.even_cut_order: the object's and the far background's shares,
+        each spread over its extent), so that the rest of the budget is grown by the
         densify score, where the views' gradients ask for it. 1 (the default): the initial
         model may fill the budget, and a model that starts at or above it never grows.
     budget_size_pruning: whether a run with a budget (max_gaussians) still prunes by size

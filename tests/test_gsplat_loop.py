@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
 from mvgs_plugin import CRDConfig, MVGSConfig
+from mvgs_plugin.adapters.gs3d import even_cut_order
 from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy, views_of
 from mvgs_plugin.adapters import gsplat_strategy
 from mvgs_plugin.data import load_scene
@@ -826,12 +827,13 @@ def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp
 def test_keep_scores_and_the_cut_at_check_sanity(forward):
     cfg, splats, optimizers = fresh_model(forward)
     n = len(splats["means"])
-    # no view folded in yet: opacity x a uniform draw of seed 0 (a random subset)
-    draw = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
-    want = torch.sigmoid(splats["opacities"].detach()) * draw
+    # no view folded in yet: opacity x even_cut_order of the means about the rig's centre
+    # (tests/test_initial_cut.py checks that order against grid blocks and group shares)
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n // 2), steps=12)
+    assert strategy.scene_center is not None
+    want = torch.sigmoid(splats["opacities"].detach()) * even_cut_order(splats["means"], strategy.scene_center).float()
     kept = set(torch.argsort(want, descending=True)[:n // 2].tolist())
     ref = {tuple(splats["means"][i].tolist()) for i in kept}
-    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n // 2), steps=12)
     strategy.check_sanity(splats, optimizers)
     assert {tuple(m) for m in splats["means"].detach().tolist()} == ref
     assert all(len(opt.param_groups[0]["params"][0]) == n // 2 for opt in optimizers.values())
@@ -843,12 +845,11 @@ def test_the_cut_at_check_sanity_keeps_the_initial_share(forward):
     cfg, splats, optimizers = fresh_model(forward)
     n = len(splats["means"])
     budget = n // 2
-    draw = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
-    want = torch.sigmoid(splats["opacities"].detach()) * draw
-    kept = set(torch.argsort(want, descending=True)[:budget // 2].tolist())
-    ref = {tuple(splats["means"][i].tolist()) for i in kept}
     mvgs = MVGSConfig.default(max_gaussians=budget, budget_initial_share=0.5)
     strategy = MVGSStrategy(small_clock(), forward, mvgs, steps=12)
+    want = torch.sigmoid(splats["opacities"].detach()) * even_cut_order(splats["means"], strategy.scene_center).float()
+    kept = set(torch.argsort(want, descending=True)[:budget // 2].tolist())
+    ref = {tuple(splats["means"][i].tolist()) for i in kept}
     strategy.check_sanity(splats, optimizers)
     assert {tuple(m) for m in splats["means"].detach().tolist()} == ref
     sched = strategy.schedule

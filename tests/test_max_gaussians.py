@@ -13,7 +13,7 @@ import torch
 
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin.config import Stage
-from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig, even_cut_order
 from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin.protocol import DensifyReport
 from mvgs_plugin.testing import synthetic_scene
@@ -70,9 +70,10 @@ def resumed_copy(trainer, scene, cfg, tmp_path):
 def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
     budget = 50
     trainer = MVGS(make(scene), scene, config(budget))
-    # no view folded in yet: opacity x a uniform draw of seed 0 (a random subset)
-    draw = torch.rand(80, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
-    scores = trainer.adapter.get_opacities().detach() * draw
+    # no view folded in yet: opacity x even_cut_order about the scene's centre (the object's and the
+    # far background's shares, each spread; tests/test_initial_cut.py checks that order)
+    scores = trainer.adapter.get_opacities().detach() * even_cut_order(trainer.adapter.params["means"],
+                                                                        scene.center).float()
     want = sorted(torch.argsort(scores, descending=True)[:budget].tolist())
     means0 = trainer.adapter.params["means"].detach().clone()
     counts = watch_renders(trainer)
@@ -127,7 +128,7 @@ def test_the_budget_holds_through_every_phase_and_follows_its_schedule(scene, tm
 
 def test_an_initial_share_leaves_room_that_growth_fills_by_the_schedule(scene, tmp_path):
     """budget_initial_share s: a model above floor(s N) is cut to it before the first render (the
-    same seeded random subset as a cut to N would rank), the schedule starts from that count and
+    same order as a cut to N would rank), the schedule starts from that count and
     reaches N, growth fills the room, and a resumed run is not cut again (it is the same run)."""
     budget, share = 60, 0.5
     start = math.floor(share * budget)
@@ -135,14 +136,14 @@ def test_an_initial_share_leaves_room_that_growth_fills_by_the_schedule(scene, t
     assert cfg.initial_cap() == start == 30
     trainer = MVGS(make(scene), scene, cfg)
     assert trainer.adapter.num_primitives() == 80 > budget
-    draw = torch.rand(80, generator=torch.Generator().manual_seed(0), dtype=torch.float64).float()
-    want = sorted(torch.argsort(trainer.adapter.get_opacities().detach() * draw, descending=True)[:start].tolist())
+    order = even_cut_order(trainer.adapter.params["means"], scene.center).float()
+    want = sorted(torch.argsort(trainer.adapter.get_opacities().detach() * order, descending=True)[:start].tolist())
     means0 = trainer.adapter.params["means"].detach().clone()
     counts = watch_renders(trainer)
     caps = []
     for _ in range(STEPS // 2):
         info = trainer.step()
-        if info.step == 1:  # the rows kept by the cut: the top `start` of the draw
+        if info.step == 1:  # the rows kept by the cut: the top `start` of that order
             kept = trainer.adapter.params["means"].detach()
             assert sorted(torch.cdist(kept.double(), means0.double()).argmin(1).tolist()) == want
         if info.densify is not None:
