@@ -258,6 +258,29 @@ def consistency_of(grad_sum: Tensor, grad_sq_sum: Tensor, visits: Tensor) -> Ten
     return torch.where((grad_sq_sum <= 0) & (grad_sum > 0), torch.ones_like(ratio), ratio.clamp(max=1.0))
 
 
+def farthest_distance(means: Tensor, center: Optional[Tensor]) -> Optional[float]:
+    """far_distance: the largest distance of `means` [N, 3] from `center` [3] (float64, taken on
+    the CPU); None without a centre or rows. Its FAR_RESET_FRACTION is the far line."""
+    if center is None or not len(means):
+        return None
+    return float(torch.linalg.vector_norm(means.detach().double().cpu() - center, dim=1).max())
+
+
+def beyond_far_line(means: Tensor, center: Optional[Tensor], far_distance: Optional[float]) -> Optional[Tensor]:
+    """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from `center` (the far
+    background of a rig round the scene); None without a centre or far_distance."""
+    if center is None or far_distance is None:
+        return None
+    d = torch.linalg.vector_norm(means.detach() - center.to(means), dim=1)
+    return d >= FAR_RESET_FRACTION * far_distance
+
+
+def far_last(order: Tensor, far: Tensor) -> Tensor:
+    """`order` (row indices) with the rows `far` marks after all others, each group in its order
+    (budget_growth_order "inside-first": a stable sort by tier)."""
+    return order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
+
+
 SPREAD_LEVELS = 21  # spread_order's grid levels: 2^21 cells a side, a cell's code fits 63 bits
 
 
@@ -311,45 +334,18 @@ def even_cut_order(positions: Tensor, center: Optional[Tensor] = None) -> Tensor
         rank = torch.empty(len(idx), dtype=torch.float64)
         rank[torch.sort(spread_order(p[idx]), descending=True, stable=True).indices] = torch.arange(
             len(idx), dtype=torch.float64)
-        out[idx] = 1.0 - rank / max(len(idx), 1)
+        out[idx] = 1.0 - rank / len(idx)  # an empty group assigns nothing
     return out
 
 
-def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Optional[Tensor] = None,
-                   center: Optional[Tensor] = None) -> Tensor:
+def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Tensor, center: Optional[Tensor]) -> Tensor:
     """opacity x coverage (a Gaussian's summed footprint over the window's views), or, when no
     view was folded in (coverage all 0), opacity x even_cut_order(positions, center): a cut
     before any view keeps the object's and the far background's shares, each spread over its
-    extent (without positions: opacity x U(0, 1) of a generator of seed 0, a random subset)."""
+    extent."""
     if bool((coverage > 0).any()):
         return opacity * coverage.to(opacity)
-    if positions is not None:
-        return opacity * even_cut_order(positions, center).to(opacity)
-    draw = torch.rand(len(opacity), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    return opacity * draw.to(opacity)
-
-
-def farthest_distance(means: Tensor, center: Optional[Tensor]) -> Optional[float]:
-    """far_distance: the largest distance of `means` [N, 3] from `center` [3] (float64, taken on
-    the CPU); None without a centre or rows. Its FAR_RESET_FRACTION is the far line."""
-    if center is None or not len(means):
-        return None
-    return float(torch.linalg.vector_norm(means.detach().double().cpu() - center, dim=1).max())
-
-
-def beyond_far_line(means: Tensor, center: Optional[Tensor], far_distance: Optional[float]) -> Optional[Tensor]:
-    """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from `center` (the far
-    background of a rig round the scene); None without a centre or far_distance."""
-    if center is None or far_distance is None:
-        return None
-    d = torch.linalg.vector_norm(means.detach() - center.to(means), dim=1)
-    return d >= FAR_RESET_FRACTION * far_distance
-
-
-def far_last(order: Tensor, far: Tensor) -> Tensor:
-    """`order` (row indices) with the rows `far` marks after all others, each group in its order
-    (budget_growth_order "inside-first": a stable sort by tier)."""
-    return order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
+    return opacity * even_cut_order(positions, center).to(opacity)
 
 
 def _check_center(center) -> Optional[Tensor]:
