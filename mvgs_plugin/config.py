@@ -583,8 +583,9 @@ class MVGSConfig:
         (forward_rig_budget=False): there it is default(), i.e. the baseline. Measured on the
         generated 360-degree scenes against default() and the baseline at equal work, seeds and
         10k steps in docs/equal_compute.md ("The compact preset"). It keeps the default's shares at
-        every budget (no warmup_work_cap): the cap was measured on the default without a Gaussian
-        budget, and compact's 10k evidence is with 30 % at 1/2."""
+        every budget (no warmup_work_cap): under its budget the cap is a trade between scenes, not
+        a gain (at 10k +0.24 to +0.71 dB on three scenes, -0.63 / -0.94 on the clutter scene's
+        two seeds; docs/equal_compute.md, "The compact preset with today's rules")."""
         return cls.default(**{"preset": "compact", "pixels_per_gaussian": COMPACT_PIXELS_PER_GAUSSIAN,
                               "forward_rig_budget": False, "warmup_work_cap": None, **overrides})
 

@@ -37,8 +37,9 @@ def test_compact_is_the_default_with_a_data_budget(orbit):
     compact, default = MVGSConfig.compact(), MVGSConfig.default()
     differ = {f.name for f in dataclasses.fields(MVGSConfig) if getattr(compact, f.name) != getattr(default, f.name)}
     assert differ == {"preset", "pixels_per_gaussian", "forward_rig_budget", "warmup_work_cap"}
-    # compact keeps the default's 30 % at 1/2 at every budget (its 10k evidence); the default's
-    # warm-up is held to 1000 views' work beyond a budget of 3333
+    # compact keeps the default's 30 % at 1/2 at every budget (under a budget the cap is a trade
+    # between scenes, docs/equal_compute.md); the default's warm-up is held to 1000 views' work
+    # beyond a budget of 3333
     assert compact.warmup_work_cap is None and default.warmup_work_cap == 1000
     for budget in (3000, 10_000):
         plan = compact.with_budget(budget).stages
