@@ -324,7 +324,7 @@ def even_cut_order(positions: Tensor, center: Optional[Tensor] = None) -> Tensor
     first places) and, within each, a subset spread over its extent. Without a center: one
     group, spread_order."""
     p = positions.detach().double().cpu()
-    center = None if center is None else torch.as_tensor(center, dtype=torch.float64).cpu().reshape(3)
+    center = _check_center(center)
     far = beyond_far_line(p, center, farthest_distance(p, center))
     if far is None:
         return spread_order(p)
