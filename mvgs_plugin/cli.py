@@ -369,9 +369,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=PRESETS, default="default",
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
-                         "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of the "
-                         "training pixels / 213 primitives (Gaussians; anchors for Scaffold-GS; none on a "
-                         "forward-facing rig); paper: the released code; "
+                         "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of "
+                         "48 mean training views' pixels / 213 primitives (3692 at 128 px, whatever the number of "
+                         "views; Gaussians; anchors for Scaffold-GS; none on a forward-facing rig); paper: the released code; "
                          "baseline: the plain model (3DGS, Scaffold-GS or 4DGS: one view per step at full "
                          "resolution, no MVGS rule)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
@@ -445,6 +445,14 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
                     help="budget from the data: --max-gaussians = the training views' pixels / P (3DGS ends near "
                          "70-210 on its benchmarks; MVGSConfig.pixels_per_gaussian; ignored with --max-gaussians)")
+    ap.add_argument("--budget-rigs", choices=["all", "round"], default=None,
+                    help="with --pixels-per-gaussian: the rigs it budgets: all, or round (only a rig round the scene, "
+                         "not a forward-facing one nor one that looks outward) (MVGSConfig.budget_rigs; compact: "
+                         "round; default: all)")
+    ap.add_argument("--budget-views", type=int_at_least(0, MAX_PRIMITIVES), default=None, metavar="V",
+                    help="with --pixels-per-gaussian: count the pixels of V views of the training views' mean size, "
+                         "however many the rig has; 0: every view (MVGSConfig.budget_views; compact: 48, its "
+                         "runs saved before 2026-11-28 resume with 0; default: every view)")
     ap.add_argument("--densify-rank", choices=["consistency", "gradient"], default=None,
                     help="score that picks growth candidates when a budget binds: consistency (the gradient times "
                          "how evenly the views share it) or gradient (3DGS) (default: consistency)")
@@ -525,8 +533,10 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         preset_overrides = {**preset_overrides, "stages": args.stages, "warmup_work_cap": None}
     if getattr(args, "warmup_work_cap", None) is not None:
         preset_overrides = {**preset_overrides, "warmup_work_cap": args.warmup_work_cap or None}
+    if getattr(args, "budget_views", None) is not None:  # 0: every training view
+        preset_overrides = {**preset_overrides, "budget_views": args.budget_views or None}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
-                 "pixels_per_gaussian", "densify_rank", "budget_swap", "budget_size_pruning",
+                 "pixels_per_gaussian", "budget_rigs", "densify_rank", "budget_swap", "budget_size_pruning",
                  "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset", "lambda_dssim"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
