@@ -120,3 +120,33 @@ def test_the_thin_variants_fence_stands_round_the_objects_and_its_points_lie_on_
     share = float(is_post[off.argmin(axis=1)].mean())
     expected = float(area[is_post].sum() / area.sum())  # 0.42
     assert abs(share - expected) < 4 * math.sqrt(expected * (1 - expected) / len(pts))
+
+
+def test_the_golden_angle_rigs_test_views_stand_among_their_training_views_at_any_count():
+    # Checked by plain geometry: the angle (seen from the target) from every test view to its
+    # nearest training view, against the training views' own spacing. Before, 20 + 12 views put
+    # every test view in a 145-degree arc no training view faced (one 50.7 degrees from any).
+    ms = load_make_scene()
+
+    def directions(views, split):
+        d = np.array([v.c2w[:3, 3] - ms.TARGET for v in views if v.split == split])
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    for n_test in (8, 12):
+        for n_train in (10, 16, 20, 24, 30, 32, 40, 48, 64, 96):
+            views = ms.make_views("default", n_train, n_test, 32)
+            train, test = directions(views, "train"), directions(views, "test")
+            assert len(train) == n_train and len(test) == n_test
+            to_train = np.degrees(np.arccos(np.clip(test @ train.T, -1, 1))).min(1)
+            among = np.degrees(np.arccos(np.clip(train @ train.T, -1, 1)))
+            np.fill_diagonal(among, np.inf)
+            spacing = np.median(among.min(1))
+            assert to_train.max() <= 2.5 * spacing, (n_train, n_test, to_train.max(), spacing)
+            if n_train >= 30:
+                assert to_train.max() <= 15.0, (n_train, n_test, to_train.max())
+    # 48 + 12 (every generated 360-degree scene) keeps the evenly spaced slots of the rig's order
+    views = ms.make_views("default", 48, 12, 32)
+    rig = ms.rig_dense(60)
+    expected = np.array([rig[k] for k in sorted(ms.pick_test_slots(60, 12))])
+    got = np.array([v.c2w[:3, 3] for v in views if v.split == "test"])
+    np.testing.assert_allclose(got, expected, atol=1e-12)

@@ -214,6 +214,23 @@ def radical_inverse(k: int, base: int) -> float:
     return out
 
 
+def azimuth_gap_deg(centres: list[np.ndarray]) -> float:
+    """The widest gap, in degrees, between the azimuths (about TARGET) of `centres`, round the circle."""
+    az = np.sort([math.degrees(math.atan2(c[1] - TARGET[1], c[0] - TARGET[0])) % 360.0 for c in centres])
+    return float(np.max(np.diff(np.append(az, az[0] + 360.0))))
+
+
+def dense_test_slots(rig: list, slots: set[int], n_test: int) -> set[int]:
+    """Test slots on the golden-angle rig: the evenly spaced slots of the rig's order, unless their
+    azimuths bunch (a widest gap over twice an even share of the circle: for 20 + 12 views the
+    12 spaced slots step 6.7 degrees round and leave a 250-degree arc; 48 + 12 step 32.5 and keep
+    their slots); then the evenly spaced slots of the rig sorted by azimuth."""
+    if n_test < 2 or azimuth_gap_deg([rig[k][0] for k in slots]) <= 2 * 360.0 / n_test:
+        return slots
+    order = sorted(range(len(rig)), key=lambda k: math.atan2(rig[k][0][1] - TARGET[1], rig[k][0][0] - TARGET[0]))
+    return {order[k] for k in pick_test_slots(len(rig), n_test)}
+
+
 def pick_test_slots(n_total: int, n_test: int) -> set[int]:
     """Rig slots given to test views: spread evenly, so test interleaves with train."""
     if n_test == 0:
@@ -441,6 +458,7 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
         rig = rig_aerial(n_total)
     else:
         rig = [(c, TARGET) for c in rig_dense(n_total)]
+        slots = dense_test_slots(rig, slots, n_test)
     # a camera looking (nearly) straight down takes "up" in its image from the world's +y
     up = (0.0, 1.0, 0.0) if variant == "aerial" else (0.0, 0.0, 1.0)
     for k, (c, look) in enumerate(rig):
