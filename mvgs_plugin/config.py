@@ -73,7 +73,7 @@ COMPACT_PIXELS_PER_GAUSSIAN = 213.0
 # 48 of the generated scenes the ratio above was fixed on, so their budget is unchanged (3692 at
 # 128 px). Counting every view gave the 10-view scene 769 Gaussians and cost it 5.7 dB at 10k; the
 # content a rig round the scene shows does not grow with its number of views (docs/equal_compute.md,
-# "A data budget that does not shrink with the views").
+# "A data budget that does not shrink with the views, and none on a rig that looks outward").
 COMPACT_BUDGET_VIEWS = 48
 
 # Upper bounds of the run's ints: a seed every RNG takes (numpy's legacy ones stop at 2^32), and
@@ -599,10 +599,12 @@ class MVGSConfig:
         """default() with a Gaussian budget from the data: the pixels of 48 training views of
         their mean size / 213 (COMPACT_BUDGET_VIEWS, COMPACT_PIXELS_PER_GAUSSIAN; 3692 Gaussians
         at 128 px, on a rig of 10 views as on one of 96), grown by the multi-view consistency
-        score and never exceeded, without size pruning (budget_size_pruning). On a forward-facing rig no budget
-        (budget_rigs="round"), nor on one that looks outward: there it is default(), i.e. the baseline. Measured on the
-        generated 360-degree scenes against default() and the baseline at equal work, seeds and
-        10k steps in docs/equal_compute.md ("The compact preset"). It keeps the default's shares at
+        score and never exceeded, without size pruning (budget_size_pruning). Only on a rig round
+        the scene (budget_rigs="round"): on a forward-facing rig, or one that looks outward, it is
+        default() (on a forward-facing rig, the baseline). Measured on the generated 360-degree
+        scenes against default() and the baseline at equal work, seeds and 10k steps in
+        docs/equal_compute.md ("The compact preset"; its budget rule: "A data budget that does
+        not shrink with the views"). It keeps the default's shares at
         every budget (no warmup_work_cap): under its budget the cap is a trade between scenes, not
         a gain (at 10k +0.24 to +0.71 dB on three scenes, -0.63 / -0.94 on the clutter scene's
         two seeds; docs/equal_compute.md, "The compact preset with today's rules")."""
