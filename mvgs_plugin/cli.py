@@ -371,7 +371,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="the recipe (default: default). default: cost-aware (coarse-to-fine, one view per step); multiview: M views at every "
                          "pyramid level with MVAD and CRD (wins at equal steps); compact: default with a budget of "
                          "48 mean training views' pixels / 213 primitives (3692 at 128 px, whatever the number of "
-                         "views; Gaussians; anchors for Scaffold-GS; none on a forward-facing rig); paper: the released code; "
+                         "views; Gaussians; anchors for Scaffold-GS; none on a forward-facing rig nor on one that looks "
+                         "outward); paper: the released code; "
                          "baseline: the plain model (3DGS, Scaffold-GS or 4DGS: one view per step at full "
                          "resolution, no MVGS rule)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per step M at full resolution (coarser stages scale; default: as the preset)")
