@@ -214,9 +214,14 @@ def radical_inverse(k: int, base: int) -> float:
     return out
 
 
+def azimuth_deg(c: np.ndarray) -> float:
+    """The azimuth of a camera centre about TARGET, in degrees in (-180, 180]."""
+    return math.degrees(math.atan2(c[1] - TARGET[1], c[0] - TARGET[0]))
+
+
 def azimuth_gap_deg(centres: list[np.ndarray]) -> float:
-    """The widest gap, in degrees, between the azimuths (about TARGET) of `centres`, round the circle."""
-    az = np.sort([math.degrees(math.atan2(c[1] - TARGET[1], c[0] - TARGET[0])) % 360.0 for c in centres])
+    """The widest gap, in degrees, between the azimuths of `centres`, round the circle."""
+    az = np.sort([azimuth_deg(c) % 360.0 for c in centres])
     return float(np.max(np.diff(np.append(az, az[0] + 360.0))))
 
 
@@ -227,7 +232,7 @@ def dense_test_slots(rig: list, slots: set[int], n_test: int) -> set[int]:
     their slots); then the evenly spaced slots of the rig sorted by azimuth."""
     if n_test < 2 or azimuth_gap_deg([rig[k][0] for k in slots]) <= 2 * 360.0 / n_test:
         return slots
-    order = sorted(range(len(rig)), key=lambda k: math.atan2(rig[k][0][1] - TARGET[1], rig[k][0][0] - TARGET[0]))
+    order = sorted(range(len(rig)), key=lambda k: azimuth_deg(rig[k][0]))
     return {order[k] for k in pick_test_slots(len(rig), n_test)}
 
 
