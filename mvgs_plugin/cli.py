@@ -138,6 +138,7 @@ def scene_from_args(args, dynamic_model: bool = False):
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
                            background_points=args.background_points, background=scene_background(args),
+                           backdrop_drawn=getattr(args, "background", "auto") != "random",
                            images=getattr(args, "images", None))
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
         if args.init_cache is not None and str(args.init_cache) in str(err):
@@ -391,11 +392,13 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="initial points of a scene without a point file: triangulate (pycolmap from the training "
                          "views at their poses, the rest filled with photo-consistent points; falls back to random "
                          "with the reason when too few tracks are found), random (the 3DGS cube when the cameras "
-                         "surround the scene, the training frusta when they face one way), frusta or cube")
+                         "surround the scene, inside the views' silhouettes when the images show an object on a "
+                         "backdrop, the training frusta when they face one way), frusta or cube")
     ap.add_argument("--background-points", type=int_at_least(0, MAX_INIT_POINTS), default=BACKGROUND_POINTS, metavar="N",
                     help="N more initial points on a sphere twice the rig's radius for the far background (sky, "
                          "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
-                         "(3DGS's init). A forward-facing rig gets none")
+                         "(3DGS's init). A forward-facing rig gets none, nor does an object on a backdrop (every "
+                         "training image's border the background colour)")
     ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|random|R,G,B",
                     help="the colour behind the Gaussians, and the one RGBA images are composited on. auto: a "
                          "NeRF-style scene's RGBA images on white; images without alpha on the colour their borders "

@@ -150,3 +150,43 @@ def test_the_golden_angle_rigs_test_views_stand_among_their_training_views_at_an
     expected = np.array([rig[k] for k in sorted(ms.pick_test_slots(60, 12))])
     got = np.array([v.c2w[:3, 3] for v in views if v.split == "test"])
     np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+def test_the_object_rig_looks_at_its_objects_from_below_and_above_and_its_points_are_on_them():
+    ms = load_make_scene()
+    for variant in ms.ALPHA_VARIANTS:
+        views = ms.make_views(variant, 48, 12, 128)
+        assert sum(v.split == "train" for v in views) == 48 and sum(v.split == "test" for v in views) == 12
+        elev = []
+        for v in views:
+            c = v.c2w[:3, 3] - ms.TARGET
+            assert ms.OBJECT_DIST[0] - 1e-9 <= np.linalg.norm(c) <= ms.OBJECT_DIST[1] + 1e-9
+            elev.append(math.degrees(math.asin(c[2] / np.linalg.norm(c))))
+            x = v.w2c[:3, :3] @ ms.TARGET + v.w2c[:3, 3]  # the optical axis passes through the target
+            assert x[2] > 0 and np.allclose(x[:2], 0.0, atol=1e-9)
+        lo, hi = ms.OBJECT_ELEV_DEG
+        assert lo - 1e-9 <= min(elev) < lo + 5.0 and hi - 5.0 < max(elev) <= hi + 1e-9
+        # even in sine: a quarter of the band's sine range holds about a quarter of the cameras
+        s = np.sin(np.radians(elev))
+        q = np.sin(np.radians(lo)) + 0.25 * (np.sin(np.radians(hi)) - np.sin(np.radians(lo)))
+        assert abs(float((s < q).mean()) - 0.25) <= 1.0 / 60 + 1e-9
+        # test views on every side of the objects (azimuth gaps under twice an even share) and at every height
+        tests = [v for v in views if v.split == "test"]
+        assert ms.azimuth_gap_deg([v.c2w[:3, 3] for v in tests]) <= 2 * 360.0 / 12
+        test_elev = [e for e, v in zip(elev, views) if v.split == "test"]
+        assert min(test_elev) < 0.0 < max(test_elev)
+        cams = cameras_of(views)
+        assert axis_spread(cams) >= CONVERGING_SPREAD and look_convergence(cams) >= CONVERGING_COSINE
+        # no ground: every sampled point lies on one of the four objects' surfaces
+        obj = ms.objects_at(variant, 0.0)
+        pts = ms.sample_surface(variant, 3000, np.random.default_rng(0))
+        on_ball = np.abs(np.linalg.norm(pts - obj.ball_centre, axis=1) - obj.ball_radius) < 1e-9
+        on_metal = np.abs(np.linalg.norm(pts - obj.metal_centre, axis=1) - obj.metal_radius) < 1e-9
+        local = (pts - obj.box_centre) @ np.linalg.inv(ms.box_to_world(obj)[:3, :3]).T
+        on_box = np.abs(np.abs(local).max(axis=1) - 1.0) < 1e-9
+        radial = np.linalg.norm(pts[:, :2] - obj.cyl_base[:2], axis=1)
+        height = pts[:, 2] - obj.cyl_base[2]
+        on_cyl = ((np.abs(radial - obj.cyl_radius) < 1e-9) & (height > -1e-9) & (height < obj.cyl_height + 1e-9)) | (
+            (np.abs(height - obj.cyl_height) < 1e-9) & (radial <= obj.cyl_radius + 1e-9))
+        assert (on_ball | on_metal | on_box | on_cyl).all()
+        assert min(on_ball.sum(), on_metal.sum(), on_box.sum(), on_cyl.sum()) > 100

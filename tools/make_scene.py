@@ -71,6 +71,14 @@ Variants (``--variant``):
   on a circle of radius 1.35 round the objects, joined by three rings of pale wire (0.016
   across, about 0.6 px), on the default's hemisphere rig. Structure thinner than a pixel, in
   front of the objects in every view: at the pyramid's 1/4 level it is a quarter of that.
+* ``object``: the default scene's four objects floating with no ground (the cylinder closed
+  below), lit by the default's sky and sun, on a **transparent backdrop** (the sky lights them but
+  no camera ray shows it): RGBA PNGs with straight alpha, the NeRF-synthetic kind of capture.
+  48 train + 12 test views over the sphere's band from 40 degrees below the objects' middle to
+  75 above (golden-angle azimuth, elevation even in sine), 2.8-3.3 away: the only rig that looks
+  up at its scene. Its points lie on the objects only.
+* ``object-reflective``: ``object`` with the reflective variant's materials and sky light (a mirror
+  ball that shows the hidden sky, rough copper and aluminium, glossy plastic).
 * ``room-walk``: the same room seen by cameras that walk a loop of radius ROOM_WALK_RADIUS about
   its middle, each looking ahead along the loop (yaw jittered by up to 30 degrees either way):
   the axes spread every way and meet nowhere, as for the room, but the objects near the walls
@@ -98,10 +106,12 @@ from typing import Optional
 import numpy as np
 
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
-            "room", "room-walk", "arc", "aerial", "thin")
+            "room", "room-walk", "arc", "aerial", "thin", "object", "object-reflective")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 ROOM_VARIANTS = ("room", "room-walk")
 CLUTTER_CONTENT = ("clutter", "forward-clutter", "arc", "aerial")  # the clutter scene's primitives and light
+ALPHA_VARIANTS = ("object", "object-reflective")  # RGBA images: the backdrop (the hidden sky) is transparent
+REFLECTIVE_MATERIALS = ("reflective", "object-reflective")  # a mirror ball, rough metals, glossy plastic
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
 FOV_X_DEG = 45.0
@@ -154,6 +164,11 @@ AERIAL_ASPECT = 0.75
 FENCE_POSTS, FENCE_RADIUS, FENCE_POST_HEIGHT = 12, 1.35, 1.1
 FENCE_POST_RADIUS, FENCE_WIRE_RADIUS = 0.015, 0.008
 FENCE_WIRE_HEIGHTS = (0.35, 0.7, 1.05)
+
+# object: a rig over the whole sphere about the objects, from below their middle to near the
+# zenith (elevation range, degrees), and its distance range from TARGET
+OBJECT_ELEV_DEG = (-40.0, 75.0)
+OBJECT_DIST = (2.8, 3.3)
 
 # clutter: primitive layout seed and the sun (azimuth, elevation) in radians
 CLUTTER_SEED = 2024
@@ -256,6 +271,22 @@ def rig_dense(n_total: int) -> list[np.ndarray]:
         frac = (radical_inverse(k, 3) + 0.5 / n_total) % 1.0
         elev = math.asin(lo + (hi - lo) * frac)
         dist = 4.0 + 0.6 * (radical_inverse(k, 5) - 0.5)
+        centres.append(TARGET + dist * np.array(
+            [math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az), math.sin(elev)]))
+    return centres
+
+
+def rig_object(n_total: int) -> list[np.ndarray]:
+    """A rig round an object seen from every side, below it too (NeRF-synthetic's kind of capture,
+    over more of the sphere): golden-angle azimuth, elevation uniform in sine over
+    OBJECT_ELEV_DEG (so evenly spread over that band of the sphere), distance in OBJECT_DIST."""
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    lo, hi = (math.sin(math.radians(e)) for e in OBJECT_ELEV_DEG)
+    centres = []
+    for k in range(n_total):
+        az = k * golden
+        elev = math.asin(lo + (hi - lo) * (k + 0.5) / n_total)
+        dist = OBJECT_DIST[0] + (OBJECT_DIST[1] - OBJECT_DIST[0]) * radical_inverse(k, 3)
         centres.append(TARGET + dist * np.array(
             [math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az), math.sin(elev)]))
     return centres
@@ -461,6 +492,9 @@ def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]
         rig = rig_arc(n_total)
     elif variant == "aerial":
         rig = rig_aerial(n_total)
+    elif variant in ALPHA_VARIANTS:
+        rig = [(c, TARGET) for c in rig_object(n_total)]
+        slots = dense_test_slots(rig, slots, n_test)
     else:
         rig = [(c, TARGET) for c in rig_dense(n_total)]
         slots = dense_test_slots(rig, slots, n_test)
@@ -844,7 +878,7 @@ class SceneBuilder:
 
     def materials(self) -> dict:
         ground = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": self.ground_tex}}
-        if self.variant == "reflective":
+        if self.variant in REFLECTIVE_MATERIALS:
             return {
                 "ground": ground,
                 "ball": {"type": "conductor", "material": "Ag"},  # a mirror ball
@@ -1003,13 +1037,15 @@ class SceneBuilder:
             "sun": {"type": "directional", "direction": sun_dir.tolist(),
                     "irradiance": {"type": "rgb", "value": [2.2, 2.0, 1.75]}},
         }
-        if self.variant == "reflective":
+        if self.variant in REFLECTIVE_MATERIALS:
             # No delta sun here: a path tracer cannot find sun -> near-mirror -> diffuse paths
             # except by luck, and those caustic fireflies would need far more samples.
             lights = {"sky": {**lights["sky"], "scale": 1.3}}
         out = {
             "type": "scene",
-            "integrator": {"type": "path", "max_depth": 8 if self.variant == "reflective" else 6},
+            "integrator": {"type": "path", "max_depth": 8 if self.variant in REFLECTIVE_MATERIALS else 6,
+                           # an object on a transparent backdrop: the sky lights it, no ray shows it
+                           "hide_emitters": self.variant in ALPHA_VARIANTS},
             **lights,
             "ground": self.ground_mesh(mat["ground"]),
             "ball": {"type": "sphere", "center": obj.ball_centre.tolist(),
@@ -1023,6 +1059,11 @@ class SceneBuilder:
                         "to_world": T().translate(top.tolist()).scale(
                             [obj.cyl_radius, obj.cyl_radius, 1.0])},
         }
+        if self.variant in ALPHA_VARIANTS:  # floating, seen from below too: no ground, the cylinder closed
+            del out["ground"]
+            out["cyl_base_cap"] = {"type": "disk", "bsdf": mat["cyl"], "flip_normals": True,
+                                   "to_world": T().translate(obj.cyl_base.tolist()).scale(
+                                       [obj.cyl_radius, obj.cyl_radius, 1.0])}
         if self.variant == "thin":
             colour = {"post": [0.06, 0.06, 0.07], "wire": [0.85, 0.85, 0.8]}  # dark posts, pale wires
             for k, (p0, p1, r, kind) in enumerate(fence_segments()):
@@ -1035,7 +1076,7 @@ class SceneBuilder:
         return out
 
 
-def sensor_dict(mi, view: View, spp: int) -> dict:
+def sensor_dict(mi, view: View, spp: int, alpha: bool = False) -> dict:
     """Mitsuba perspective sensor that images exactly like (K, w2c) in OpenCV axes."""
     K = view.K
     if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
@@ -1054,13 +1095,15 @@ def sensor_dict(mi, view: View, spp: int) -> dict:
         "sampler": {"type": "independent", "sample_count": spp},
         # box filter: each pixel is the plain average of the radiance over its square
         "film": {"type": "hdrfilm", "width": view.width, "height": view.height,
-                 "pixel_format": "rgb", "rfilter": {"type": "box"}},
+                 "pixel_format": "rgba" if alpha else "rgb", "rfilter": {"type": "box"}},
     }
 
 
-def render_view(mi, scene, view: View, spp: int, seed: int, pass_spp: int = 256) -> np.ndarray:
-    """Linear radiance [H, W, 3] float32, the mean of passes of at most ``pass_spp`` samples."""
-    sensor = mi.load_dict(sensor_dict(mi, view, min(spp, pass_spp)))
+def render_view(mi, scene, view: View, spp: int, seed: int, pass_spp: int = 256, alpha: bool = False) -> np.ndarray:
+    """Linear radiance [H, W, 3] float32, the mean of passes of at most ``pass_spp`` samples;
+    alpha: [H, W, 4], the coverage in the last channel and the colour premultiplied by it
+    (a box filter averages a missed ray's zero)."""
+    sensor = mi.load_dict(sensor_dict(mi, view, min(spp, pass_spp), alpha=alpha))
     acc, done, p = 0.0, 0, 0
     while done < spp:
         n = min(pass_spp, spp - done)
@@ -1078,8 +1121,19 @@ def to_srgb8(mi, linear: np.ndarray) -> np.ndarray:
     return np.array(out, copy=True)
 
 
+def to_srgba8(mi, linear: np.ndarray) -> np.ndarray:
+    """8-bit sRGB with straight (not premultiplied) alpha, as Blender writes NeRF-synthetic's
+    PNGs, from a premultiplied linear [H, W, 4]: the colour divided by the coverage, then
+    encoded; a pixel no ray hit is (0, 0, 0, 0)."""
+    cover = np.clip(linear[..., 3:], 0.0, 1.0)
+    straight = np.where(cover > 0, linear[..., :3] / np.maximum(cover, 1e-12), 0.0)
+    a8 = np.round(cover * 255.0).astype(np.uint8)
+    return np.concatenate([to_srgb8(mi, straight.astype(np.float32)), a8], axis=-1)
+
+
 def write_png(mi, path: str, rgb8: np.ndarray) -> None:
-    bmp = mi.Bitmap(np.ascontiguousarray(rgb8), mi.Bitmap.PixelFormat.RGB)
+    fmt = mi.Bitmap.PixelFormat.RGBA if rgb8.shape[-1] == 4 else mi.Bitmap.PixelFormat.RGB
+    bmp = mi.Bitmap(np.ascontiguousarray(rgb8), fmt)
     bmp.set_srgb_gamma(True)
     bmp.write(path, quality=9)  # quality = zlib level for PNG
 
@@ -1177,13 +1231,14 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
     if variant in ROOM_VARIANTS:
         return sample_room(n, rng)
     n_wall = int(0.3 * n) if variant == "forward" else 0
+    n_ground_share = 0.0 if variant in ALPHA_VARIANTS else 0.35  # floating objects: no ground
     n_fence = int(0.08 * n) if variant == "thin" else 0
     n = n - n_wall - n_fence
     obj = objects_at(variant, 0.0)
     cyl_area = 2 * math.pi * obj.cyl_radius * obj.cyl_height + math.pi * obj.cyl_radius ** 2
     areas = np.array([4 * math.pi * obj.ball_radius ** 2, 4 * math.pi * obj.metal_radius ** 2,
                       24 * obj.box_half ** 2, cyl_area])
-    n_ground = int(0.35 * n)
+    n_ground = int(n_ground_share * n)
     counts = np.floor((n - n_ground) * areas / areas.sum()).astype(int)
     parts = [sample_ground(n_ground, rng),
              sample_sphere(counts[0], obj.ball_centre, obj.ball_radius, rng),
@@ -1482,9 +1537,15 @@ def generate(mi, args, builder, views) -> None:
     images = {}
     t0 = time.time()
     for k, v in enumerate(views):
-        lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k)
-        images[v.name] = to_srgb8(mi, lin)
-        write_png(mi, os.path.join(out, v.name + ".png"), images[v.name])
+        if args.variant in ALPHA_VARIANTS:
+            lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k, alpha=True)
+            rgba = to_srgba8(mi, lin)
+            write_png(mi, os.path.join(out, v.name + ".png"), rgba)
+            images[v.name] = rgba[..., :3]  # the points' colours: the object's own, straight
+        else:
+            lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k)
+            images[v.name] = to_srgb8(mi, lin)
+            write_png(mi, os.path.join(out, v.name + ".png"), images[v.name])
         print(f"  [{k + 1}/{len(views)}] {v.name}  {time.time() - t0:.1f}s", flush=True)
     rng = np.random.default_rng(args.seed)
     pts, colours, vis, train = make_points(mi, builder, views, images, args.n_points, rng,

@@ -75,6 +75,14 @@ SHELL_RADIUS = 2.0
 # hemisphere, rings: 1.00 on every generated 360-degree rig); below it the axes do not meet (0.10
 # on the generator's room, whose cameras look out every way from its middle)
 CONVERGING_COSINE = 0.5
+# random init of an object on a backdrop (its training images' borders one colour): candidates
+# are drawn inside the visual hull of the views' silhouettes, found first on a grid of HULL_GRID
+# cells a side over the cube; a point is in the hull when at least HULL_FRAMED of the views frame
+# it and at least HULL_SHARE of those show content where it projects (a few may show a patch of
+# the backdrop's colour on the object itself)
+HULL_GRID = 64
+HULL_FRAMED = 0.5
+HULL_SHARE = 0.9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,21 +129,14 @@ class InitRegion:
         return out
 
 
-def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
-                 max_width: int = PHOTO_WIDTH, mask=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """What each point [P, 3] lands on in the training views: every point is projected into every
-    camera (its image downsampled to at most ``max_width`` pixels across by ``image(camera,
-    factor)``). Returns (mean colour [P, 3] float64 over the views that see the point, the variance
-    of those colours [P] (summed over the channels), how many views see it [P]); a point no view
-    sees has mean and variance 0. ``mask``: optionally ``mask(camera, factor)``, the view's pixel
-    weights [H', W', 1] or None (:meth:`~mvgs_plugin.data.Scene.mask`): a point that lands on a
-    pixel the mask ignores (weight below 1/2 at that level) counts as not seen by that view."""
-    p = points.shape[0]
-    # float32 is plenty for a pixel lookup at <= 64 px; sums of <= a few thousand views in float64
+def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: int, mask=None):
+    """Per camera, what the points [P, 3] land on in its image downsampled to at most ``max_width``
+    pixels across (``image(camera, factor)``): (the colour of the pixel each projects into [P, 3]
+    float32, clamped to the frame; whether it lies in front of the camera and inside the frame [P];
+    whether ``mask(camera, factor)`` keeps that pixel, weight 1/2 or more, [P], all True without
+    a mask)."""
+    # float32 is plenty for a pixel lookup at <= 64 px
     pts = points.to(torch.float32)
-    total = torch.zeros(p, 3, dtype=torch.float64)
-    squares = torch.zeros(p, dtype=torch.float64)
-    count = torch.zeros(p, dtype=torch.float64)
     for cam in cameras:
         factor = max(1, -(-cam.width // max_width))
         small = cam.scaled(factor)
@@ -147,12 +148,28 @@ def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
         px = small.fx * cam_xyz[:, 0] / zs + small.cx
         py = small.fy * cam_xyz[:, 1] / zs + small.cy
         inside = (z > 0) & (px >= 0) & (px < small.width) & (py >= 0) & (py < small.height)
-        u = px.clamp(0, small.width - 1).to(torch.int64)
-        v = py.clamp(0, small.height - 1).to(torch.int64)
+        at = py.clamp(0, small.height - 1).to(torch.int64) * small.width + px.clamp(0, small.width - 1).to(torch.int64)
         weights = None if mask is None else mask(cam, factor)
-        if weights is not None:  # an ignored pixel says nothing of what the point is
-            inside &= weights.reshape(-1)[v * small.width + u] >= 0.5
-        colour = (img[v * small.width + u] * inside[:, None]).to(torch.float64)
+        kept = torch.ones_like(inside) if weights is None else weights.reshape(-1)[at] >= 0.5
+        yield img[at], inside, kept
+
+
+def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
+                 max_width: int = PHOTO_WIDTH, mask=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What each point [P, 3] lands on in the training views: every point is projected into every
+    camera (its image downsampled to at most ``max_width`` pixels across by ``image(camera,
+    factor)``). Returns (mean colour [P, 3] float64 over the views that see the point, the variance
+    of those colours [P] (summed over the channels), how many views see it [P]); a point no view
+    sees has mean and variance 0. ``mask``: optionally ``mask(camera, factor)``, the view's pixel
+    weights [H', W', 1] or None (:meth:`~mvgs_plugin.data.Scene.mask`): a point that lands on a
+    pixel the mask ignores (weight below 1/2 at that level) counts as not seen by that view."""
+    p = points.shape[0]
+    total = torch.zeros(p, 3, dtype=torch.float64)
+    squares = torch.zeros(p, dtype=torch.float64)
+    count = torch.zeros(p, dtype=torch.float64)
+    for colour, inside, kept in _lookups(points, cameras, image, max_width, mask):
+        inside &= kept  # an ignored pixel says nothing of what the point is
+        colour = (colour * inside[:, None]).to(torch.float64)
         total += colour
         squares += (colour * colour).sum(1)
         count += inside.to(torch.float64)
@@ -182,6 +199,70 @@ def _photo_rank(variance: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
     return torch.argsort(torch.where(count >= MIN_VIEWS, variance, torch.full_like(variance, math.inf)))
 
 
+def backdrop_of(scene) -> Optional[tuple[float, float, float]]:
+    """The colour the scene's training images show around their content, when there is one: the
+    scene's background (what its RGBA images are composited on, or what its borders were found to
+    show, or a colour given) when the borders of every training view show it and nothing else
+    (:func:`~mvgs_plugin.data.images.uniform_border`); None for a scene of photographs, or one
+    without a background colour or training cameras."""
+    background, cameras = getattr(scene, "background", None), getattr(scene, "train_cameras", None)
+    if background is None or not cameras:
+        return None
+    shown = _backdrop_at_borders(cameras, scene.image, background, getattr(scene, "mask", None))
+    return None if shown is None else tuple(float(v) for v in background)
+
+
+def on_silhouettes(points: torch.Tensor, cameras: Sequence[Camera], image, backdrop: Sequence[float],
+                   max_width: int = PHOTO_WIDTH, mask=None) -> torch.Tensor:
+    """[P] bool: the points [P, 3] inside the visual hull of the training views' silhouettes,
+    the content of views that show it on a one-colour ``backdrop``. A point is in when at least
+    HULL_FRAMED of the views have it in their frame (a backdrop at the borders says the content
+    lies inside nearly every frame; a point near the cameras, in front of the object in the few
+    views that frame it, is not) and at least HULL_SHARE of those show content where it projects
+    (a pixel off the backdrop by more than ``BORDER_TOLERANCE`` in some channel, in the image read
+    as :func:`view_colours` reads it, whose smoothing widens a silhouette by about a pixel). A
+    view that does not frame the point does not vote on its content, so a part of the object that
+    leaves some frames is kept; the share, not every view, so that a patch of the object in the
+    backdrop's colour seen in a few views does not cut a hole through it. ``mask``: as
+    :func:`view_colours`' (a view that ignores the pixel does not vote at all)."""
+    from .images import BORDER_TOLERANCE
+
+    colour = torch.tensor([float(v) for v in backdrop], dtype=torch.float32)
+    votes = torch.zeros(points.shape[0], dtype=torch.int64)  # views that do not ignore the pixel
+    seen = torch.zeros(points.shape[0], dtype=torch.int64)  # ... and frame the point
+    content = torch.zeros(points.shape[0], dtype=torch.int64)  # ... and show content there
+    for shown, inside, kept in _lookups(points, cameras, image, max_width, mask):
+        votes += kept
+        seen += kept & inside
+        content += kept & inside & ((shown - colour).abs().amax(dim=1) > BORDER_TOLERANCE)
+    return (seen >= MIN_VIEWS) & (seen >= HULL_FRAMED * votes) & (content >= HULL_SHARE * seen)
+
+
+def hull_candidates(region: "InitRegion", cameras: Sequence[Camera], image, backdrop: Sequence[float], count: int,
+                    generator: torch.Generator, mask=None) -> tuple[torch.Tensor, str]:
+    """Up to ``count`` points drawn uniformly in the part of the cube ``region`` inside the
+    silhouettes' visual hull (:func:`on_silhouettes`): the cube cut into HULL_GRID cells a side,
+    the cells whose centre is in the hull and their neighbours kept (a part thinner than a cell
+    keeps the cell it passes through), ``count`` points drawn in them, and those in the hull
+    kept. Returns (points [k, 3] float64, what was done)."""
+    center = torch.as_tensor(region.center, dtype=torch.float64)
+    g, half = HULL_GRID, float(region.half)
+    step = 2.0 * half / g
+    axis = center.new_tensor([0.0]) + (torch.arange(g, dtype=torch.float64) + 0.5) * step - half
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3) + center
+    inside = on_silhouettes(grid, cameras, image, backdrop, mask=mask).reshape(1, 1, g, g, g).float()
+    cells = torch.nn.functional.max_pool3d(inside, 3, stride=1, padding=1).reshape(-1) > 0
+    corners = grid[cells] - 0.5 * step
+    if corners.shape[0] == 0:
+        return torch.zeros(0, 3, dtype=torch.float64), f"no cell of a {g}^3 grid over the cube is inside the silhouettes"
+    pick = torch.randint(corners.shape[0], (count,), generator=generator)
+    points = corners[pick] + step * torch.rand(count, 3, generator=generator, dtype=torch.float64)
+    points = points[on_silhouettes(points, cameras, image, backdrop, mask=mask)]
+    return points, (f"carved to the training views' silhouettes on the backdrop {[round(float(v), 3) for v in backdrop]} "
+                    f"({int(inside.sum())} of {g ** 3} cells of a {g}^3 grid over the cube inside them, "
+                    f"{points.shape[0]} of {count} candidates drawn near those inside)")
+
+
 def random_init_points(scene, n: int, generator: torch.Generator,
                        half_size: Optional[float] = None) -> tuple[torch.Tensor, torch.Tensor, str]:
     """n initial points (xyz, rgb [n, 3] float64) for a scene without a point cloud, and what
@@ -195,6 +276,19 @@ def random_init_points(scene, n: int, generator: torch.Generator,
         region = _cube(scene.center, half, "no cameras: scene.extent" if half_size is None else "a given half size")
     else:
         region = init_region(cameras, scene.center, float(scene.extent))
+    backdrop = backdrop_of(scene) if region.kind == "cube" and half_size is None and cameras else None
+    if backdrop is not None:  # an object on a backdrop: where the silhouettes say it is
+        candidates, carved = hull_candidates(region, cameras, scene.image, backdrop, CANDIDATES_PER_POINT * n,
+                                             generator, mask=getattr(scene, "mask", None))
+        if candidates.shape[0] >= n:
+            # the first n: uniform in the hull, as 3DGS's are in its cube. Not the most photo-consistent:
+            # inside an object of one colour every point is, and they would all go there (on the
+            # generator's object scene 78 % in the red ball, none in the textured box)
+            xyz = candidates[:n]
+            rgb = view_colours(xyz, cameras, scene.image, mask=getattr(scene, "mask", None))[0].clamp(0.0, 1.0)
+            return xyz, rgb, (f"{region.description}; {carved}; the first {n} kept, coloured by the views")
+        region = dataclasses.replace(region, description=f"{region.description} (the silhouettes left {candidates.shape[0]} "
+                                                         f"candidates, fewer than {n}: {carved}; not carved)")
     if region.kind == "cube":
         xyz = region.sample(n, generator)
         return xyz, torch.rand(n, 3, generator=generator, dtype=torch.float64), region.description
@@ -349,9 +443,28 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
 
 
 
+def _backdrop_at_borders(cameras: Sequence[Camera], image, backdrop, mask=None,
+                         max_width: int = PHOTO_WIDTH) -> Optional[list[float]]:
+    """``backdrop`` (rounded, for a message) when the borders of the views, read as
+    :func:`view_colours` reads them, are one colour (:func:`~mvgs_plugin.data.images.uniform_border`)
+    within ``BORDER_TOLERANCE`` of it in every channel; else None."""
+    from .images import BORDER_TOLERANCE, check_background, uniform_border
+
+    colour = check_background(backdrop)
+    images, masks = [], []
+    for cam in cameras:
+        factor = max(1, -(-cam.width // max_width))
+        images.append(image(cam, factor))
+        masks.append(None if mask is None else mask(cam, factor))
+    found = uniform_border(images, masks)
+    if found is None or max(abs(a - b) for a, b in zip(found, colour)) > BORDER_TOLERANCE:
+        return None
+    return [round(float(v), 3) for v in colour]
+
+
 def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, image,
                      radius: float = SHELL_RADIUS, points: Optional[torch.Tensor] = None, mask=None,
-                     ) -> tuple[torch.Tensor, torch.Tensor, str]:
+                     backdrop: Optional[Sequence[float]] = None) -> tuple[torch.Tensor, torch.Tensor, str]:
     """Initial points for what lies beyond a rig that surrounds its scene (sky, horizon, far walls).
 
     Points from a capture (SfM, a scene's point file, triangulation) stop where matching stops:
@@ -368,6 +481,13 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     median distance from ``center`` exceeds the sphere's radius; without them (None or empty),
     when the rig does not look in at one place (:func:`look_convergence` below ``CONVERGING_COSINE``).
     ``mask``: as :func:`view_colours`' (a masked pixel colours no point).
+    ``backdrop``: the RGB colour in [0, 1] the renderer draws behind the Gaussians, or None. When
+    the training images' borders show that colour and nothing else (the test the NeRF loaders find
+    a backdrop with, :func:`~mvgs_plugin.data.images.uniform_border`, on the images as
+    :func:`view_colours` reads them), there is none: on a rig round the scene a far background
+    reaches the frame's edges, so borders that are all backdrop mean an object on a transparent or
+    one-colour backdrop (NeRF-synthetic's kind), with nothing beyond it to model; the shell there
+    would be Gaussians that only repeat the backdrop, and a third of the initial model.
 
     Returns (xyz [k, 3] float64, rgb [k, 3] float64 in [0, 1], what was done), k <= n.
     """
@@ -401,6 +521,12 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
             return empty, empty.clone(), (
                 f"no background shell: the cameras do not look in at one place (look convergence {convergence:.2f} < "
                 f"{CONVERGING_COSINE}) and no points say where the scene lies")
+    if backdrop is not None:
+        shown = _backdrop_at_borders(cameras, image, backdrop, mask)
+        if shown is not None:
+            return empty, empty.clone(), (
+                f"no background shell: the training images' borders show only the backdrop {shown} the renderer draws "
+                "behind the Gaussians (an object on a backdrop: nothing beyond it to model)")
     i = torch.arange(n, dtype=torch.float64) + 0.5
     polar = torch.acos(1.0 - 2.0 * i / n)
     azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
@@ -411,6 +537,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     seen = count > 0
     if not seen.any():
         return empty, empty.clone(), f"no background shell: none of {n} points at {radius:g} rig radii is in a view"
+
     # listed in photo-consistency order, the order every measurement of docs/data.md was made with
     # (training is sensitive to the order of its initial points, not to the set alone)
     order = _photo_rank(variance[seen], count[seen])

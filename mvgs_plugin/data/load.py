@@ -29,7 +29,7 @@ def scene_layout(path) -> Optional[str]:
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
                init_cache=None, threads: Optional[int] = None, background_points: int = 0,
-               background="auto", images=None) -> Scene:
+               background="auto", images=None, backdrop_drawn: bool = True) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json, or one transforms.json as instant-ngp and nerfstudio write it; D-NeRF
     when its frames carry a time) or COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
@@ -59,7 +59,11 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     shell beyond a rig that surrounds the scene, for its far background
     (:func:`~mvgs_plugin.data.init.background_shell`; 0: none; a forward-facing rig, a scene whose
     points lie mostly beyond the shell (a room shot from its middle), or a scene left without points
-    by ``init=None``, gets none). What was done is in ``scene.points_origin`` and
+    by ``init=None``, gets none), and no point of it that shows only ``scene.background``, the
+    colour the renderer draws behind the Gaussians, in every view that sees it (an object on a
+    transparent or one-colour backdrop gets none at all). ``backdrop_drawn=False`` keeps those: a
+    run that trains in front of random colours (``MVGSConfig(background="random")``) has the
+    Gaussians paint the backdrop. What was done is in ``scene.points_origin`` and
     logged to the "mvgs_plugin" logger.
     """
     if isinstance(background_points, bool) or not isinstance(background_points, int) or background_points < 0:
@@ -96,7 +100,8 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         from .scene import PointCloud
 
         xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
-                                          points=scene.points.xyz, mask=scene.mask)
+                                          points=scene.points.xyz, mask=scene.mask,
+                                          backdrop=scene.background if backdrop_drawn else None)
         if xyz.shape[0]:
             pts = scene.points  # float32 (PointCloud's dtype)
             scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),

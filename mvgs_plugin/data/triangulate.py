@@ -42,7 +42,7 @@ import torch
 from ..camera import Camera
 from ..densify.mvad import camera_axes
 from .images import may_have_alpha
-from .init import CANDIDATES_PER_POINT, init_region, photo_consistent, random_init_points
+from .init import CANDIDATES_PER_POINT, backdrop_of, init_region, on_silhouettes, photo_consistent, random_init_points
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
@@ -64,7 +64,7 @@ COVER_RADIUS = 2
 DEPTH_MARGIN = 1.5
 # pycolmap extraction: images larger than this (longest side) are downscaled for SIFT
 MAX_IMAGE_SIZE = 1600
-_VERSION = 1  # bump when the cached result would change
+_VERSION = 2  # bump when the cached result would change (2: fill and fall-back carved to silhouettes on a backdrop)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,7 +273,12 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     view that sees fewer than 5) and a coverage mask (pixels within COVER_RADIUS of a projected
     track). CANDIDATES_PER_POINT x n candidates are drawn on rays through uncovered pixels,
     uniform in disparity within that view's range; the n whose colour agrees best across the
-    views are kept with their mean colour. Returns (xyz, rgb [n, 3] float64, description).
+    views are kept with their mean colour. On an object on a backdrop
+    (:func:`~mvgs_plugin.data.init.backdrop_of`) only the candidates inside the views' silhouettes
+    (:func:`~mvgs_plugin.data.init.on_silhouettes`) are: a ray through a backdrop pixel has nothing
+    on it, and a point in that air, backdrop-coloured from every side, is as photo-consistent as a
+    point can be. Returns (xyz, rgb [k, 3] float64, description), k = n but where the silhouettes
+    leave fewer candidates.
     """
     cameras = scene.train_cameras
     xyz = torch.as_tensor(xyz, dtype=torch.float64)
@@ -322,10 +327,18 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
         near, far = bounds[i]
         disparity = 1.0 / far + torch.rand(rows.numel(), generator=generator, dtype=torch.float64) * (1.0 / near - 1.0 / far)
         candidates[rows] = origin + direction * (1.0 / disparity / cos)[:, None]
+    backdrop, carved = backdrop_of(scene), ""
+    if backdrop is not None:
+        inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None))
+        candidates = candidates[inside]
+        n = min(n, candidates.shape[0])
+        carved = (f", {candidates.shape[0]} of them inside the views' silhouettes on the backdrop "
+                  f"{[round(float(v), 3) for v in backdrop]}")
     kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width, mask=getattr(scene, "mask", None))
     share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
     return kept, rgb, (f"{n} fill points where no track projects ({share:.0%} of the pixels at {max_width} px), the "
-                       f"most photo-consistent of {total} candidates between the tracks' depths ({seen} seen by >= 3 views)")
+                       f"most photo-consistent of {total} candidates between the tracks' depths{carved} "
+                       f"({seen} seen by >= 3 views)")
 
 
 def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:

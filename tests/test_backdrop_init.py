@@ -1,0 +1,200 @@
+"""An object on a backdrop (NeRF-synthetic's kind of capture: RGBA images, or images whose borders
+are one colour): no background shell (mvgs_plugin.data.init.background_shell's ``backdrop``), and
+random initial points carved to the views' silhouettes (on_silhouettes, hull_candidates,
+random_init_points). The images here are an analytic sphere, each pixel's coverage computed by
+ray-sphere intersection on a 4 x 4 grid of sub-pixel rays, independently of the package."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from mvgs_plugin.cli import common_args, scene_from_args
+from mvgs_plugin.data import load_scene
+from mvgs_plugin.data.init import background_shell, backdrop_of, on_silhouettes, random_init_points
+from test_background_shell import constant_images, orbit
+from test_forward_init import look
+
+RADIUS = 0.5  # the sphere, at the origin
+COLOUR = (0.8, 0.2, 0.1)
+
+
+def sphere_rig(n=24, distance=3.0, f=40.0, size=32):
+    """n cameras on a Fibonacci sphere about the origin (every side, below too), looking at it."""
+    cams = []
+    for i in range(n):
+        z = 1.0 - 2.0 * (i + 0.5) / n
+        r = math.sqrt(1.0 - z * z)
+        a = math.pi * (1.0 + math.sqrt(5.0)) * i
+        cams.append(look((distance * r * math.cos(a), distance * r * math.sin(a), distance * z), (0.0, 0.0, 0.0),
+                         f, size, i))
+    return cams
+
+
+def coverage(cam, sub=4):
+    """[H, W] share of each pixel's sub-pixel rays that hit the sphere (|o + t d| = RADIUS, t > 0)."""
+    j, i = np.meshgrid(np.arange(cam.height * sub), np.arange(cam.width * sub), indexing="ij")
+    pixels = torch.tensor(np.stack([(i + 0.5) / sub, (j + 0.5) / sub], -1), dtype=torch.float64)
+    o, d = cam.rays(pixels)
+    b = (o * d).sum(-1)
+    c = (o * o).sum(-1) - RADIUS ** 2
+    hit = (b * b - c > 0) & (-b > 0)
+    return hit.double().reshape(cam.height, sub, cam.width, sub).mean(dim=(1, 3)).numpy()
+
+
+def write_rgba_scene(folder: Path, cams, n_test=4):
+    """A NeRF-synthetic folder: the sphere in COLOUR with straight alpha = its coverage, on a
+    transparent backdrop; the last n_test cameras are the test split."""
+    splits = {"train": cams[:-n_test], "test": cams[-n_test:]}
+    for split, group in splits.items():
+        (folder / split).mkdir(parents=True, exist_ok=True)
+        frames = []
+        for k, cam in enumerate(group):
+            a = coverage(cam)
+            rgba = np.zeros((cam.height, cam.width, 4), dtype=np.uint8)
+            rgba[..., :3] = np.round(np.array(COLOUR) * 255).astype(np.uint8) * (a[..., None] > 0)
+            rgba[..., 3] = np.round(a * 255).astype(np.uint8)
+            Image.fromarray(rgba, "RGBA").save(folder / split / f"r_{k:03d}.png")
+            c2w = torch.linalg.inv(cam.world_to_camera) @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0],
+                                                                                 dtype=torch.float64))
+            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": c2w.tolist()})
+        cam = group[0]
+        (folder / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": 2 * math.atan(0.5 * cam.width / float(cam.K[0, 0])), "frames": frames}))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def rgba_scene(tmp_path_factory):
+    return write_rgba_scene(tmp_path_factory.mktemp("sphere"), sphere_rig())
+
+
+def framed_images(inner, border, cams, width=2):
+    """image(camera, factor): the colour `inner` with a frame `width` px wide of colour `border`
+    (border may be a callable of (camera uid) for a frame of many colours)."""
+    def image(cam, factor=1):
+        small = cam.scaled(factor) if factor != 1 else cam
+        img = torch.tensor(inner, dtype=torch.float32).expand(small.height, small.width, 3).clone()
+        ring = torch.tensor(border(cam.uid) if callable(border) else border, dtype=torch.float32)
+        img[:width], img[-width:], img[:, :width], img[:, -width:] = ring, ring, ring, ring
+        return img
+    return image
+
+
+def test_no_shell_when_every_border_shows_the_backdrop_the_renderer_draws():
+    cams = orbit()
+    centre = torch.stack([c.center for c in cams]).mean(0)
+    on_white = framed_images((0.3, 0.6, 0.2), (1.0, 1.0, 1.0), cams)
+    xyz, rgb, said = background_shell(cams, centre, 500, on_white, backdrop=(1.0, 1.0, 1.0))
+    assert xyz.shape == (0, 3) and rgb.shape == (0, 3)
+    assert "borders show only the backdrop [1.0, 1.0, 1.0]" in said
+    # the same images without a backdrop colour, or with another one: the shell as before
+    plain, _, _ = background_shell(cams, centre, 500, on_white)
+    assert plain.shape[0] > 0
+    other, _, _ = background_shell(cams, centre, 500, on_white, backdrop=(0.0, 0.0, 0.0))
+    assert torch.equal(other, plain)
+    # borders of many colours (a photograph's) keep the shell even when one of them is the backdrop
+    many = framed_images((0.3, 0.6, 0.2), lambda uid: (uid / 8.0, 1.0 - uid / 8.0, 0.5), cams)
+    kept, _, _ = background_shell(cams, centre, 500, many, backdrop=(0.0, 1.0, 0.5))
+    assert torch.equal(kept, plain)
+    # within the border rule's tolerance (8/255) of the backdrop is the backdrop; beyond it is not
+    near = framed_images((0.3, 0.6, 0.2), (1.0 - 7.0 / 255.0,) * 3, cams)
+    assert background_shell(cams, centre, 500, near, backdrop=(1.0, 1.0, 1.0))[0].shape[0] == 0
+    far = framed_images((0.3, 0.6, 0.2), (1.0 - 10.0 / 255.0,) * 3, cams)
+    assert torch.equal(background_shell(cams, centre, 500, far, backdrop=(1.0, 1.0, 1.0))[0], plain)
+
+
+def test_on_silhouettes_keeps_the_inside_of_the_sphere_and_nothing_far_from_it():
+    cams = sphere_rig()
+    images = {cam.uid: torch.tensor(1.0 - coverage(cam)[..., None] * (1.0 - np.array(COLOUR)), dtype=torch.float32)
+              for cam in cams}  # straight colour over white by coverage
+
+    def image(cam, factor=1):
+        assert factor == 1  # 32 px images: read whole
+        return images[cam.uid]
+
+    gen = torch.Generator().manual_seed(0)
+    dirs = torch.randn(400, 3, generator=gen, dtype=torch.float64)
+    dirs = dirs / torch.linalg.norm(dirs, dim=1, keepdim=True)
+    radii = torch.rand(400, 1, generator=gen, dtype=torch.float64)
+    inside = dirs * radii * 0.9 * RADIUS
+    assert on_silhouettes(inside, cams, image, (1.0, 1.0, 1.0)).all()
+    # from 24 views on every side the hull of a sphere is the sphere, widened by the cones between
+    # the views and about a pixel (a pixel at the sphere is 3 / 40 = 0.075 across): 1.5 x is out
+    outside = dirs * RADIUS * (1.5 + 2.0 * radii)
+    assert not on_silhouettes(outside, cams, image, (1.0, 1.0, 1.0)).any()
+    # and with a backdrop of another colour every pixel is content: everything in the frames is in
+    anywhere = on_silhouettes(outside, cams, image, (0.0, 0.0, 1.0))
+    frames = torch.stack([torch.tensor([bool(z > 0 and 0 <= p[0] < c.width and 0 <= p[1] < c.height)
+                                        for p, z in zip(*c.project(outside))]) for c in cams]).double().mean(0)
+    assert torch.equal(anywhere, frames >= 0.5)
+
+
+def test_a_scene_on_a_transparent_backdrop_gets_points_on_its_object_and_no_shell(rgba_scene):
+    scene = load_scene(rgba_scene, init="random", background_points=2000)
+    assert backdrop_of(scene) == (1.0, 1.0, 1.0)
+    distance = torch.linalg.norm(scene.points.xyz.double(), dim=1)
+    assert len(scene.points) == 10_000 and scene.points.shell == 0
+    assert float(distance.max()) < 1.5 * RADIUS  # the cube is 3 x 3 x 3 about the rig: 1/3000 of it is the sphere
+    # one colour all over: photo-consistency cannot tell the surface from the inside, so the points
+    # fill the hull, which is the sphere up to the cones between the views and a pixel's smoothing
+    assert float((distance < 1.2 * RADIUS).double().mean()) > 0.9
+    assert torch.allclose(scene.points.rgb.double().median(0).values, torch.tensor(COLOUR, dtype=torch.float64),
+                          atol=0.05)
+    assert "carved to the training views' silhouettes" in scene.points_origin
+    assert "no background shell: the training images' borders show only the backdrop" in scene.points_origin
+    # composited on another colour, the backdrop is that colour and the same holds
+    on_black = load_scene(rgba_scene, init="random", background=(0.0, 0.0, 0.0))
+    assert backdrop_of(on_black) == (0.0, 0.0, 0.0)
+    assert float(torch.linalg.norm(on_black.points.xyz.double(), dim=1).max()) < 1.5 * RADIUS
+    # training in front of random colours: the Gaussians paint the backdrop, so the shell stays
+    painted = load_scene(rgba_scene, init="random", background_points=2000, backdrop_drawn=False)
+    assert painted.points.shell > 0 and "background shell:" in painted.points_origin
+
+
+def test_the_cli_keeps_the_shell_for_random_backgrounds_only(rgba_scene, tmp_path):
+    ap = common_args(argparse.ArgumentParser(), str(tmp_path / "out"))
+    ap.add_argument("--data", type=Path)  # as the example scripts add it
+    for flag, shell in (("auto", False), ("random", True)):
+        args = ap.parse_args(["--data", str(rgba_scene), "--init", "random", "--background", flag,
+                              "--out", str(tmp_path / flag)])
+        scene = scene_from_args(args)
+        assert (scene.points.shell > 0) == shell, scene.points_origin
+
+
+def test_a_scene_of_photographs_keeps_the_3dgs_cube():
+    # borders of many colours: no backdrop, so the plain cube (3DGS's random init) as before
+    cams = orbit()
+    scene = argparse.Namespace(train_cameras=cams, background=(1.0, 1.0, 1.0), center=torch.zeros(3), extent=3.0,
+                               image=framed_images((0.3, 0.6, 0.2), lambda uid: (uid / 8.0, 0.2, 0.9), cams))
+    assert backdrop_of(scene) is None
+    xyz, _, said = random_init_points(scene, 500, torch.Generator().manual_seed(0))
+    assert "carved" not in said and said.startswith("random init: cube")
+    assert float(xyz.abs().max()) > 2.5  # spread over the cube, not gathered anywhere
+
+
+def test_fill_points_on_a_backdrop_stay_inside_the_silhouettes(rgba_scene):
+    from mvgs_plugin.data.triangulate import fill_points
+
+    scene = load_scene(rgba_scene, init=None)
+    # tracks on one side of the sphere: the views facing the other side see no track, so the fill
+    # draws rays through their pixels, most of which show the backdrop
+    gen = torch.Generator().manual_seed(1)
+    dirs = torch.randn(300, 3, generator=gen, dtype=torch.float64)
+    dirs = dirs[dirs[:, 0] > 0.3]
+    tracks = RADIUS * dirs / torch.linalg.norm(dirs, dim=1, keepdim=True)
+    xyz, rgb, said = fill_points(scene, tracks, 500, torch.Generator().manual_seed(0))
+    assert 0 < len(xyz) <= 500 and "inside the views' silhouettes on the backdrop [1.0, 1.0, 1.0]" in said
+    assert float(torch.linalg.norm(xyz, dim=1).max()) < 1.5 * RADIUS
+    # without a backdrop (a colour no border shows) the same draw fills the air too: the rule is what keeps it out
+    scene.background = (0.0, 0.0, 0.0)
+    assert backdrop_of(scene) is None
+    air, _, said = fill_points(scene, tracks, 500, torch.Generator().manual_seed(0))
+    assert "silhouettes" not in said and float(torch.linalg.norm(air, dim=1).max()) > 2 * RADIUS
