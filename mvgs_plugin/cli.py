@@ -366,6 +366,20 @@ def resolve_late_views(args, default_views: int) -> argparse.Namespace:
     return args
 
 
+def budget_scope_args(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """--budget-rigs and --budget-views, what a budget from the data (--pixels-per-gaussian)
+    counts: the example scripts' and gsplat's loop's (examples/gsplat_loop/common.py) flags."""
+    ap.add_argument("--budget-rigs", choices=["all", "round"], default=None,
+                    help="with --pixels-per-gaussian: the rigs it budgets: all, or round (only a rig round the scene, "
+                         "not a forward-facing one nor one that looks outward) (MVGSConfig.budget_rigs; compact: "
+                         "round; default: all)")
+    ap.add_argument("--budget-views", type=int_at_least(0, MAX_PRIMITIVES), default=None, metavar="V",
+                    help="with --pixels-per-gaussian: count the pixels of V views of the training views' mean size, "
+                         "however many the rig has; 0: every view (MVGSConfig.budget_views; compact: 48, its "
+                         "runs saved before 2026-11-28 resume with 0; default: every view)")
+    return ap
+
+
 def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParser:
     """The CLI contract every train_*.py example shares (each adds --data and its own options)."""
     ap.add_argument("--preset", choices=PRESETS, default="default",
@@ -449,14 +463,7 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
                     help="budget from the data: --max-gaussians = the training views' pixels / P (3DGS ends near "
                          "70-210 on its benchmarks; MVGSConfig.pixels_per_gaussian; ignored with --max-gaussians)")
-    ap.add_argument("--budget-rigs", choices=["all", "round"], default=None,
-                    help="with --pixels-per-gaussian: the rigs it budgets: all, or round (only a rig round the scene, "
-                         "not a forward-facing one nor one that looks outward) (MVGSConfig.budget_rigs; compact: "
-                         "round; default: all)")
-    ap.add_argument("--budget-views", type=int_at_least(0, MAX_PRIMITIVES), default=None, metavar="V",
-                    help="with --pixels-per-gaussian: count the pixels of V views of the training views' mean size, "
-                         "however many the rig has; 0: every view (MVGSConfig.budget_views; compact: 48, its "
-                         "runs saved before 2026-11-28 resume with 0; default: every view)")
+    budget_scope_args(ap)
     ap.add_argument("--densify-rank", choices=["consistency", "gradient"], default=None,
                     help="score that picks growth candidates when a budget binds: consistency (the gradient times "
                          "how evenly the views share it) or gradient (3DGS) (default: consistency)")

@@ -785,6 +785,31 @@ def test_the_example_cli_takes_a_budget_from_the_data(tmp_path, forward):
         common.parse_config(["--data", str(FORWARD), "--pixels-per-gaussian", "0"])
 
 
+def test_the_example_cli_counts_the_budgets_views_and_rigs_as_the_package_cli_does(tmp_path, forward):
+    """--budget-views V: V mean views' pixels / P, whatever the rig's count (0: every view, even
+    for compact, whose preset counts 48); --budget-rigs round: no budget on this forward-facing
+    rig. Checked against the pixels counted here."""
+    from mvgs_plugin.camera import scaled_size
+
+    n = len(forward.train_cameras)
+    pixels = sum(math.prod(scaled_size(c.width, c.height, 1)) for c in forward.train_cameras)
+    p = pixels / 600.0  # every view: 600 Gaussians
+
+    def budget(*flags):
+        cfg = common.parse_config(["--data", str(FORWARD), "--steps", "20", "--out", str(tmp_path / "o"),
+                                   "--pixels-per-gaussian", repr(p), "--threads", "1", *flags])
+        return simple_trainer_mvgs.Runner(cfg).cfg.strategy.config.max_gaussians
+
+    assert budget() == 600
+    assert budget("--budget-views", "3") == round(600 * 3 / n)
+    assert budget("--budget-views", "0", "--preset", "compact", "--budget-rigs", "all") == 600
+    assert budget("--budget-rigs", "round") is None  # a forward-facing rig: not budgeted
+    with pytest.raises(SystemExit):
+        common.parse_config(["--data", str(FORWARD), "--budget-views", "-1"])
+    cfg = common.parse_config(["--data", str(FORWARD), "--steps", "8", "--out", str(tmp_path / "s"), "--budget-views", "4"])
+    assert common.unread_flags(simple_trainer.Runner(cfg), cfg) == ["--budget-views"]  # gsplat's own loop reads none
+
+
 def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp_path, forward, monkeypatch):
     """MVGSConfig.max_gaussians through MVGSStrategy: the model is cut to the budget at
     check_sanity (before any render), every refine ends at or under the schedule's cap (so no

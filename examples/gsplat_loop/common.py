@@ -41,7 +41,7 @@ from gsplat.strategy import DefaultStrategy
 
 from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
 from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
-from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, check_device, check_out, float_above, int_at_least,
+from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, budget_scope_args, check_device, check_out, float_above, int_at_least,
                              out_folder, rasterize_function)
 from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig
 from mvgs_plugin.data import load_scene
@@ -390,6 +390,7 @@ def parse_config(argv=None, doc: str = "") -> Config:
     ap.add_argument("--pixels-per-gaussian", type=float_above(0), default=None, metavar="P",
                     help="budget from the data (MVGSConfig.pixels_per_gaussian): --max-gaussians = the training "
                          "views' pixels / P (ignored with --max-gaussians; default: no budget)")
+    budget_scope_args(ap)
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
@@ -410,10 +411,14 @@ def parse_config(argv=None, doc: str = "") -> Config:
         torch.set_num_threads(args.threads)
     given = tuple(flag for flag, value in (("--preset", args.preset), ("--max-gaussians", args.max_gaussians),
                                            ("--pixels-per-gaussian", args.pixels_per_gaussian),
+                                           ("--budget-views", args.budget_views), ("--budget-rigs", args.budget_rigs),
                                            ("--chunk-size", args.chunk_size)) if value is not None)
     args.preset = args.preset or "default"
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
-                                ("pixels_per_gaussian", args.pixels_per_gaussian)) if v is not None}
+                                ("pixels_per_gaussian", args.pixels_per_gaussian),
+                                ("budget_rigs", args.budget_rigs)) if v is not None}
+    if args.budget_views is not None:  # 0: every training view
+        budget["budget_views"] = args.budget_views or None
     preset = MVGSConfig.from_preset(args.preset, **budget) if budget else args.preset
     cfg = Config(data_dir=args.data, data_factor=args.data_factor, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
@@ -457,8 +462,9 @@ def run(runner_class, cfg: Config) -> Dict:
             cfg.result_dir.rmdir()
         script = Path(sys.argv[0]).name
         print(f"{script}: error: {' '.join(unread)}: not read by this loop ({script}, "
-              f"{type(runner.cfg.strategy).__name__}); --preset, --max-gaussians and --pixels-per-gaussian are "
-              "read by simple_trainer_mvgs.py and simple_trainer_chunked.py, --chunk-size by "
+              f"{type(runner.cfg.strategy).__name__}); --preset, --max-gaussians, --pixels-per-gaussian, "
+              "--budget-views and --budget-rigs are read by simple_trainer_mvgs.py and simple_trainer_chunked.py, "
+              "--chunk-size by "
               "simple_trainer_chunked.py", file=sys.stderr)
         raise SystemExit(2)
     cuda = str(cfg.device).startswith("cuda")
