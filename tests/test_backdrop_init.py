@@ -18,7 +18,7 @@ from PIL import Image
 
 from mvgs_plugin.cli import common_args, scene_from_args
 from mvgs_plugin.data import load_scene
-from mvgs_plugin.data.init import background_shell, backdrop_of, on_silhouettes, random_init_points
+from mvgs_plugin.data.init import background_shell, backdrop_of, on_silhouettes, random_init_points, silhouettes_of
 from test_background_shell import constant_images, orbit
 from test_forward_init import look
 
@@ -198,3 +198,17 @@ def test_fill_points_on_a_backdrop_stay_inside_the_silhouettes(rgba_scene):
     assert backdrop_of(scene) is None
     air, _, said = fill_points(scene, tracks, 500, torch.Generator().manual_seed(0))
     assert "silhouettes" not in said and float(torch.linalg.norm(air, dim=1).max()) > 2 * RADIUS
+
+
+def test_a_moving_scene_on_a_backdrop_is_not_carved(rgba_scene):
+    # silhouettes at different times bound no one shape: a D-NeRF scene keeps the cube (and gets no shell)
+    import dataclasses
+
+    scene = load_scene(rgba_scene, init=None)
+    moving = argparse.Namespace(
+        train_cameras=[dataclasses.replace(c, time=k / 19) for k, c in enumerate(scene.train_cameras)],
+        background=scene.background, center=scene.center, extent=scene.extent, image=scene.image)
+    assert backdrop_of(moving) == (1.0, 1.0, 1.0) and silhouettes_of(moving) is None
+    assert silhouettes_of(scene) == (1.0, 1.0, 1.0)
+    xyz, _, said = random_init_points(moving, 2000, torch.Generator().manual_seed(0))
+    assert "carved" not in said and float(torch.linalg.norm(xyz, dim=1).max()) > 2.0

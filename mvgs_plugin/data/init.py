@@ -50,7 +50,8 @@ from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
            "is_forward_facing", "look_convergence", "axes_meeting_point", "background_shell", "view_colours", "CONVERGING_SPREAD",
-           "CONVERGING_COSINE", "FAR_OVER_NEAR", "SHELL_RADIUS"]
+           "CONVERGING_COSINE", "FAR_OVER_NEAR", "SHELL_RADIUS", "backdrop_of", "silhouettes_of", "on_silhouettes",
+           "hull_candidates"]
 
 # Smallest eigenvalue of mean(I - d d^T) at and above which the rig counts as surrounding the
 # scene: about sin^2 of the axes' angular spread (0.05 ~ axes within +-13 degrees of each
@@ -212,6 +213,17 @@ def backdrop_of(scene) -> Optional[tuple[float, float, float]]:
     return None if shown is None else tuple(float(v) for v in background)
 
 
+def silhouettes_of(scene) -> Optional[tuple[float, float, float]]:
+    """The backdrop to carve ``scene``'s initial points to its silhouettes by (:func:`backdrop_of`),
+    or None: also None for a moving scene (training views at more than one time), whose
+    silhouettes at different times do not bound one shape (the hull of a moving arm across its
+    frames is the part that never moves)."""
+    cameras = getattr(scene, "train_cameras", None) or ()
+    if len({c.time for c in cameras}) > 1:
+        return None
+    return backdrop_of(scene)
+
+
 def on_silhouettes(points: torch.Tensor, cameras: Sequence[Camera], image, backdrop: Sequence[float],
                    max_width: int = PHOTO_WIDTH, mask=None) -> torch.Tensor:
     """[P] bool: the points [P, 3] inside the visual hull of the training views' silhouettes,
@@ -276,7 +288,7 @@ def random_init_points(scene, n: int, generator: torch.Generator,
         region = _cube(scene.center, half, "no cameras: scene.extent" if half_size is None else "a given half size")
     else:
         region = init_region(cameras, scene.center, float(scene.extent))
-    backdrop = backdrop_of(scene) if region.kind == "cube" and half_size is None and cameras else None
+    backdrop = silhouettes_of(scene) if region.kind == "cube" and half_size is None and cameras else None
     if backdrop is not None:  # an object on a backdrop: where the silhouettes say it is
         candidates, carved = hull_candidates(region, cameras, scene.image, backdrop, CANDIDATES_PER_POINT * n,
                                              generator, mask=getattr(scene, "mask", None))

@@ -42,7 +42,7 @@ import torch
 from ..camera import Camera
 from ..densify.mvad import camera_axes
 from .images import may_have_alpha
-from .init import CANDIDATES_PER_POINT, backdrop_of, init_region, on_silhouettes, photo_consistent, random_init_points
+from .init import CANDIDATES_PER_POINT, init_region, on_silhouettes, photo_consistent, random_init_points, silhouettes_of
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
@@ -273,8 +273,8 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     view that sees fewer than 5) and a coverage mask (pixels within COVER_RADIUS of a projected
     track). CANDIDATES_PER_POINT x n candidates are drawn on rays through uncovered pixels,
     uniform in disparity within that view's range; the n whose colour agrees best across the
-    views are kept with their mean colour. On an object on a backdrop
-    (:func:`~mvgs_plugin.data.init.backdrop_of`) only the candidates inside the views' silhouettes
+    views are kept with their mean colour. On a still object on a backdrop
+    (:func:`~mvgs_plugin.data.init.silhouettes_of`) only the candidates inside the views' silhouettes
     (:func:`~mvgs_plugin.data.init.on_silhouettes`) are: a ray through a backdrop pixel has nothing
     on it, and a point in that air, backdrop-coloured from every side, is as photo-consistent as a
     point can be. Returns (xyz, rgb [k, 3] float64, description), k = n but where the silhouettes
@@ -327,7 +327,7 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
         near, far = bounds[i]
         disparity = 1.0 / far + torch.rand(rows.numel(), generator=generator, dtype=torch.float64) * (1.0 / near - 1.0 / far)
         candidates[rows] = origin + direction * (1.0 / disparity / cos)[:, None]
-    backdrop, carved = backdrop_of(scene), ""
+    backdrop, carved = silhouettes_of(scene), ""
     if backdrop is not None:
         inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None))
         candidates = candidates[inside]
