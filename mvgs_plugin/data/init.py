@@ -260,7 +260,7 @@ def hull_candidates(region: "InitRegion", cameras: Sequence[Camera], image, back
     center = torch.as_tensor(region.center, dtype=torch.float64)
     g, half = HULL_GRID, float(region.half)
     step = 2.0 * half / g
-    axis = center.new_tensor([0.0]) + (torch.arange(g, dtype=torch.float64) + 0.5) * step - half
+    axis = (torch.arange(g, dtype=torch.float64) + 0.5) * step - half  # cell centres about the cube's centre
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3) + center
     inside = on_silhouettes(grid, cameras, image, backdrop, mask=mask).reshape(1, 1, g, g, g).float()
     cells = torch.nn.functional.max_pool3d(inside, 3, stride=1, padding=1).reshape(-1) > 0
