@@ -1537,15 +1537,11 @@ def generate(mi, args, builder, views) -> None:
     images = {}
     t0 = time.time()
     for k, v in enumerate(views):
-        if args.variant in ALPHA_VARIANTS:
-            lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k, alpha=True)
-            rgba = to_srgba8(mi, lin)
-            write_png(mi, os.path.join(out, v.name + ".png"), rgba)
-            images[v.name] = rgba[..., :3]  # the points' colours: the object's own, straight
-        else:
-            lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k)
-            images[v.name] = to_srgb8(mi, lin)
-            write_png(mi, os.path.join(out, v.name + ".png"), images[v.name])
+        alpha = args.variant in ALPHA_VARIANTS
+        lin = render_view(mi, builder.scene(v.time), v, args.spp, args.seed * 100003 + k, alpha=alpha)
+        png = to_srgba8(mi, lin) if alpha else to_srgb8(mi, lin)
+        write_png(mi, os.path.join(out, v.name + ".png"), png)
+        images[v.name] = png[..., :3]  # the points' colours (with alpha: the object's own, straight)
         print(f"  [{k + 1}/{len(views)}] {v.name}  {time.time() - t0:.1f}s", flush=True)
     rng = np.random.default_rng(args.seed)
     pts, colours, vis, train = make_points(mi, builder, views, images, args.n_points, rng,

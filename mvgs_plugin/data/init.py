@@ -130,6 +130,11 @@ class InitRegion:
         return out
 
 
+def _photo_level(cam: Camera, max_width: int) -> int:
+    """The pyramid factor that brings ``cam``'s image to at most ``max_width`` pixels across."""
+    return max(1, -(-cam.width // max_width))
+
+
 def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: int, mask=None):
     """Per camera, what the points [P, 3] land on in its image downsampled to at most ``max_width``
     pixels across (``image(camera, factor)``): (the colour of the pixel each projects into [P, 3]
@@ -139,7 +144,7 @@ def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: 
     # float32 is plenty for a pixel lookup at <= 64 px
     pts = points.to(torch.float32)
     for cam in cameras:
-        factor = max(1, -(-cam.width // max_width))
+        factor = _photo_level(cam, max_width)
         small = cam.scaled(factor)
         img = image(cam, factor).to(torch.float32).reshape(-1, 3)
         w2c = small.world_to_camera.to(torch.float32)
@@ -207,10 +212,10 @@ def backdrop_of(scene) -> Optional[tuple[float, float, float]]:
     (:func:`~mvgs_plugin.data.images.uniform_border`); None for a scene of photographs, or one
     without a background colour or training cameras."""
     background, cameras = getattr(scene, "background", None), getattr(scene, "train_cameras", None)
-    if background is None or not cameras:
+    if background is None or not cameras or not _borders_show(cameras, scene.image, background,
+                                                               getattr(scene, "mask", None)):
         return None
-    shown = _backdrop_at_borders(cameras, scene.image, background, getattr(scene, "mask", None))
-    return None if shown is None else tuple(float(v) for v in background)
+    return tuple(float(v) for v in background)
 
 
 def silhouettes_of(scene) -> Optional[tuple[float, float, float]]:
@@ -270,7 +275,7 @@ def hull_candidates(region: "InitRegion", cameras: Sequence[Camera], image, back
     pick = torch.randint(corners.shape[0], (count,), generator=generator)
     points = corners[pick] + step * torch.rand(count, 3, generator=generator, dtype=torch.float64)
     points = points[on_silhouettes(points, cameras, image, backdrop, mask=mask)]
-    return points, (f"carved to the training views' silhouettes on the backdrop {[round(float(v), 3) for v in backdrop]} "
+    return points, (f"carved to the training views' silhouettes on the backdrop {_rounded(backdrop)} "
                     f"({int(inside.sum())} of {g ** 3} cells of a {g}^3 grid over the cube inside them, "
                     f"{points.shape[0]} of {count} candidates drawn near those inside)")
 
@@ -455,22 +460,20 @@ def init_region(cameras: Sequence[Camera], center: torch.Tensor, extent: float,
 
 
 
-def _backdrop_at_borders(cameras: Sequence[Camera], image, backdrop, mask=None,
-                         max_width: int = PHOTO_WIDTH) -> Optional[list[float]]:
-    """``backdrop`` (rounded, for a message) when the borders of the views, read as
-    :func:`view_colours` reads them, are one colour (:func:`~mvgs_plugin.data.images.uniform_border`)
-    within ``BORDER_TOLERANCE`` of it in every channel; else None."""
+def _borders_show(cameras: Sequence[Camera], image, backdrop, mask=None, max_width: int = PHOTO_WIDTH) -> bool:
+    """Whether the borders of the views, read as :func:`view_colours` reads them, are one colour
+    (:func:`~mvgs_plugin.data.images.uniform_border`) within ``BORDER_TOLERANCE`` of ``backdrop``
+    in every channel."""
     from .images import BORDER_TOLERANCE, check_background, uniform_border
 
     colour = check_background(backdrop)
-    images, masks = [], []
-    for cam in cameras:
-        factor = max(1, -(-cam.width // max_width))
-        images.append(image(cam, factor))
-        masks.append(None if mask is None else mask(cam, factor))
-    found = uniform_border(images, masks)
-    if found is None or max(abs(a - b) for a, b in zip(found, colour)) > BORDER_TOLERANCE:
-        return None
+    levels = [_photo_level(cam, max_width) for cam in cameras]
+    found = uniform_border([image(cam, f) for cam, f in zip(cameras, levels)],
+                           None if mask is None else [mask(cam, f) for cam, f in zip(cameras, levels)])
+    return found is not None and max(abs(a - b) for a, b in zip(found, colour)) <= BORDER_TOLERANCE
+
+
+def _rounded(colour) -> list[float]:
     return [round(float(v), 3) for v in colour]
 
 
@@ -533,12 +536,10 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
             return empty, empty.clone(), (
                 f"no background shell: the cameras do not look in at one place (look convergence {convergence:.2f} < "
                 f"{CONVERGING_COSINE}) and no points say where the scene lies")
-    if backdrop is not None:
-        shown = _backdrop_at_borders(cameras, image, backdrop, mask)
-        if shown is not None:
-            return empty, empty.clone(), (
-                f"no background shell: the training images' borders show only the backdrop {shown} the renderer draws "
-                "behind the Gaussians (an object on a backdrop: nothing beyond it to model)")
+    if backdrop is not None and _borders_show(cameras, image, backdrop, mask):
+        return empty, empty.clone(), (
+            f"no background shell: the training images' borders show only the backdrop {_rounded(backdrop)} the "
+            "renderer draws behind the Gaussians (an object on a backdrop: nothing beyond it to model)")
     i = torch.arange(n, dtype=torch.float64) + 0.5
     polar = torch.acos(1.0 - 2.0 * i / n)
     azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
@@ -549,7 +550,6 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     seen = count > 0
     if not seen.any():
         return empty, empty.clone(), f"no background shell: none of {n} points at {radius:g} rig radii is in a view"
-
     # listed in photo-consistency order, the order every measurement of docs/data.md was made with
     # (training is sensitive to the order of its initial points, not to the set alone)
     order = _photo_rank(variance[seen], count[seen])

@@ -332,8 +332,7 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
         inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None))
         candidates = candidates[inside]
         n = min(n, candidates.shape[0])
-        carved = (f", {candidates.shape[0]} of them inside the views' silhouettes on the backdrop "
-                  f"{[round(float(v), 3) for v in backdrop]}")
+        carved = f", {candidates.shape[0]} of them inside the views' silhouettes on the backdrop {[round(v, 3) for v in backdrop]}"
     kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width, mask=getattr(scene, "mask", None))
     share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
     return kept, rgb, (f"{n} fill points where no track projects ({share:.0%} of the pixels at {max_width} px), the "
