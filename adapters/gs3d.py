@@ -40,7 +40,7 @@ from mvgs_plugin.reference_renderer import rasterization
 from mvgs_plugin.reference_renderer._validate import max_scale
 from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
 
-from .knn import knn_mean_sq_dist
+from .knn import knn_mean_sq_dist, spacing_log_scale
 from .ops import growth_cap, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import read_gaussian_ply, write_gaussian_ply
 
@@ -396,6 +396,9 @@ class GS3DAdapter:
         self._step = 0
         self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
         self._mean_reference: Optional[Tensor] = None  # see optimizer_step
+        # True while every scale is from_scene's spacing rule (no optimizer step yet): a cut then
+        # re-sizes the kept Gaussians by the spacing of the kept points (see densify)
+        self.sized_by_spacing = False
         self.active_sh_degree = check_int("active_sh_degree", active_sh_degree, 0,
                                            self.config.sh_degree)
         self._build(raw)
@@ -524,8 +527,7 @@ class GS3DAdapter:
         else:
             xyz, rgb = points.xyz.to(torch.float64), points.rgb.to(torch.float64)
         xyz, rgb = xyz.to(device), rgb.to(device)
-        dist2 = knn_mean_sq_dist(xyz, k=3, chunk=config.knn_chunk).clamp_min(1e-7)
-        log_scale = torch.log(torch.sqrt(dist2))[:, None].repeat(1, 3)
+        log_scale = spacing_log_scale(xyz, chunk=config.knn_chunk)[:, None].repeat(1, 3)
         n = xyz.shape[0]
         quats = torch.zeros(n, 4, dtype=torch.float64, device=xyz.device)
         quats[:, 0] = 1.0
@@ -534,8 +536,10 @@ class GS3DAdapter:
         opac = torch.full((n,), math.log(config.init_opacity / (1 - config.init_opacity)),
                           dtype=torch.float64, device=xyz.device)
         t = lambda x: x.to(dtype)  # noqa: E731
-        return cls(t(xyz), t(sh0), t(shN), t(log_scale), t(quats), t(opac), scene.extent, config,
-                   scene_center=getattr(scene, "center", None))
+        model = cls(t(xyz), t(sh0), t(shN), t(log_scale), t(quats), t(opac), scene.extent, config,
+                    scene_center=getattr(scene, "center", None))
+        model.sized_by_spacing = True
+        return model
 
     @staticmethod
     def _random_points(scene, config: GS3DConfig) -> Tuple[Tensor, Tensor]:
@@ -774,7 +778,9 @@ class GS3DAdapter:
         With a cap (the lower of config.max_gaussians and ctx.max_primitives) the count after the
         call never exceeds it: the rows step 4 prunes are not grown from; when the survivors
         alone exceed the cap, the ones with the lowest keep_scores() are removed down to it (and
-        nothing grows); otherwise, when the candidates' growth exceeds the room left, up to
+        nothing grows; before the first optimizer step, sized_by_spacing, the kept rows' scales
+        are re-set to the spacing of the kept means, knn.spacing_log_scale, as from_scene sizes
+        them); otherwise, when the candidates' growth exceeds the room left, up to
         floor(ctx.swap_share x cap) of the lowest keep_scores() among the other rows are removed
         to make more room (the swap: _swap_out), and the candidates of 1-3 are ranked by
         densify_scores(ctx.rank_by) together (with config.budget_growth_order "inside-first",
@@ -842,7 +848,11 @@ class GS3DAdapter:
             keep = ~(prune | parents)
         src = torch.cat([torch.arange(n0, device=keep.device),
                          torch.full((n_new,), -1, dtype=torch.long, device=keep.device)])
-        self._replace({k: v[keep] for k, v in all_rows.items()}, src[keep])
+        rows = {k: v[keep] for k, v in all_rows.items()}
+        if self.sized_by_spacing and bool(shed.any()):  # a cut before training: sized as if built from the kept points
+            rows["scales"] = spacing_log_scale(rows["means"], self.config.knn_chunk)[:, None].repeat(1, 3).to(
+                rows["scales"])
+        self._replace(rows, src[keep])
         self._reset_stats()
         return DensifyReport(
             before=n0, after=self.num_primitives(), cloned=int(clone_sel.sum()),
@@ -1008,6 +1018,7 @@ class GS3DAdapter:
         the renderer will take: a scale it refuses (log-scale > max_log_scale(dtype)) or a mean
         beyond MAX_MEAN_EXTENTS scene extents raises FloatingPointError naming the group (a
         diverging learning rate)."""
+        self.sized_by_spacing = False
         means = self.params["means"]
         rule = self._means_rule() if means.grad is not None else None
         if rule is None:
@@ -1135,6 +1146,7 @@ class GS3DAdapter:
             self.far_distance = None if state["far_distance"] is None else float(state["far_distance"])
         self._step = int(state["step"])
         self._mean_reference = None
+        self.sized_by_spacing = False
         self.active_sh_degree = int(state["active_sh_degree"])
         self._build(raw)
         self.optimizer.load_state_dict(state["optimizer"])

@@ -387,8 +387,10 @@ class GS4DAdapter(GS3DAdapter):
         config = GS4DConfig() if config is None else config
         config = dataclasses.replace(config, canonical=canonical.config)
         p = {k: v.detach() for k, v in canonical.params.items()}
-        return cls(p["means"], p["sh0"], p["shN"], p["scales"], p["quats"], p["opacities"],
-                   canonical.scene_extent, config, canonical.active_sh_degree, scene_center=canonical.scene_center)
+        model = cls(p["means"], p["sh0"], p["shN"], p["scales"], p["quats"], p["opacities"],
+                    canonical.scene_extent, config, canonical.active_sh_degree, scene_center=canonical.scene_center)
+        model.sized_by_spacing = canonical.sized_by_spacing
+        return model
 
     @classmethod
     def from_scene(cls, scene, config: Optional[GS4DConfig] = None, dtype: torch.dtype = torch.float32,

@@ -101,6 +101,7 @@ from gsplat.strategy.ops import duplicate, remove, reset_opa
 
 from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, beyond_far_line, consistency_of, far_last, farthest_distance,
                                        keep_scores_of)
+from mvgs_plugin.adapters.knn import spacing_log_scale
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.controller import config_differences
@@ -343,7 +344,11 @@ class MVGSStrategy(DefaultStrategy):
     def check_sanity(self, params, optimizers) -> None:
         """The wrapped strategy's check; with config.max_gaussians, a model above the budget is
         cut to it here (gsplat's trainers call this once, before the first render; before the
-        first step, to config.initial_cap()): its lowest keep scores go (see keep_scores)."""
+        first step, to config.initial_cap()): its lowest keep scores go (see keep_scores). A cut
+        before the first step also re-sizes the kept Gaussians to the spacing of the kept means:
+        each log-scale moves by the change of log(root mean squared distance to the 3 nearest
+        means), so a trainer's own initial factor stays and the thinned model has no holes (as
+        GS3DAdapter.densify)."""
         self.strategy.check_sanity(params, optimizers)
         sched = self.schedule
         # before the run's first step (plans a DataLoader drew ahead have not started)
@@ -352,7 +357,13 @@ class MVGSStrategy(DefaultStrategy):
         if first:  # the far line of budget_growth_order: the initial model's farthest mean, before the cut
             self.far_distance = farthest_distance(params["means"], self.scene_center)
         if budget is not None and len(params["means"]) > budget:
-            self._shed(params, optimizers, {}, budget)
+            shed = self._shed_mask(params, {}, budget)
+            spacing = spacing_log_scale(params["means"])[~shed] if first else None
+            remove(params=params, optimizers=optimizers, state={}, mask=shed)
+            if spacing is not None:
+                with torch.no_grad():
+                    change = spacing_log_scale(params["means"]) - spacing
+                    params["scales"].add_(change[:, None].to(params["scales"]))
         if first:  # the budget's growth schedule starts from the count the run starts with
             sched.primitive_count = len(params["means"])
             if sched.initial_count is not None:  # taken by a plan drawn ahead, before the cut
@@ -372,15 +383,20 @@ class MVGSStrategy(DefaultStrategy):
             coverage = torch.zeros_like(opacity)
         return keep_scores_of(opacity, coverage, params["means"], center)
 
+    def _shed_mask(self, params, state, cap: int) -> Tensor:
+        """[N] bool: the rows _shed removes (the lowest keep scores beyond `cap`)."""
+        excess = len(params["means"]) - cap
+        mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
+        if excess > 0:
+            mask[torch.sort(self.keep_scores(params, state, self.scene_center), stable=True).indices[:excess]] = True
+        return mask
+
     def _shed(self, params, optimizers, state, cap: int) -> int:
         """Remove the lowest keep scores down to `cap` (gsplat's ops.remove); returns how many."""
-        excess = len(params["means"]) - cap
-        if excess <= 0:
-            return 0
-        mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
-        mask[torch.sort(self.keep_scores(params, state, self.scene_center), stable=True).indices[:excess]] = True
-        remove(params=params, optimizers=optimizers, state=state, mask=mask)
-        return excess
+        mask = self._shed_mask(params, state, cap)
+        if bool(mask.any()):
+            remove(params=params, optimizers=optimizers, state=state, mask=mask)
+        return int(mask.sum())
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         return self.strategy.initialize_state(scene_scale=scene_scale)

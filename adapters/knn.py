@@ -14,7 +14,7 @@ from torch import Tensor
 
 from mvgs_plugin.checks import check_int
 
-__all__ = ["knn_mean_sq_dist"]
+__all__ = ["knn_mean_sq_dist", "spacing_log_scale"]
 
 _CHUNK_ELEMS = 1 << 24  # distance-matrix entries per block
 
@@ -100,3 +100,10 @@ def _block_knn(q: Tensor, q_idx: Tensor, c: Tensor, c_idx: Tensor, k: int) -> Te
         exact = ((q[s:s + rows, None, :] - c[idx]) ** 2).sum(dim=-1)  # ... measured exactly
         out[s:s + rows] = exact.mean(dim=1)
     return out
+
+
+def spacing_log_scale(points: Tensor, chunk: int = 256) -> Tensor:
+    """[P] float64 log of the root mean squared distance of every point to its three nearest
+    others (floored at 1e-7 before the root): the size 3DGS gives a Gaussian initialised at a
+    point, and Scaffold-GS an anchor, so neighbours just overlap."""
+    return torch.log(knn_mean_sq_dist(points, k=3, chunk=chunk).clamp_min(1e-7).sqrt())

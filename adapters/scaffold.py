@@ -61,7 +61,7 @@ from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from mvgs_plugin.reference_renderer import rasterization
 
 from .gs3d import SH_C0, keep_scores_of
-from .knn import knn_mean_sq_dist
+from .knn import knn_mean_sq_dist, spacing_log_scale
 from .ops import growth_cap, log_linear, make_adam, scale_for_views, stats_in_one_dict, swap_param
 from .ply import write_gaussian_ply
 
@@ -260,6 +260,9 @@ class ScaffoldAdapter:
         self.voxel_size = check_float("voxel_size", voxel_size, positive=True)
         self._generator = torch.Generator().manual_seed(self.config.seed)
         self._step = 0
+        # True while every anchor's scaling is from_scene's spacing rule (no optimizer step yet): a
+        # cut then re-sizes the kept anchors by the spacing of the kept ones (see densify)
+        self.sized_by_spacing = False
         self._views = 1  # views per step the optimizer is scaled for (set_views_per_step)
         self._reg_cameras: List[Camera] = []
         with torch.random.fork_rng():
@@ -334,13 +337,13 @@ class ScaffoldAdapter:
                                  f"ScaffoldConfig.voxel_size (--voxel-size)")
         anchors = voxelize(xyz, voxel)
         a, k = anchors.shape[0], config.n_offsets
-        d2 = knn_mean_sq_dist(anchors, k=3).clamp_min(1e-7)
-        scaling = torch.log(d2.sqrt())[:, None].repeat(1, 6)
+        scaling = spacing_log_scale(anchors)[:, None].repeat(1, 6)
         gen = torch.Generator().manual_seed(config.seed)
         offsets = torch.randn(a, k, 3, generator=gen, dtype=torch.float64) * config.offset_init_std
         features = torch.zeros(a, config.feat_dim, dtype=torch.float64)
         t = lambda x: x.to(device=device, dtype=dtype)  # noqa: E731
         model = cls(t(anchors), t(features), t(offsets), t(scaling), scene.extent, voxel, config)
+        model.sized_by_spacing = True
         return model
 
     # ---- views of the model --------------------------------------------------------------
@@ -532,6 +535,7 @@ class ScaffoldAdapter:
         return {name: p.grad for name, p in self.gradient_parameters().items()}
 
     def optimizer_step(self) -> None:
+        self.sized_by_spacing = False
         self.optimizer.step()
 
     def zero_grad(self) -> None:
@@ -576,7 +580,9 @@ class ScaffoldAdapter:
           candidates dropped);
           prune: old anchors with anchor_denom > t_a and opacity_accum < min_opacity *
           anchor_denom; when the survivors alone exceed the cap, the ones with the lowest
-          keep_scores(ctx.scene_center) go too (nothing grows then).
+          keep_scores(ctx.scene_center) go too (nothing grows then; before the first optimizer
+          step, sized_by_spacing, the kept anchors' scaling is re-set to their spacing,
+          knn.spacing_log_scale, as from_scene sets it).
         Statistics: judged children and judged anchors restart from 0; new rows start at 0;
         views_seen restarts. Adam moments follow their rows (new rows 0); the MLPs' state is left
         alone. The anchor rows are new tensors without gradients (as in 3DGS densification).
@@ -625,6 +631,10 @@ class ScaffoldAdapter:
             occupied = torch.cat([occupied, cells])
         anchor_judged = self.anchor_denom > t_anchor
         self._apply(added, prune, judged.reshape(a0, k), anchor_judged)
+        if self.sized_by_spacing and bool(shed.any()):  # a cut before training: sized as if voxelised from the kept
+            scaling = spacing_log_scale(self.anchors)[:, None].repeat(1, 6)
+            self.params["scaling"] = swap_param(self.optimizer, "scaling", scaling.to(self.params["scaling"]), None,
+                                                zero_moments=False)
         n_new = sum(len(c) for c, _, _ in added)
         return DensifyReport(before=a0, after=self.num_primitives(), pruned=int(prune.sum()), from_boxes=box_new,
                              extra={"grad_threshold": beta, "grown": n_new - box_new, "grown_per_level": per_level,
@@ -729,6 +739,7 @@ class ScaffoldAdapter:
         self.config = config
         self.voxel_size, self.scene_extent = float(state["voxel_size"]), float(state["scene_extent"])
         self._step = int(state["step"])
+        self.sized_by_spacing = False
         ref = next(self.mlps.parameters())
         self.mlps = ScaffoldMLPs(config.feat_dim, config.n_offsets, config.use_distance).to(device=ref.device,
                                                                                               dtype=ref.dtype)

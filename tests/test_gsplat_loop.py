@@ -864,6 +864,26 @@ def test_keep_scores_and_the_cut_at_check_sanity(forward):
     assert all(len(opt.param_groups[0]["params"][0]) == n // 2 for opt in optimizers.values())
 
 
+def test_the_cut_at_check_sanity_resizes_the_kept_gaussians_with_the_trainers_own_factor(forward):
+    """A cut before the first step re-sizes what it keeps to the spacing of the kept means,
+    keeping the trainer's initial factor (init_scale): log-scales = log(init_scale x root mean
+    squared distance to the 3 nearest kept means), by a dense pairwise reference."""
+    torch.manual_seed(0)
+    cfg = common.Config(sh_degree=1, init_scale=0.5)
+    cfg.make_strategy()
+    splats, optimizers = common.create_splats_with_optimizers(SceneParser(forward), cfg, forward.extent)
+    n = len(splats["means"])
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n // 4), steps=12)
+    strategy.check_sanity(splats, optimizers)
+    p = splats["means"].detach().double()
+    d2 = torch.cdist(p, p).square()
+    d2.fill_diagonal_(math.inf)
+    want = torch.log(0.5 * d2.topk(3, dim=1, largest=False).values.mean(dim=1).sqrt())
+    assert len(p) == n // 4
+    for col in range(3):
+        assert torch.allclose(splats["scales"].detach()[:, col].double(), want, atol=1e-4)
+
+
 def test_the_cut_at_check_sanity_keeps_the_initial_share(forward):
     """budget_initial_share 0.5: check_sanity cuts to floor(0.5 N), the same top keep scores, and
     the budget's growth schedule starts from that count (its first cap is not N)."""
