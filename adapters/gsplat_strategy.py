@@ -357,12 +357,11 @@ class MVGSStrategy(DefaultStrategy):
         if first:  # the far line of budget_growth_order: the initial model's farthest mean, before the cut
             self.far_distance = farthest_distance(params["means"], self.scene_center)
         if budget is not None and len(params["means"]) > budget:
-            shed = self._shed_mask(params, {}, budget)
-            spacing = spacing_log_scale(params["means"])[~shed] if first else None
-            remove(params=params, optimizers=optimizers, state={}, mask=shed)
+            spacing = spacing_log_scale(params["means"]) if first else None
+            shed = self._shed(params, optimizers, {}, budget)
             if spacing is not None:
                 with torch.no_grad():
-                    change = spacing_log_scale(params["means"]) - spacing
+                    change = spacing_log_scale(params["means"]) - spacing[~shed]
                     params["scales"].add_(change[:, None].to(params["scales"]))
         if first:  # the budget's growth schedule starts from the count the run starts with
             sched.primitive_count = len(params["means"])
@@ -383,20 +382,15 @@ class MVGSStrategy(DefaultStrategy):
             coverage = torch.zeros_like(opacity)
         return keep_scores_of(opacity, coverage, params["means"], center)
 
-    def _shed_mask(self, params, state, cap: int) -> Tensor:
-        """[N] bool: the rows _shed removes (the lowest keep scores beyond `cap`)."""
+    def _shed(self, params, optimizers, state, cap: int) -> Tensor:
+        """Remove the lowest keep scores down to `cap` (gsplat's ops.remove); returns the [N] bool
+        mask of the rows removed (over the rows before the call)."""
         excess = len(params["means"]) - cap
         mask = torch.zeros(len(params["means"]), dtype=torch.bool, device=params["means"].device)
         if excess > 0:
             mask[torch.sort(self.keep_scores(params, state, self.scene_center), stable=True).indices[:excess]] = True
-        return mask
-
-    def _shed(self, params, optimizers, state, cap: int) -> int:
-        """Remove the lowest keep scores down to `cap` (gsplat's ops.remove); returns how many."""
-        mask = self._shed_mask(params, state, cap)
-        if bool(mask.any()):
             remove(params=params, optimizers=optimizers, state=state, mask=mask)
-        return int(mask.sum())
+        return mask
 
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         return self.strategy.initialize_state(scene_scale=scene_scale)
@@ -706,7 +700,7 @@ class MVGSStrategy(DefaultStrategy):
                       f"Now having {len(params['means'])} GSs.")
         self._call_strategy(params, optimizers, state, None, False, refine=ctx, step=step)
         if cap is not None:
-            shed = self._shed(params, optimizers, state, cap)  # the boxes' clones may have taken room
+            shed = int(self._shed(params, optimizers, state, cap).sum())  # the boxes' clones may have taken room
             for key in ("mvgs_grad2d_sq", "mvgs_coverage"):  # the window restarts, as gsplat's grad2d
                 if isinstance(state.get(key), Tensor):
                     state[key] = torch.zeros(len(params["means"]), device=state[key].device)
