@@ -245,8 +245,10 @@ class MVGSStrategy(DefaultStrategy):
         clock: "strategy" (adopt the strategy's clock and threshold, see adopt_strategy_clock)
             or "config" (keep the config's own).
         budget_growth_order: under a binding config.max_gaussians, the order in which growth
-            candidates take the room left, as GS3DConfig.budget_growth_order: "score" (by the
-            densify score alone), "inside-first" (candidates nearer the scene centre than the far
+            candidates take the room left (the cap less the rows the refine keeps: those its
+            prune removes are not grown from, and a small row that gsplat both duplicates and
+            splits by its screen radius takes two places), as GS3DConfig.budget_growth_order:
+            "score" (by the densify score alone), "inside-first" (candidates nearer the scene centre than the far
             line, FAR_RESET_FRACTION of the initial model's farthest mean, before those beyond it,
             each group by score) or "auto" (default: "score" on a forward-facing rig or without
             a scene centre, else "inside-first"). The far line is taken at the first
@@ -354,8 +356,8 @@ class MVGSStrategy(DefaultStrategy):
         # before the run's first step (plans a DataLoader drew ahead have not started)
         first = self.plan is None and (self._queue[0][1]["step"] if self._queue else sched.step_count) == 0
         budget = self.config.initial_cap() if first else self.config.max_gaussians
-        if first:  # the far line of budget_growth_order: the initial model's farthest mean, before the cut
-            self.far_distance = farthest_distance(params["means"], self.scene_center)
+        if first and self.far_distance is None:  # the far line of budget_growth_order: the initial model's
+            self.far_distance = farthest_distance(params["means"], self.scene_center)  # farthest mean, before the cut
         if budget is not None and len(params["means"]) > budget:
             spacing = spacing_log_scale(params["means"]) if first else None
             shed = self._shed(params, optimizers, {}, budget)
@@ -652,18 +654,50 @@ class MVGSStrategy(DefaultStrategy):
         state["mvgs_grad2d_sq"].index_add_(0, ids, norms.square().to(state["mvgs_grad2d_sq"]))
         state["mvgs_coverage"].index_add_(0, ids, (math.pi * r.float().square() / float(w * h)).to(state["mvgs_coverage"]))
 
-    def _rank_growth(self, state, threshold: float, room: int, means: Optional[Tensor] = None) -> int:
-        """Keep only the `room` growth candidates (mean gradient >= threshold) with the best
-        densify score (config.densify_rank, as GS3DAdapter.densify_scores; with
+    def _fate(self, params, state, threshold: float, prune_large: bool, scale2d: bool) -> Tuple[Tensor, Tensor, Tensor]:
+        """What the wrapped strategy's refine does to each row, decided as gsplat 1.5.3's
+        DefaultStrategy decides it: ([N] grows: a mean grad2d above `threshold` or, with
+        `scale2d`, a screen radius above grow_scale2d; [N] the rows it adds if they grow: 2 for
+        a small row that is both duplicated and split by its screen radius, else 1; [N] removed
+        for certain whatever they grow: an opacity under prune_opa or, with `prune_large`, a
+        screen radius above prune_scale2d (`scale2d`) or too large in the world without growing
+        (copies inherit opacity and radius, ops.duplicate / ops.split; a split's children are
+        smaller, so a large row that grows is not counted))."""
+        s, n = self.strategy, len(params["means"])
+        dev = params["means"].device
+        grad2d, count, radii = state.get("grad2d"), state.get("count"), state.get("radii")
+        high = torch.zeros(n, dtype=torch.bool, device=dev)
+        if isinstance(grad2d, Tensor) and len(grad2d) == n:
+            high = (grad2d / count.clamp_min(1) > threshold).to(dev)
+        radii = radii.to(dev) if scale2d and isinstance(radii, Tensor) and len(radii) == n else None
+        wide = radii > s.grow_scale2d if radii is not None else torch.zeros_like(high)
+        scale = torch.exp(params["scales"].detach()).max(-1).values
+        small = scale <= s.grow_scale3d * float(state["scene_scale"])
+        grow = high | wide
+        cost = 1 + (high & small & wide).long()
+        doomed = torch.sigmoid(params["opacities"].detach().reshape(-1)) < s.prune_opa
+        if prune_large:
+            doomed = doomed | ((scale > s.prune_scale3d * float(state["scene_scale"])) & ~grow)
+            if radii is not None:
+                doomed = doomed | (radii > s.prune_scale2d)
+        return grow, cost, doomed
+
+    def _rank_growth(self, state, threshold: float, room: int, means: Optional[Tensor] = None,
+                     grow: Optional[Tensor] = None, cost: Optional[Tensor] = None) -> int:
+        """Keep only the growth candidates (`grow`, default: mean gradient > threshold) with the
+        best densify score (config.densify_rank, as GS3DAdapter.densify_scores; with
         budget_growth_order "inside-first" and the rows' `means`, those inside the far line
-        before any beyond it): the others' grad2d is zeroed before the strategy's refine, so it
-        does not grow them. Returns how many fell."""
+        before any beyond it) whose rows added (`cost`, default 1 each) fit in `room`, the
+        longest such prefix: the others' grad2d is zeroed and their screen radius held at
+        grow_scale2d before the strategy's refine, so it grows none of them. Returns how many
+        fell."""
         grad2d, count = state.get("grad2d"), state.get("count")
         if not isinstance(grad2d, Tensor):
             return 0
         mean = grad2d / count.clamp_min(1)
-        cand = mean > threshold
-        if int(cand.sum()) <= room:
+        cand = mean > threshold if grow is None else grow
+        cost = torch.ones(len(mean), dtype=torch.long, device=mean.device) if cost is None else cost.to(mean.device)
+        if int(cost[cand].sum()) <= room:
             return 0
         score = mean
         sq = state.get("mvgs_grad2d_sq")
@@ -676,8 +710,11 @@ class MVGSStrategy(DefaultStrategy):
                and means is not None and len(means) == len(mean) else None)
         if far is not None:
             order = far_last(order, far)
-        dropped = order[room:]
+        dropped = order[torch.cumsum(cost[order], 0) > room]
         grad2d[dropped] = 0
+        radii = state.get("radii")
+        if isinstance(radii, Tensor) and len(radii) == len(mean):  # not split by their screen size either
+            radii[dropped] = radii[dropped].clamp_max(self.strategy.grow_scale2d)
         return len(dropped)
 
     def _refine(self, params, optimizers, state, plan: StepPlan, step) -> None:
@@ -686,15 +723,28 @@ class MVGSStrategy(DefaultStrategy):
         ctx = self.schedule.densify_context(plan, None, len(means), bounds)
         before = len(means)
         cap, dropped, shed, swapped = ctx.max_primitives, 0, 0, 0
-        if cap is not None:  # growth ranked into the room the budget leaves (a grow adds one row)
+        grad2d, count = state.get("grad2d"), state.get("count")
+        # the boxes' clones are ranked by the window's gradient, before the cap zeroes some of it
+        box_score = grad2d / count.clamp_min(1) if isinstance(grad2d, Tensor) else None
+        doomed = None
+        if cap is not None:  # growth ranked into the room the budget leaves (see _fate)
             if self.far_distance is None and self.budget_growth_order == "inside-first":  # check_sanity never ran
                 self.far_distance = farthest_distance(means, self.scene_center)
-            room = max(0, cap - before)
-            swapped = self._swap_out(params, optimizers, state, float(ctx.grad_threshold), room, cap, ctx.swap_share)
-            dropped = self._rank_growth(state, float(ctx.grad_threshold), room + swapped, params["means"])
+            threshold = float(ctx.grad_threshold)
+            scale2d = self.strategy.refine_scale2d_stop_iter > 0 and ctx.step < self._scale2d_until
+            grow, cost, doomed = self._fate(params, state, threshold, ctx.prune_large, scale2d)
+            if isinstance(grad2d, Tensor):  # what the prune removes is not grown from and leaves its room
+                grad2d[doomed] = 0
+            grow = grow & ~doomed
+            room = max(0, cap - (before - int(doomed.sum())))
+            swapped, kept = self._swap_out(params, optimizers, state, grow, cost, doomed, room, cap, ctx.swap_share)
+            grow, cost, doomed = grow[kept], cost[kept], doomed[kept]
+            box_score = None if box_score is None else box_score[kept]
+            dropped = self._rank_growth(state, threshold, room + swapped, params["means"], grow, cost)
         from_boxes = 0
         if ctx.boxes is not None and len(ctx.boxes):
-            from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes)
+            from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes,
+                                              box_score, doomed)
             if self.verbose:
                 print(f"Step {step}: {from_boxes} GSs copied in {len(ctx.boxes)} cross-ray boxes. "
                       f"Now having {len(params['means'])} GSs.")
@@ -710,32 +760,40 @@ class MVGSStrategy(DefaultStrategy):
                             "before": before, "after": len(params["means"]), "cap": cap,
                             "dropped_by_max_gaussians": dropped, "shed_to_cap": shed, "swapped": swapped}
 
-    def _swap_out(self, params, optimizers, state, threshold: float, room: int, cap: int, share: float) -> int:
-        """At a binding cap (more growth candidates, mean grad2d > threshold, than room), remove
-        up to floor(share x cap) of the lowest keep scores among the rows that are not candidates,
-        as many as the candidates exceed the room (gsplat's ops.remove, state included), so that
-        more candidates grow (MVGSConfig.budget_swap, as GS3DAdapter.densify). Returns how many."""
-        grad2d, count = state.get("grad2d"), state.get("count")
-        if share <= 0 or not isinstance(grad2d, Tensor) or len(grad2d) != len(params["means"]):
-            return 0
-        cand = grad2d / count.clamp_min(1) > threshold
-        want = min(int(cand.sum()) - room, math.floor(share * cap), int((~cand).sum()))
+    def _swap_out(self, params, optimizers, state, grow: Tensor, cost: Tensor, doomed: Tensor, room: int, cap: int,
+                  share: float) -> Tuple[int, Tensor]:
+        """At a binding cap (the rows the growth candidates, `grow`, would add, `cost` each, exceed
+        the room), remove up to floor(share x cap) of the lowest keep scores among the rows that
+        neither grow nor are `doomed` by the refine's prune, as many as the growth exceeds the
+        room (gsplat's ops.remove, state included), so that more candidates grow
+        (MVGSConfig.budget_swap, as GS3DAdapter.densify). Returns how many, and the [N] mask of
+        the rows kept."""
+        n = len(params["means"])
+        kept = torch.ones(n, dtype=torch.bool, device=grow.device)
+        free = ~grow & ~doomed
+        want = min(int(cost[grow].sum()) - room, math.floor(share * cap), int(free.sum())) if share > 0 else 0
         if want <= 0:
-            return 0
-        score = torch.where(cand, torch.full_like(grad2d, math.inf), self.keep_scores(params, state, self.scene_center).to(grad2d))
-        mask = torch.zeros(len(grad2d), dtype=torch.bool, device=grad2d.device)
-        mask[torch.sort(score, stable=True).indices[:want]] = True
-        remove(params=params, optimizers=optimizers, state=state, mask=mask)
-        return want
+            return 0, kept
+        score = torch.where(free, self.keep_scores(params, state, self.scene_center).to(grow.device),
+                            torch.full((n,), math.inf, device=grow.device))
+        kept[torch.sort(score, stable=True).indices[:want]] = False
+        remove(params=params, optimizers=optimizers, state=state, mask=~kept)
+        return want, kept
 
-    def _clone_in_boxes(self, params, optimizers, state, boxes: Tensor, cap: Optional[int]) -> int:
-        """Copy every Gaussian strictly inside a box (at most `cap`, largest mean gradient
-        first) with gsplat's ops.duplicate; the copies start with zero statistics, so the
-        strategy's own grow step that follows acts on the originals only (as GS3DAdapter)."""
+    def _clone_in_boxes(self, params, optimizers, state, boxes: Tensor, cap: Optional[int],
+                        score: Optional[Tensor] = None, doomed: Optional[Tensor] = None) -> int:
+        """Copy every Gaussian strictly inside a box but the `doomed` (rows the refine's prune
+        removes; their copies would go with them) (at most `cap`, largest `score` first: the mean
+        gradient, by default state's) with gsplat's ops.duplicate; the copies start with zero
+        statistics, so the strategy's own grow step that follows acts on the originals only (as
+        GS3DAdapter)."""
         sel = boxes_contain(params["means"], boxes)
+        if doomed is not None:
+            sel = sel & ~doomed.to(sel.device)
         if cap is not None:
-            grad2d, count = state.get("grad2d"), state.get("count")
-            score = grad2d / count.clamp_min(1) if grad2d is not None else torch.zeros(len(sel))
+            if score is None:
+                grad2d, count = state.get("grad2d"), state.get("count")
+                score = grad2d / count.clamp_min(1) if grad2d is not None else torch.zeros(len(sel))
             sel = top_by_score(sel, score, cap)
         n = int(sel.sum())
         if n:

@@ -932,7 +932,8 @@ def test_the_first_cut_holds_with_plans_drawn_ahead_and_a_model_below_the_share(
 def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward):
     """MVGSStrategy._swap_out on a hand-made window: candidates (mean grad2d > threshold) beyond
     the room make up to floor(share x cap) rows go, the lowest opacity x coverage among the
-    others (sorted here by hand); the state shrinks with the model."""
+    others that the refine's prune does not remove anyway (sorted here by hand); the state shrinks
+    with the model."""
     cfg, splats, optimizers = fresh_model(forward)
     n = len(splats["means"])
     g = torch.Generator().manual_seed(1)
@@ -944,18 +945,25 @@ def test_the_swap_removes_the_lowest_keep_scores_that_are_not_candidates(forward
     cand = grad2d > threshold
     strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.default(max_gaussians=n), steps=12)
     keep = torch.sigmoid(splats["opacities"].detach()) * coverage
-    others = [i for i in range(n) if not cand[i]]
+    by_keep = sorted([i for i in range(n) if not cand[i]], key=lambda i: float(keep[i]))
+    doomed = torch.zeros(n, dtype=torch.bool)
+    doomed[by_keep[:5]] = True  # the five the swap would take first: the prune takes them
+    others = by_keep[5:]
     for share, room in ((0.05, 0), (0.5, 3)):
         sp = {k: torch.nn.Parameter(v.detach().clone()) for k, v in splats.items()}
         opts = {k: torch.optim.Adam([sp[k]], lr=1e-3) for k in sp}
         st = {k: v.clone() for k, v in state.items()}
         want = min(int(cand.sum()) - room, math.floor(share * n))
-        gone = set(sorted(others, key=lambda i: float(keep[i]))[:want])
-        assert strategy._swap_out(sp, opts, st, threshold, room, n, share) == want > 0
+        gone = set(others[:want])
+        swapped, kept_mask = strategy._swap_out(sp, opts, st, cand, torch.ones(n, dtype=torch.long), doomed, room, n, share)
+        assert swapped == want > 0
         kept = [i for i in range(n) if i not in gone]
+        assert torch.equal(kept_mask, torch.tensor([i not in gone for i in range(n)]))
         assert torch.equal(sp["means"].detach(), splats["means"].detach()[kept])
         assert torch.equal(st["grad2d"], grad2d[kept]) and len(st["mvgs_coverage"]) == n - want
-    assert strategy._swap_out(splats, optimizers, dict(state), threshold, int(cand.sum()), n, 0.5) == 0  # room enough
+    swapped, kept_mask = strategy._swap_out(splats, optimizers, dict(state), cand, torch.ones(n, dtype=torch.long), doomed,
+                                            int(cand.sum()), n, 0.5)
+    assert swapped == 0 and bool(kept_mask.all())  # room enough
 
 
 # budget_growth_order in the wrap, on the rows of the adapter's test (test_budget_growth_order.py):
@@ -1038,10 +1046,9 @@ def test_inside_first_holds_the_budget_through_a_tabletop_run_and_resumes_exactl
     checked, refines = [], []
     rank, refine = strategy._rank_growth, strategy._refine
 
-    def rank_spy(state, threshold, room, means=None):
-        mean = state["grad2d"] / state["count"].clamp_min(1)
-        cand = mean > threshold
-        dropped = rank(state, threshold, room, means)
+    def rank_spy(state, threshold, room, means=None, grow=None, cost=None):
+        cand = state["grad2d"] / state["count"].clamp_min(1) > threshold if grow is None else grow.clone()
+        dropped = rank(state, threshold, room, means, grow, cost)
         if dropped:
             far = torch.linalg.vector_norm(means.detach().double() - center, dim=1) >= line
             kept = state["grad2d"] > 0
@@ -1200,3 +1207,124 @@ def test_a_batched_dataloader_and_a_threshold_the_config_clock_drops_are_said(fo
         w.loader(torch.utils.data.DataLoader(data, batch_size=4))
     first = next(iter(w.loader(torch.utils.data.DataLoader(data, batch_size=1)).dataloader))  # one batch
     assert len(first) == 1  # the schedule's one view a step (the baseline)
+
+
+# ---- a refine under the cap, as gsplat's own refine decides it ---------------------------------------
+def refine_on(scene, splats, optimizers, strategy, make_state):
+    """Draw steps until one densifies, build its window with make_state(n, threshold, ctx) and run
+    the strategy's refine on it. Returns (the context's cap, threshold, prune_large, the state
+    before the refine)."""
+    plan = strategy.schedule.next()
+    while not plan.densify:
+        plan = strategy.schedule.next()
+    n = len(splats["means"])
+    means = splats["means"].detach()
+    ctx = strategy.schedule.densify_context(plan, None, n, torch.stack([means.amin(0), means.amax(0)]).double())
+    state = make_state(n, float(ctx.grad_threshold), ctx)
+    before = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in state.items()}
+    strategy._refine(splats, optimizers, state, plan, 0)
+    assert strategy.last_refine["cap"] == ctx.max_primitives and strategy.last_refine["threshold"] == float(ctx.grad_threshold)
+    return ctx.max_primitives, float(ctx.grad_threshold), ctx.prune_large, before
+
+
+@pytest.mark.parametrize("scale2d", [False, True])
+def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leaves(forward, scale2d):
+    """A refine under a binding cap, on a hand-made window: rows the strategy's prune removes
+    (opacity under prune_opa; with screen-size refinement, a screen radius above prune_scale2d,
+    which their copies inherit) are not grown from and leave their room; the room goes to the
+    candidates (mean grad2d above the threshold, or a screen radius above grow_scale2d) with the
+    largest mean gradient; a candidate that falls is not split by its screen radius either, so
+    nothing is shed after the fact. The expected rows are worked out here with plain tensors from
+    gsplat's rules."""
+    cfg, splats, optimizers = fresh_model(forward)
+    n0 = len(splats["means"])
+    inner = DefaultStrategy(refine_start_iter=1, refine_every=2, reset_every=4, refine_stop_iter=100,
+                            refine_scale2d_stop_iter=10**6 if scale2d else 0)
+    strategy = MVGSStrategy(inner, forward, MVGSConfig.default(max_gaussians=n0 + 60), steps=12)
+    state0 = strategy.initialize_state(scene_scale=forward.extent)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        splats["opacities"][torch.randperm(n0, generator=g)[:40]] = -10.0  # under prune_opa
+        # half small enough to be duplicated, half split, none too large in the world (nor its children)
+        size = torch.where(torch.rand(n0, generator=g) < 0.5, 0.005, 0.03) * forward.extent
+        splats["scales"].copy_(torch.log(size)[:, None].expand(-1, 3))
+    orig = {k: v.detach().clone() for k, v in splats.items()}
+
+    def make_state(n, threshold, ctx):
+        grad2d = threshold * 2.0 * torch.rand(n, generator=g)  # about half above the threshold
+        radii = 0.2 * torch.rand(n, generator=g)  # screen radius / max(W, H): some above 0.05 and 0.15
+        return {**state0, "grad2d": grad2d, "count": torch.ones(n), "radii": radii}
+
+    cap, threshold, prune_large, st = refine_on(forward, splats, optimizers, strategy, make_state)
+    n = n0
+    mean = st["grad2d"] / st["count"]
+    grow = mean > threshold
+    if scale2d:
+        grow = grow | (st["radii"] > inner.grow_scale2d)
+    scales = torch.exp(orig["scales"]).max(-1).values
+    assert not bool((scales > inner.prune_scale3d * forward.extent).any())  # no row too large in the world
+    doomed = torch.sigmoid(orig["opacities"]) < inner.prune_opa
+    if scale2d and prune_large:
+        doomed = doomed | (st["radii"] > inner.prune_scale2d)
+    cand = grow & ~doomed
+    large = scales > inner.grow_scale3d * forward.extent
+    # a row adds one (duplicated, or split in two in its place); a small row with a large gradient
+    # whose screen radius is also above grow_scale2d is both duplicated and split: it adds two
+    adds = [1 + int(scale2d and bool(mean[i] > threshold) and not bool(large[i]) and bool(st["radii"][i] > inner.grow_scale2d))
+            for i in range(n)]
+    room = cap - (n - int(doomed.sum()))
+    assert 0 < room < sum(adds[i] for i in range(n) if cand[i]) and int(doomed.sum()) >= 40  # the cap binds; the prune frees room
+    grown, used = torch.zeros(n, dtype=torch.bool), 0
+    for i in sorted(torch.nonzero(cand).flatten().tolist(), key=lambda i: -float(mean[i])):
+        if used + adds[i] > room:
+            break
+        grown[i], used = True, used + adds[i]
+    split_parents = grown & (large | (st["radii"] > inner.grow_scale2d if scale2d else torch.zeros(n, dtype=torch.bool)))
+    survivors = ~doomed & ~split_parents  # a split removes its parent
+    assert len(splats["means"]) == n - int(doomed.sum()) + used and 0 <= room - used < max(adds)
+    assert strategy.last_refine["shed_to_cap"] == 0
+    assert strategy.last_refine["dropped_by_max_gaussians"] == int(cand.sum()) - int(grown.sum())
+    k = int(survivors.sum())
+    assert torch.equal(splats["means"].detach()[:k], orig["means"][survivors])  # the originals, in order
+    copies = grown & ~large & (mean > threshold)  # duplicated: their copies follow the originals
+    assert torch.equal(splats["means"].detach()[k:k + int(copies.sum())], orig["means"][copies])
+
+
+def test_box_clones_rank_by_the_windows_gradient_and_skip_what_the_prune_removes(forward):
+    """Under a cap the candidates that fell have their grad2d zeroed before the boxes' clones are
+    chosen: the clones are ranked by the window's gradient as it was (passed in), and a row the
+    refine's prune removes is not copied (its copy would go with it)."""
+    cfg, splats, optimizers = fresh_model(forward)
+    strategy = MVGSStrategy(DefaultStrategy(), forward, "multiview", steps=50)
+    state = strategy.initialize_state()
+    n = len(splats["means"])
+    g = torch.Generator().manual_seed(4)
+    window = torch.rand(n, generator=g)
+    state["grad2d"], state["count"] = torch.where(torch.rand(n, generator=g) < 0.5, 0.0, window), torch.ones(n)
+    doomed = torch.rand(n, generator=g) < 0.2
+    means = splats["means"].detach().clone()
+    lo, hi = means.min(0).values, means.max(0).values
+    boxes = torch.stack([torch.stack([lo - 1, (lo + hi) / 2]), torch.stack([(lo + hi) / 2, hi + 1])]).double()
+    inside = [i for i in range(n) if any(all(boxes[b, 0, k] < means[i, k] < boxes[b, 1, k] for k in range(3)) for b in range(2))]
+    allowed = [i for i in inside if not doomed[i]]
+    cap = len(allowed) // 3
+    best = sorted(sorted(allowed, key=lambda i: -float(window[i]))[:cap])
+    added = strategy._clone_in_boxes(splats, optimizers, state, boxes, cap, window, doomed)
+    assert added == cap > 0 and torch.equal(splats["means"].detach()[n:], means[best])
+    assert not set(best) & set(torch.nonzero(doomed).flatten().tolist())
+
+
+def test_a_second_check_sanity_keeps_the_far_line_of_the_model_before_the_cut(tabletop):
+    """The far line of budget_growth_order is the initial model's farthest mean, taken before the
+    budget's first cut; a trainer that calls check_sanity again before the first step does not
+    move it to the cut model's."""
+    cfg, splats, optimizers = fresh_model(tabletop)
+    n = len(splats["means"])
+    center = torch.as_tensor(tabletop.center, dtype=torch.float64)
+    far = float(torch.linalg.vector_norm(splats["means"].detach().double() - center, dim=1).max())
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(max_gaussians=n // 4), steps=12)
+    strategy.check_sanity(splats, optimizers)
+    assert len(splats["means"]) == n // 4
+    strategy.check_sanity(splats, optimizers)
+    assert len(splats["means"]) == n // 4 and strategy.far_distance == pytest.approx(far, rel=1e-9)
+    assert float(torch.linalg.vector_norm(splats["means"].detach().double() - center, dim=1).max()) < far  # the cut moved it
