@@ -350,7 +350,8 @@ class MVGSStrategy(DefaultStrategy):
         before the first step also re-sizes the kept Gaussians to the spacing of the kept means:
         each log-scale moves by the change of log(root mean squared distance to the 3 nearest
         means), so a trainer's own initial factor stays and the thinned model has no holes (as
-        GS3DAdapter.densify)."""
+        GS3DAdapter.densify). After the first step a model above the budget is a ValueError: the
+        rows' statistics are in a strategy state this call does not get."""
         self.strategy.check_sanity(params, optimizers)
         sched = self.schedule
         # before the run's first step (plans a DataLoader drew ahead have not started)
@@ -359,12 +360,15 @@ class MVGSStrategy(DefaultStrategy):
         if first and self.far_distance is None:  # the far line of budget_growth_order: the initial model's
             self.far_distance = farthest_distance(params["means"], self.scene_center)  # farthest mean, before the cut
         if budget is not None and len(params["means"]) > budget:
-            spacing = spacing_log_scale(params["means"]) if first else None
+            if not first:  # the rows' statistics live in a state this call is not given: cutting would misalign them
+                raise ValueError(f"check_sanity after the run's first step: the model holds {len(params['means'])} "
+                                 f"Gaussians, above max_gaussians={budget}; a budgeted run never holds more (resume "
+                                 "from a checkpoint of this budget, or cut the model before training)")
+            spacing = spacing_log_scale(params["means"])
             shed = self._shed(params, optimizers, {}, budget)
-            if spacing is not None:
-                with torch.no_grad():
-                    change = spacing_log_scale(params["means"]) - spacing[~shed]
-                    params["scales"].add_(change[:, None].to(params["scales"]))
+            with torch.no_grad():
+                change = spacing_log_scale(params["means"]) - spacing[~shed]
+                params["scales"].add_(change[:, None].to(params["scales"]))
         if first:  # the budget's growth schedule starts from the count the run starts with
             sched.primitive_count = len(params["means"])
             if sched.initial_count is not None:  # taken by a plan drawn ahead, before the cut
@@ -899,7 +903,8 @@ class MVGSStrategy(DefaultStrategy):
             pending = {"plan_step": w["plan"].step, "densify": w["densify"], "reset": w["reset"], "step": w["step"],
                        "maps": [t.cpu() for t in w["plan"].recorded], "before": w["before"]}
         return {"schedule": sched, "config": self.config.to_dict(), "pending": pending,
-                "growth": {"order": self.budget_growth_order, "far_distance": self.far_distance}}
+                "growth": {"order": self.budget_growth_order, "far_distance": self.far_distance},
+                "count": self.schedule.primitive_count}  # the model size the next steps' chunks are sized by
 
     def load_state_dict(self, state: Dict[str, Any], params=None, optimizers=None, strategy_state=None) -> None:
         """Restore a state_dict(). When it holds deferred end-of-step work, pass the run's
@@ -909,6 +914,8 @@ class MVGSStrategy(DefaultStrategy):
             raise ValueError("the checkpoint's MVGS config differs from this run's: "
                              + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diff))
         self.schedule.load_state_dict(state["schedule"])
+        if state.get("count") is not None:  # not the fresh model's that check_sanity saw (one saved before: that)
+            self.schedule.primitive_count = int(state["count"])
         # a checkpoint from before budget_growth_order ranked by score alone: its run goes on so
         growth = state.get("growth") or {"order": "score", "far_distance": None}
         if growth["order"] not in ("inside-first", "score"):

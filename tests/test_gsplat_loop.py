@@ -1328,3 +1328,35 @@ def test_a_second_check_sanity_keeps_the_far_line_of_the_model_before_the_cut(ta
     strategy.check_sanity(splats, optimizers)
     assert len(splats["means"]) == n // 4 and strategy.far_distance == pytest.approx(far, rel=1e-9)
     assert float(torch.linalg.vector_norm(splats["means"].detach().double() - center, dim=1).max()) < far  # the cut moved it
+
+
+def test_a_resumed_strategy_sizes_its_chunks_by_the_checkpoints_model(forward):
+    """The schedule sizes a step's chunks (chunk_size None: a memory bound) by the model's count; a
+    strategy resumed from a checkpoint takes the checkpoint's model size, not that of the fresh
+    model its check_sanity saw before the checkpoint replaced it."""
+    _, _, saved, _, _ = train_small(forward, "after", save_at=12)
+    n = len(saved["splats"]["means"])
+    cfg, splats, optimizers = fresh_model(forward)
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=3), steps=24)
+    strategy.check_sanity(splats, optimizers)
+    assert strategy.schedule.primitive_count == len(splats["means"]) != n
+    strategy.load_state_dict(saved["mvgs"])
+    assert strategy.schedule.primitive_count == n
+
+
+def test_a_model_above_the_budget_after_the_first_step_is_refused_by_check_sanity(forward):
+    """Before the first step check_sanity cuts to the budget; after it, the rows' statistics are in
+    a state check_sanity is not given, so a model above max_gaussians is a ValueError naming both
+    counts, and the model is left as it was."""
+    cfg, splats, optimizers = fresh_model(forward)
+    n = len(splats["means"])
+    strategy = MVGSStrategy(small_clock(), forward, MVGSConfig.multiview(chunk_size=3, max_gaussians=n - 100), steps=24)
+    state = strategy.initialize_state(scene_scale=forward.extent)
+    strategy.check_sanity(splats, optimizers)
+    assert len(splats["means"]) == n - 100
+    step_once(strategy, splats, optimizers, state, next(iter(strategy.batches(chunked=True))))
+    bigger, opts = fresh_model(forward)[1:]
+    with pytest.raises(ValueError, match=rf"holds {n} Gaussians, above max_gaussians={n - 100}"):
+        strategy.check_sanity(bigger, opts)
+    assert len(bigger["means"]) == n
+    strategy.check_sanity(splats, optimizers)  # the run's own model, within the budget: nothing to say
