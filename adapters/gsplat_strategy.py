@@ -728,8 +728,9 @@ class MVGSStrategy(DefaultStrategy):
         before = len(means)
         cap, dropped, shed, swapped = ctx.max_primitives, 0, 0, 0
         grad2d, count = state.get("grad2d"), state.get("count")
+        boxes = ctx.boxes is not None and len(ctx.boxes) > 0
         # the boxes' clones are ranked by the window's gradient, before the cap zeroes some of it
-        box_score = grad2d / count.clamp_min(1) if isinstance(grad2d, Tensor) else None
+        box_score = grad2d / count.clamp_min(1) if boxes and isinstance(grad2d, Tensor) else None
         doomed = None
         if cap is not None:  # growth ranked into the room the budget leaves (see _fate)
             if self.far_distance is None and self.budget_growth_order == "inside-first":  # check_sanity never ran
@@ -746,7 +747,7 @@ class MVGSStrategy(DefaultStrategy):
             box_score = None if box_score is None else box_score[kept]
             dropped = self._rank_growth(state, threshold, room + swapped, params["means"], grow, cost)
         from_boxes = 0
-        if ctx.boxes is not None and len(ctx.boxes):
+        if boxes:
             from_boxes = self._clone_in_boxes(params, optimizers, state, ctx.boxes, ctx.max_new_from_boxes,
                                               box_score, doomed)
             if self.verbose:

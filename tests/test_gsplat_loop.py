@@ -1210,8 +1210,8 @@ def test_a_batched_dataloader_and_a_threshold_the_config_clock_drops_are_said(fo
 
 
 # ---- a refine under the cap, as gsplat's own refine decides it ---------------------------------------
-def refine_on(scene, splats, optimizers, strategy, make_state):
-    """Draw steps until one densifies, build its window with make_state(n, threshold, ctx) and run
+def refine_on(splats, optimizers, strategy, make_state):
+    """Draw steps until one densifies, build its window with make_state(n, threshold) and run
     the strategy's refine on it. Returns (the context's cap, threshold, prune_large, the state
     before the refine)."""
     plan = strategy.schedule.next()
@@ -1220,7 +1220,7 @@ def refine_on(scene, splats, optimizers, strategy, make_state):
     n = len(splats["means"])
     means = splats["means"].detach()
     ctx = strategy.schedule.densify_context(plan, None, n, torch.stack([means.amin(0), means.amax(0)]).double())
-    state = make_state(n, float(ctx.grad_threshold), ctx)
+    state = make_state(n, float(ctx.grad_threshold))
     before = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in state.items()}
     strategy._refine(splats, optimizers, state, plan, 0)
     assert strategy.last_refine["cap"] == ctx.max_primitives and strategy.last_refine["threshold"] == float(ctx.grad_threshold)
@@ -1250,13 +1250,13 @@ def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leave
         splats["scales"].copy_(torch.log(size)[:, None].expand(-1, 3))
     orig = {k: v.detach().clone() for k, v in splats.items()}
 
-    def make_state(n, threshold, ctx):
+    def make_state(n, threshold):
         grad2d = threshold * 2.0 * torch.rand(n, generator=g)  # about half above the threshold
         radii = 0.2 * torch.rand(n, generator=g)  # screen radius / max(W, H): some above 0.05 and 0.15
         return {**state0, "grad2d": grad2d, "count": torch.ones(n), "radii": radii}
 
-    cap, threshold, prune_large, st = refine_on(forward, splats, optimizers, strategy, make_state)
-    n = n0
+    cap, threshold, prune_large, st = refine_on(splats, optimizers, strategy, make_state)
+    n = n0  # the rows before the refine
     mean = st["grad2d"] / st["count"]
     grow = mean > threshold
     if scale2d:
