@@ -1210,16 +1210,18 @@ def test_a_batched_dataloader_and_a_threshold_the_config_clock_drops_are_said(fo
 
 
 # ---- a refine under the cap, as gsplat's own refine decides it ---------------------------------------
-def refine_on(splats, optimizers, strategy, make_state):
-    """Draw steps until one densifies, build its window with make_state(n, threshold) and run
-    the strategy's refine on it. Returns (the context's cap, threshold, prune_large, the state
-    before the refine)."""
-    plan = strategy.schedule.next()
-    while not plan.densify:
-        plan = strategy.schedule.next()
+def refine_on(splats, optimizers, strategy, make_state, prune_large=False):
+    """Draw steps until one densifies with size pruning on or off as `prune_large` asks, build
+    its window with make_state(n, threshold) and run the strategy's refine on it. Returns (the
+    context's cap, threshold, prune_large, the state before the refine)."""
     n = len(splats["means"])
     means = splats["means"].detach()
-    ctx = strategy.schedule.densify_context(plan, None, n, torch.stack([means.amin(0), means.amax(0)]).double())
+    while True:
+        plan = strategy.schedule.next()
+        if plan.densify:
+            ctx = strategy.schedule.densify_context(plan, None, n, torch.stack([means.amin(0), means.amax(0)]).double())
+            if ctx.prune_large == prune_large:
+                break
     state = make_state(n, float(ctx.grad_threshold))
     before = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in state.items()}
     strategy._refine(splats, optimizers, state, plan, 0)
@@ -1227,8 +1229,8 @@ def refine_on(splats, optimizers, strategy, make_state):
     return ctx.max_primitives, float(ctx.grad_threshold), ctx.prune_large, before
 
 
-@pytest.mark.parametrize("scale2d", [False, True])
-def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leaves(forward, scale2d):
+@pytest.mark.parametrize("scale2d,size_pruning", [(False, False), (True, False), (True, True)])
+def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leaves(forward, scale2d, size_pruning):
     """A refine under a binding cap, on a hand-made window: rows the strategy's prune removes
     (opacity under prune_opa; with screen-size refinement, a screen radius above prune_scale2d,
     which their copies inherit) are not grown from and leave their room; the room goes to the
@@ -1240,7 +1242,10 @@ def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leave
     n0 = len(splats["means"])
     inner = DefaultStrategy(refine_start_iter=1, refine_every=2, reset_every=4, refine_stop_iter=100,
                             refine_scale2d_stop_iter=10**6 if scale2d else 0)
-    strategy = MVGSStrategy(inner, forward, MVGSConfig.default(max_gaussians=n0 + 60), steps=12)
+    # size_pruning: a budget that keeps gsplat's size rules (off by default under a budget), at a
+    # refine after the first reset, where they apply
+    strategy = MVGSStrategy(inner, forward, MVGSConfig.default(max_gaussians=n0 + 60, budget_size_pruning=size_pruning),
+                            steps=12)
     state0 = strategy.initialize_state(scene_scale=forward.extent)
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
@@ -1255,7 +1260,7 @@ def test_a_capped_refine_grows_the_best_candidates_into_the_room_its_prune_leave
         radii = 0.2 * torch.rand(n, generator=g)  # screen radius / max(W, H): some above 0.05 and 0.15
         return {**state0, "grad2d": grad2d, "count": torch.ones(n), "radii": radii}
 
-    cap, threshold, prune_large, st = refine_on(splats, optimizers, strategy, make_state)
+    cap, threshold, prune_large, st = refine_on(splats, optimizers, strategy, make_state, prune_large=size_pruning)
     n = n0  # the rows before the refine
     mean = st["grad2d"] / st["count"]
     grow = mean > threshold
