@@ -15,9 +15,9 @@ def test_readme_is_one_screen_and_starts_with_the_two_commands():
     assert len(text.splitlines()) <= 160
     blocks = re.findall(r"```bash\n(.*?)\n```", text, flags=re.S)
     assert blocks[0].startswith("pip install torch==2.13.0 && pip install -e . && python examples/train_3dgs.py")
-    assert blocks[1] == 'pip install torch==2.13.0 && pip install -e ".[dev]" && python -m pytest -q -m "not slow"'
+    assert blocks[1] == 'pip install torch==2.13.0 && pip install -e ".[dev]" && python -m pytest -q -m "not slow" -n 2 --dist loadfile'
     ci = (ROOT / ".ci" / "run").read_text()
-    assert 'python -m pytest -q -m "not slow"' in ci and "python -m pytest -q -m slow" in ci
+    assert 'python -m pytest -q -m "not slow" -n 2 --dist loadfile' in ci and "python -m pytest -q -m slow" in ci
 
 
 def test_every_relative_link_resolves():
