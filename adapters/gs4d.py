@@ -358,10 +358,7 @@ class GS4DAdapter(GS3DAdapter):
     def __init__(self, means: Tensor, sh0: Tensor, shN: Tensor, scales: Tensor, quats: Tensor,
                  opacities: Tensor, scene_extent: float, config=None, active_sh_degree: int = 0, *,
                  scene_center: Optional[Tensor] = None) -> None:
-        if config is None or isinstance(config, GS3DConfig):
-            config = GS4DConfig() if config is None else GS4DConfig(canonical=config)
-        if not isinstance(config, GS4DConfig):
-            raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
+        config = self._as_gs4d_config(config)
         self.gs4d_config = config
         super().__init__(means, sh0, shN, scales, quats, opacities, scene_extent, config.canonical,
                          active_sh_degree, scene_center=scene_center)
@@ -391,6 +388,36 @@ class GS4DAdapter(GS3DAdapter):
                     canonical.scene_extent, config, canonical.active_sh_degree, scene_center=canonical.scene_center)
         model.sized_by_spacing = canonical.sized_by_spacing
         return model
+
+    @staticmethod
+    def _as_gs4d_config(config) -> GS4DConfig:
+        """None, a GS3DConfig (the canonical Gaussians' settings) or a GS4DConfig, as __init__
+        takes them, made a GS4DConfig."""
+        if config is None or isinstance(config, GS3DConfig):
+            return GS4DConfig() if config is None else GS4DConfig(canonical=config)
+        if not isinstance(config, GS4DConfig):
+            raise ValueError(f"config must be a GS4DConfig, got {type(config).__name__}")
+        return config
+
+    @classmethod
+    def from_tensors(cls, means: Tensor, *, config=None, **kwargs) -> "GS4DAdapter":
+        """GS3DAdapter.from_tensors's canonical Gaussians (its arguments; SH bands as
+        config.canonical asks) with a fresh deformation field (`config`: a GS4DConfig, or a
+        GS3DConfig for the canonical Gaussians)."""
+        config = cls._as_gs4d_config(config)
+        return cls.from_canonical(GS3DAdapter.from_tensors(means, config=config.canonical, **kwargs), config)
+
+    @classmethod
+    def from_ply(cls, path, scene_extent: float, config=None, dtype: torch.dtype = torch.float32,
+                 device=None, scene_center: Optional[Tensor] = None) -> "GS4DAdapter":
+        """Canonical Gaussians loaded as GS3DAdapter.from_ply loads them (without a config, the
+        file's SH degree) with a fresh deformation field (`config`: a GS4DConfig, or a
+        GS3DConfig for the canonical Gaussians)."""
+        given = config
+        config = cls._as_gs4d_config(config)
+        base = GS3DAdapter.from_ply(path, scene_extent, None if given is None else config.canonical, dtype, device,
+                                    scene_center)
+        return cls.from_canonical(base, config)
 
     @classmethod
     def from_scene(cls, scene, config: Optional[GS4DConfig] = None, dtype: torch.dtype = torch.float32,

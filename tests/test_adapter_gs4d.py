@@ -348,14 +348,35 @@ def test_exports_canonical_baked_and_deformation(tmp_path):
     assert torch.allclose(baked.render([cam], torch.ones(1, 3)).images, want, atol=1e-6)
     assert (tmp_path / "t.ply").read_bytes() == (tmp_path / "t_cam.ply").read_bytes()
     # canonical PLY + deformation file = the model
-    b = GS4DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0,
-                             config=GS3DConfig(sh_degree=1))
-    b.gs4d_config = a.gs4d_config
+    b = GS4DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0, config=a.gs4d_config)
+    assert b.gs4d_config == a.gs4d_config
     b.load_deformation(str(tmp_path / "deformation.pt"))
     b.set_step(a._step)
     assert torch.allclose(b.render([cam], torch.ones(1, 3)).images, want, atol=1e-6)
     with pytest.raises(ValueError, match=r"t must be in \[0, 1\]"):
         a.export_at_time(str(tmp_path / "bad.ply"), 1.5)
+
+
+def test_from_tensors_and_from_ply_take_a_gs4d_config(tmp_path):
+    """The inherited constructors take the 4DGS config (they read the SH degree from its
+    canonical part): the canonical Gaussians are the activated inputs, the field the config's."""
+    g = torch.Generator().manual_seed(5)
+    n = 12
+    means = torch.rand(n, 3, generator=g) - 0.5
+    rgb, scales = torch.rand(n, 3, generator=g), 0.05 + 0.1 * torch.rand(n, 3, generator=g)
+    opac = 0.2 + 0.6 * torch.rand(n, generator=g)
+    config = tiny_config(features=4)
+    a = GS4DAdapter.from_tensors(means, rgb=rgb, scales=scales, opacities=opac, scene_extent=2.0, config=config)
+    assert a.gs4d_config == config and a.field.trunk.in_features == 4 * len(config.multires)
+    assert torch.allclose(a.params["means"], means) and torch.allclose(a.get_scales(), scales, rtol=1e-6)
+    assert torch.allclose(a.get_opacities(), opac, atol=1e-6)
+    assert a.params["shN"].shape == (n, 3, 3)  # degree 1, as config.canonical says: 3 higher bands
+    assert torch.allclose(a.params["sh0"][:, 0] * 0.28209479177387814 + 0.5, rgb, atol=1e-6)
+    a.export(str(tmp_path / "c.ply"))
+    b = GS4DAdapter.from_ply(tmp_path / "c.ply", scene_extent=2.0, config=config)
+    assert b.gs4d_config == config and all(torch.equal(a.params[k], b.params[k]) for k in a.params)
+    with pytest.raises(ValueError, match="config must be a GS4DConfig, got dict"):
+        GS4DAdapter.from_tensors(means, rgb=rgb, scales=scales, opacities=opac, scene_extent=2.0, config={})
 
 
 def test_bad_configuration_names_the_value():
