@@ -28,7 +28,12 @@ Deviations from the released 4DGS code, each a config field or stated here:
   stage starts exactly from the coarse result (the original's random heads jolt every Gaussian
   by a random offset at the hand-over).
 - time enters the planes as 2t - 1, the full time axis (the original feeds t in [0, 1] into a
-  [-1, 1] grid, using half of its time resolution).
+  [-1, 1] grid, using half of its time resolution). The time regularisers keep the original's
+  weights, so per unit of time they act differently: node spacing halves, which makes the
+  second-difference smoother 12-16x weaker for the same motion (its squared difference
+  goes with spacing^4; the released configs pick the time resolution from the frame count with
+  the half axis in mind), and |1 - P| about twice as strong (the original's mean counts the unused
+  half). Not measured apart from the runs of docs/gs4d.md.
 - one continuous step clock: the original runs coarse and fine as two trainings that recreate
   the optimizer and restart the means' learning-rate decay and the densification clock.
 - the plane TV is K-Planes' (squared first differences along both axes of the space planes); the
