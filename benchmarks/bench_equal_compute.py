@@ -171,7 +171,8 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", type=ex.scene_folder, default=ex.BUNDLED)
     args = ex.common_args(parser, "out/bench").parse_args(argv)
-    scene = ex.load_scene(args.data, background_points=args.background_points)  # the examples' init
+    scene = ex.load_scene(args.data, background_points=args.background_points,  # the examples' init
+                          background_radius=args.background_radius)
     ex.check_resolution(scene, args.resolution_scale)
     config = ex.config_from_args(args, scene)
     adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))

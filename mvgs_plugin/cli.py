@@ -33,6 +33,7 @@ from mvgs_plugin.adapters.gs3d import GS3DConfig
 from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig, Stage
 from mvgs_plugin.controller import MVGS, ConfigMismatch
 from mvgs_plugin.data import load_scene
+from mvgs_plugin.data.init import SHELL_RADIUS
 from mvgs_plugin.data.triangulate import INIT_METHODS
 from mvgs_plugin.distributed import DEFAULT_TIMEOUT, abort_on_error, init_from_env
 from mvgs_plugin.io import atomic_write_text, load_checked
@@ -138,6 +139,7 @@ def scene_from_args(args, dynamic_model: bool = False):
     try:
         scene = load_scene(args.data, init=args.init, init_seed=args.seed, init_cache=cache, threads=args.threads,
                            background_points=args.background_points, background=scene_background(args),
+                           background_radius=getattr(args, "background_radius", None),
                            backdrop_drawn=getattr(args, "background", "auto") != "random",
                            images=getattr(args, "images", None))
     except (ValueError, OSError) as err:  # the folder's content: a usage error, not a bug
@@ -413,6 +415,9 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                          "horizon) when the cameras surround the scene, coloured by the views that see them; 0: none "
                          "(3DGS's init). A forward-facing rig gets none, nor does an object on a backdrop (every "
                          "training image's border the background colour)")
+    ap.add_argument("--background-radius", type=float_above(1.0), default=None, metavar="R",
+                    help="the radius of --background-points' sphere, in rig radii (the largest distance of a "
+                         f"training camera from the rig's centre) (default: {SHELL_RADIUS:g})")
     ap.add_argument("--background", type=background_colour, default="auto", metavar="auto|black|white|random|R,G,B",
                     help="the colour behind the Gaussians, and the one RGBA images are composited on. auto: a "
                          "NeRF-style scene's RGBA images on white; images without alpha on the colour their borders "

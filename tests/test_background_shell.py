@@ -137,6 +137,35 @@ def test_load_scene_appends_the_shell_after_the_scene_points_on_an_orbit_only():
         load_scene(BUNDLED, background_points=-3)
 
 
+def test_load_scene_puts_the_shell_at_the_radius_asked(tmp_path):
+    """background_radius (--background-radius) moves the sphere: its points lie at that many rig
+    radii from the centre, computed here from the cameras; the CLI passes its value through."""
+    shelled = load_scene(BUNDLED, background_points=500, background_radius=3.5)
+    rig = float(torch.linalg.norm(torch.stack([c.center for c in shelled.train_cameras]) - shelled.center,
+                                  dim=1).max())
+    far = torch.linalg.norm(shelled.points.xyz[-shelled.points.shell:].double() - shelled.center, dim=1)
+    assert shelled.points.shell > 0 and torch.allclose(far, torch.full_like(far, 3.5 * rig), rtol=1e-5)
+    assert "(3.5 rig radii)" in shelled.points_origin
+    ap = common_args(argparse.ArgumentParser(), "out/x")
+    ap.add_argument("--data", default=str(BUNDLED))
+    args = ap.parse_args(["--background-points", "500", "--background-radius", "3.5", "--out", str(tmp_path)])
+    from mvgs_plugin.cli import scene_from_args
+
+    via_cli = scene_from_args(args)
+    assert torch.equal(via_cli.points.xyz, shelled.points.xyz)
+    assert ap.parse_args([]).background_radius is None  # None: the module's SHELL_RADIUS
+    assert torch.equal(load_scene(BUNDLED, background_points=500).points.xyz,
+                       load_scene(BUNDLED, background_points=500, background_radius=SHELL_RADIUS).points.xyz)
+
+
+@pytest.mark.parametrize("bad", ["1", "0.5", "nan", "inf"])
+def test_the_cli_refuses_a_shell_radius_inside_the_rig(capsys, bad):
+    ap = common_args(argparse.ArgumentParser(), "out/x")
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--background-radius", bad])
+    assert f"expected a finite number > 1, got {bad!r}" in capsys.readouterr().err
+
+
 def test_the_cli_flag_defaults_to_the_module_value_and_refuses_negatives(capsys):
     ap = common_args(argparse.ArgumentParser(), "out/x")
     assert ap.parse_args([]).background_points == BACKGROUND_POINTS

@@ -29,7 +29,8 @@ def scene_layout(path) -> Optional[str]:
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
                init_cache=None, threads: Optional[int] = None, background_points: int = 0,
-               background="auto", images=None, backdrop_drawn: bool = True) -> Scene:
+               background="auto", images=None, backdrop_drawn: bool = True,
+               background_radius: Optional[float] = None) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json, or one transforms.json as instant-ngp and nerfstudio write it; D-NeRF
     when its frames carry a time) or COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
@@ -59,7 +60,8 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     shell beyond a rig that surrounds the scene, for its far background
     (:func:`~mvgs_plugin.data.init.background_shell`; 0: none; a forward-facing rig, a scene whose
     points lie mostly beyond the shell (a room shot from its middle), or a scene left without points
-    by ``init=None``, gets none), and no point of it that shows only ``scene.background``, the
+    by ``init=None``, gets none; ``background_radius``: the shell's radius in rig radii, None:
+    :data:`~mvgs_plugin.data.init.SHELL_RADIUS`), and no point of it that shows only ``scene.background``, the
     colour the renderer draws behind the Gaussians, in every view that sees it (an object on a
     transparent or one-colour backdrop gets none at all). ``backdrop_drawn=False`` keeps those: a
     run that trains in front of random colours (``MVGSConfig(background="random")``) has the
@@ -101,7 +103,8 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
 
         xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
                                           points=scene.points.xyz, mask=scene.mask,
-                                          backdrop=scene.background if backdrop_drawn else None)
+                                          backdrop=scene.background if backdrop_drawn else None,
+                                          **({} if background_radius is None else {"radius": background_radius}))
         if xyz.shape[0]:
             pts = scene.points  # float32 (PointCloud's dtype)
             scene.points = PointCloud(xyz=torch.cat([pts.xyz, xyz.to(pts.xyz.dtype)]),
