@@ -158,6 +158,12 @@ def test_load_scene_puts_the_shell_at_the_radius_asked(tmp_path):
                        load_scene(BUNDLED, background_points=500, background_radius=SHELL_RADIUS).points.xyz)
 
 
+@pytest.mark.parametrize("bad", [1.0, 0.5, math.nan, math.inf, "4", True])
+def test_load_scene_refuses_a_bad_shell_radius_naming_it(bad):
+    with pytest.raises(ValueError, match="background_radius must be None or a finite number of rig radii > 1, got "):
+        load_scene(BUNDLED, background_points=0, background_radius=bad)  # refused even when no shell is asked for
+
+
 @pytest.mark.parametrize("bad", ["1", "0.5", "nan", "inf"])
 def test_the_cli_refuses_a_shell_radius_inside_the_rig(capsys, bad):
     ap = common_args(argparse.ArgumentParser(), "out/x")
