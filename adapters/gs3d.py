@@ -164,6 +164,13 @@ class GS3DConfig:
     Rendering:
         rasterize: a function with gsplat's ``rasterization`` call shape.
         rasterize_kwargs: extra keyword arguments for it (e.g. ``{"backend": "torch"}``).
+        beside_cull: 0 (default, off: 3DGS's and gsplat's image formation) or k > 0: a Gaussian
+            is not drawn in a view (opacity 0 and radius 0 there, so no gradient and no visit)
+            when its centre lies outside the frustum widened as the renderer clamps its Jacobian
+            (0.3 tan(fov / 2) beyond each image edge) at a camera depth below k x its largest
+            scale: beside the camera and larger than its distance, where the splat's linearisation
+            smears it over the frame (:func:`beside_camera`). Measured in docs/equal_compute.md
+            ("Where the quarter loses at 10k").
         knn_chunk: query points per block of the initial kNN search (see knn_mean_sq_dist).
     """
 
@@ -195,6 +202,7 @@ class GS3DConfig:
     max_gaussians: Optional[int] = None
     rasterize: Callable[..., Any] = rasterization
     rasterize_kwargs: Dict[str, Any] = field(default_factory=dict)
+    beside_cull: float = 0.0
     knn_chunk: int = 256
 
     def __post_init__(self) -> None:
@@ -207,7 +215,7 @@ class GS3DConfig:
             check_int("max_gaussians", self.max_gaussians, 0)
         for name in ("lr_means_init", "lr_means_final", "adam_eps", "percent_dense", "max_world_size"):
             check_float(name, getattr(self, name), positive=True)
-        for name in ("lr_sh0", "lr_shN", "lr_opacities", "lr_scales", "lr_quats", "min_opacity"):
+        for name in ("lr_sh0", "lr_shN", "lr_opacities", "lr_scales", "lr_quats", "min_opacity", "beside_cull"):
             check_float(name, getattr(self, name))
         for name in ("init_opacity", "opacity_reset_value"):
             v = check_float(name, getattr(self, name), positive=True)
@@ -247,6 +255,25 @@ class GS3DConfig:
         clock = int(run.clock_length)
         return cls(position_lr_max_steps=clock, sh_degree_interval=max(1, round(1000 * clock / 30_000)), **fields)
 
+
+
+def beside_camera(means: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+                  k: float) -> Tensor:
+    """[C, N] True where Gaussian n stands beside camera c (GS3DConfig.beside_cull): its centre,
+    in front of the camera, is outside the image widened by 0.3 tan(fov / 2) on each side (the
+    bound at which the reference renderer, as 3DGS and gsplat, clamps the Jacobian of the
+    projection) and nearer than k x its largest activated scale. means [N, 3], scales [N, 3]
+    activated, viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3]."""
+    R, t = viewmats[:, None, :3, :3], viewmats[:, None, :3, 3]
+    p = (R * means.to(viewmats.dtype)[None, :, None, :]).sum(-1) + t  # [C, N, 3]
+    x, y, z = p.unbind(-1)
+    zs = torch.where(z > 0, z, torch.ones_like(z))
+    fx, fy, cx, cy = Ks[:, 0, 0, None], Ks[:, 1, 1, None], Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    wide_x, wide_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+    u, v = x / zs, y / zs
+    outside = ((u < -cx / fx - wide_x) | (u > (width - cx) / fx + wide_x)
+               | (v < -cy / fy - wide_y) | (v > (height - cy) / fy + wide_y))
+    return (z > 0) & outside & (z < k * scales.to(viewmats.dtype).amax(-1)[None])
 
 
 def consistency_of(grad_sum: Tensor, grad_sq_sum: Tensor, visits: Tensor) -> Tensor:
@@ -642,11 +669,21 @@ class GS3DAdapter:
         if tuple(bg.shape) != (len(cams), 3):
             raise ValueError(f"backgrounds must be [C,3] with C={len(cams)}, got {list(bg.shape)}")
         colors = torch.cat([p["sh0"], p["shN"]], dim=1)  # [N, K, 3]
+        opacities = torch.sigmoid(p["opacities"])
+        drawn = None
+        if self.config.beside_cull > 0:
+            drawn = ~beside_camera(p["means"].detach(), torch.exp(p["scales"].detach()), viewmats, Ks, width, height,
+                                   self.config.beside_cull)
+            opacities = opacities.reshape(1, -1) * drawn.to(opacities.dtype)  # [C, N]
         images, alphas, meta = self.config.rasterize(
-            p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
+            p["means"], p["quats"], torch.exp(p["scales"]), opacities, colors,
             viewmats, Ks, width, height, sh_degree=self.active_sh_degree, packed=False,
             backgrounds=bg, **self.config.rasterize_kwargs,
         )
+        if drawn is not None:  # not drawn: not visited either (accumulate_stats reads radii)
+            radii = meta["radii"]
+            meta["radii"] = torch.where(drawn.reshape(drawn.shape + (1,) * (radii.dim() - 2)), radii,
+                                        torch.zeros_like(radii))
         if meta["means2d"].requires_grad:  # not under torch.no_grad()
             meta["means2d"].retain_grad()
         return RenderResult(images=images, alphas=alphas, aux=meta)

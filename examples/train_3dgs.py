@@ -54,7 +54,8 @@ def build_adapter(args, scene, config: MVGSConfig) -> GS3DAdapter:
                          world_size_rule=args.world_size_rule,
                          means_lr_rule=args.means_lr_rule,
                          opacity_reset_scope=args.opacity_reset_scope,
-                         budget_growth_order=args.budget_growth_order)
+                         budget_growth_order=args.budget_growth_order,
+                         beside_cull=args.beside_cull)
     return GS3DAdapter.from_scene(scene, model, device=args.device)
 
 

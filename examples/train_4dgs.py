@@ -77,7 +77,8 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
                              world_size_rule=args.world_size_rule,
                              means_lr_rule=args.means_lr_rule,
                              opacity_reset_scope=args.opacity_reset_scope,
-                             budget_growth_order=args.budget_growth_order)
+                             budget_growth_order=args.budget_growth_order,
+                             beside_cull=args.beside_cull)
     return GS4DConfig.for_run(config, args.coarse_fraction, canonical, init_random_points=args.init_random,
                               init_box=box)
 

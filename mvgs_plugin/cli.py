@@ -184,16 +184,17 @@ def check_renders_spare_images(out: Path, scene) -> None:
 
 def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=None,
                  world_size_rule=None, means_lr_rule=None, opacity_reset_scope=None,
-                 budget_growth_order=None) -> GS3DConfig:
+                 budget_growth_order=None, beside_cull=None) -> GS3DConfig:
     """The 3DGS model's own schedules (means learning-rate decay over 30k steps, SH degree +1
     every 1000) compressed with the run, as the controller's densification clock is; rasterize:
     the rasterizer (None: GS3DConfig's, the reference one); max_gaussians: the model's own
     growth cap (the CLI's --max-gaussians is MVGSConfig.max_gaussians, the run's budget, instead);
-    world_size_rule, means_lr_rule, opacity_reset_scope, budget_growth_order: GS3DConfig's (None:
-    its default)."""
+    world_size_rule, means_lr_rule, opacity_reset_scope, budget_growth_order, beside_cull:
+    GS3DConfig's (None: its default)."""
     extra = {} if rasterize is None else {"rasterize": rasterize}
     for name, value in (("world_size_rule", world_size_rule), ("means_lr_rule", means_lr_rule),
-                        ("opacity_reset_scope", opacity_reset_scope), ("budget_growth_order", budget_growth_order)):
+                        ("opacity_reset_scope", opacity_reset_scope), ("budget_growth_order", budget_growth_order),
+                        ("beside_cull", beside_cull)):
         if value is not None:
             extra[name] = value
     return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
@@ -342,6 +343,10 @@ def world_size_arg(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
                          "of the far background beyond it, each group by score; score ranks them all by score "
                          "(--densify-rank); auto is inside-first on a rig that surrounds the scene, score on a "
                          "forward-facing one (default: GS3DConfig's, auto)")
+    ap.add_argument("--beside-cull", type=float_above(0, inclusive=True), default=None, metavar="K",
+                    help="0: off; K > 0: a Gaussian whose centre is beside a view's camera (outside the image widened "
+                         "by 0.3 tan(fov/2) per side) and nearer than K x its largest scale is not drawn in that view, "
+                         "where its splat would smear over the frame (GS3DConfig.beside_cull) (default: 0)")
     return ap
 
 
