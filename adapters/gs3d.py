@@ -38,7 +38,7 @@ from mvgs_plugin.densify import boxes_contain, check_boxes, top_by_score
 from mvgs_plugin.protocol import DensifyContext, DensifyReport, RenderResult
 from mvgs_plugin.reference_renderer import rasterization
 from mvgs_plugin.reference_renderer._validate import max_scale
-from mvgs_plugin.reference_renderer.projection import quat_to_rotmat
+from mvgs_plugin.reference_renderer.projection import clamp_bounds, quat_to_rotmat
 
 from .knn import knn_mean_sq_dist, spacing_log_scale
 from .ops import growth_cap, make_adam, scale_for_views, stats_in_one_dict, swap_param
@@ -268,11 +268,9 @@ def beside_camera(means: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, w
     p = (R * means.to(viewmats.dtype)[None, :, None, :]).sum(-1) + t  # [C, N, 3]
     x, y, z = p.unbind(-1)
     zs = torch.where(z > 0, z, torch.ones_like(z))
-    fx, fy, cx, cy = Ks[:, 0, 0, None], Ks[:, 1, 1, None], Ks[:, 0, 2, None], Ks[:, 1, 2, None]
-    wide_x, wide_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+    x_lo, x_hi, y_lo, y_hi = clamp_bounds(Ks, width, height)
     u, v = x / zs, y / zs
-    outside = ((u < -cx / fx - wide_x) | (u > (width - cx) / fx + wide_x)
-               | (v < -cy / fy - wide_y) | (v > (height - cy) / fy + wide_y))
+    outside = (u < x_lo) | (u > x_hi) | (v < y_lo) | (v > y_hi)
     return (z > 0) & outside & (z < k * scales.to(viewmats.dtype).amax(-1)[None])
 
 

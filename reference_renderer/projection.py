@@ -8,6 +8,7 @@ from the screen-space quantities back to means, quaternions, scales and camera p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Tuple
 
 import torch
 from torch import Tensor
@@ -137,9 +138,9 @@ def _project64(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, K
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
     # Jacobian of the perspective map at the mean, with x/z and y/z clamped to the frustum
     # widened by 0.3 tan(fov/2) on each side: keeps splats far off-screen from exploding.
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    x_over_z = torch.clamp(x / zs, min=-(cx / fx + 0.3 * tan_x), max=(width - cx) / fx + 0.3 * tan_x)
-    y_over_z = torch.clamp(y / zs, min=-(cy / fy + 0.3 * tan_y), max=(height - cy) / fy + 0.3 * tan_y)
+    x_lo, x_hi, y_lo, y_hi = clamp_bounds(Ks, width, height)
+    x_over_z = torch.clamp(x / zs, min=x_lo, max=x_hi)
+    y_over_z = torch.clamp(y / zs, min=y_lo, max=y_hi)
     # Rows of J @ R_view, J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] with x/z, y/z clamped.
     jw0 = (fx / zs)[..., None] * R[..., 0, :] - (fx * x_over_z / zs)[..., None] * R[..., 2, :]  # [C,N,3]
     jw1 = (fy / zs)[..., None] * R[..., 1, :] - (fy * y_over_z / zs)[..., None] * R[..., 2, :]
@@ -170,6 +171,16 @@ def _project64(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, K
         rects = torch.where(ok[..., None], rects, torch.zeros_like(rects))
         radii = torch.where(ok, radius, torch.zeros_like(radius)).to(torch.int32)
     return Projection(means2d, conics, depths, compensation, radii, rects, ok)
+
+
+def clamp_bounds(Ks: Tensor, width: int, height: int) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """[C, 1] each: the x/z and y/z range (low, high) the projection's Jacobian is clamped to,
+    the image widened by 0.3 tan(fov/2) on each side, as 3DGS and gsplat clamp it."""
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    return (-(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x,
+            -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
 
 
 def tile_rects(means2d: Tensor, radius: Tensor, width: int, height: int, tile: int) -> Tensor:

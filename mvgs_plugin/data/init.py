@@ -49,7 +49,7 @@ from ..camera import Camera
 from ..densify.mvad import camera_axes
 
 __all__ = ["InitRegion", "init_region", "random_init_points", "photo_consistent", "axis_spread",
-           "is_forward_facing", "look_convergence", "axes_meeting_point", "background_shell", "view_colours", "CONVERGING_SPREAD",
+           "is_forward_facing", "look_convergence", "axes_meeting_point", "background_shell", "is_shell_radius", "view_colours", "CONVERGING_SPREAD",
            "CONVERGING_COSINE", "FAR_OVER_NEAR", "SHELL_RADIUS", "backdrop_of", "silhouettes_of", "on_silhouettes",
            "hull_candidates"]
 
@@ -477,6 +477,13 @@ def _rounded(colour) -> list[float]:
     return [round(float(v), 3) for v in colour]
 
 
+def is_shell_radius(radius) -> bool:
+    """Whether `radius` is a background shell's radius: a finite number (not a bool) of rig radii
+    above 1, so the sphere lies beyond every camera."""
+    return (not isinstance(radius, bool) and isinstance(radius, (int, float)) and math.isfinite(radius)
+            and radius > 1.0)
+
+
 def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, image,
                      radius: float = SHELL_RADIUS, points: Optional[torch.Tensor] = None, mask=None,
                      backdrop: Optional[Sequence[float]] = None) -> tuple[torch.Tensor, torch.Tensor, str]:
@@ -508,7 +515,7 @@ def background_shell(cameras: Sequence[Camera], center: torch.Tensor, n: int, im
     """
     if isinstance(n, bool) or int(n) != n or n < 0:
         raise ValueError(f"background_shell needs a point count n >= 0, got {n!r}")
-    if not (math.isfinite(radius) and radius > 1.0):
+    if not is_shell_radius(radius):
         raise ValueError(f"background_shell radius must be a finite number of rig radii > 1, got {radius!r}")
     empty = torch.zeros(0, 3, dtype=torch.float64)
     if n == 0:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 from typing import Optional
 
@@ -71,9 +70,9 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
     """
     if isinstance(background_points, bool) or not isinstance(background_points, int) or background_points < 0:
         raise ValueError(f"background_points must be an int >= 0, got {background_points!r}")
-    if background_radius is not None and (isinstance(background_radius, bool)
-                                          or not isinstance(background_radius, (int, float))
-                                          or not (math.isfinite(background_radius) and background_radius > 1.0)):
+    from .init import SHELL_RADIUS, background_shell, is_shell_radius
+
+    if background_radius is not None and not is_shell_radius(background_radius):
         raise ValueError(f"background_radius must be None or a finite number of rig radii > 1, got {background_radius!r}")
     path = Path(path)
     if not path.exists():
@@ -103,7 +102,6 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         scene.points, scene.points_origin = made.points, made.description
         LOG.info("%s: %s", path, made.description)
     if background_points and scene.points is not None:
-        from .init import SHELL_RADIUS, background_shell
         from .scene import PointCloud
 
         xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
