@@ -38,15 +38,24 @@ def sphere_rig(n=24, distance=3.0, f=40.0, size=32):
     return cams
 
 
-def coverage(cam, sub=4):
-    """[H, W] share of each pixel's sub-pixel rays that hit the sphere (|o + t d| = RADIUS, t > 0)."""
+def sphere_hits(cam, sub=4):
+    """Per sub-pixel ray (a sub x sub grid in each pixel): whether it hits the sphere (|o + t d| =
+    RADIUS, t > 0) and where it first does, and a function averaging such a map over each pixel."""
     j, i = np.meshgrid(np.arange(cam.height * sub), np.arange(cam.width * sub), indexing="ij")
     pixels = torch.tensor(np.stack([(i + 0.5) / sub, (j + 0.5) / sub], -1), dtype=torch.float64)
     o, d = cam.rays(pixels)
     b = (o * d).sum(-1)
     c = (o * o).sum(-1) - RADIUS ** 2
     hit = (b * b - c > 0) & (-b > 0)
-    return hit.double().reshape(cam.height, sub, cam.width, sub).mean(dim=(1, 3)).numpy()
+    t = -b - torch.sqrt((b * b - c).clamp_min(0))  # the nearer crossing
+    per_pixel = lambda x: x.double().reshape(cam.height, sub, cam.width, sub).mean(dim=(1, 3)).numpy()
+    return hit, o + t[..., None] * d, per_pixel
+
+
+def coverage(cam, sub=4):
+    """[H, W] share of each pixel's sub-pixel rays that hit the sphere."""
+    hit, _, per_pixel = sphere_hits(cam, sub)
+    return per_pixel(hit)
 
 
 def write_rgba_scene(folder: Path, cams, n_test=4):
@@ -191,7 +200,7 @@ def test_fill_points_on_a_backdrop_stay_inside_the_silhouettes(rgba_scene):
     dirs = dirs[dirs[:, 0] > 0.3]
     tracks = RADIUS * dirs / torch.linalg.norm(dirs, dim=1, keepdim=True)
     xyz, rgb, said = fill_points(scene, tracks, 500, torch.Generator().manual_seed(0))
-    assert 0 < len(xyz) <= 500 and "inside the views' silhouettes on the backdrop [1.0, 1.0, 1.0]" in said
+    assert 0 < len(xyz) <= 500 and "inside the views' silhouettes (read from their alpha) on the backdrop [1.0, 1.0, 1.0]" in said
     assert float(torch.linalg.norm(xyz, dim=1).max()) < 1.5 * RADIUS
     # without a backdrop (a colour no border shows) the same draw fills the air too: the rule is what keeps it out
     scene.background = (0.0, 0.0, 0.0)
@@ -212,3 +221,131 @@ def test_a_moving_scene_on_a_backdrop_is_not_carved(rgba_scene):
     assert silhouettes_of(scene) == (1.0, 1.0, 1.0)
     xyz, _, said = random_init_points(moving, 2000, torch.Generator().manual_seed(0))
     assert "carved" not in said and float(torch.linalg.norm(xyz, dim=1).max()) > 2.0
+
+
+# A sphere whose lower half (z < 0) is black, on a transparent backdrop composited on black: the
+# lower half is the backdrop's colour, so only the images' alpha tells it from the backdrop.
+
+def two_tone(cam, sub=4):
+    """([H, W] coverage of each pixel by the sphere, [H, W] share of its sub-pixel rays that hit the
+    upper half)."""
+    hit, landing, per_pixel = sphere_hits(cam, sub)
+    return per_pixel(hit), per_pixel(hit & (landing[..., 2] > 0))
+
+
+@pytest.fixture(scope="module")
+def two_tone_scene(tmp_path_factory):
+    """A NeRF-synthetic folder of the two-tone sphere (straight colour: COLOUR where the covered
+    part is the upper half, black where it is the lower), and its images' alpha at full size."""
+    folder, cams = tmp_path_factory.mktemp("two_tone"), sphere_rig()
+    splits, alphas = {"train": cams[:-4], "test": cams[-4:]}, {}
+    for split, group in splits.items():
+        (folder / split).mkdir()
+        frames = []
+        for k, cam in enumerate(group):
+            a, up = two_tone(cam)
+            rgba = np.zeros((cam.height, cam.width, 4), dtype=np.uint8)
+            straight = np.where(a > 0, up / np.maximum(a, 1e-12), 0.0)[..., None] * np.array(COLOUR)
+            rgba[..., :3] = np.round(straight * 255).astype(np.uint8)
+            rgba[..., 3] = np.round(a * 255).astype(np.uint8)
+            alphas[(split, k)] = rgba[..., 3] / 255.0
+            Image.fromarray(rgba, "RGBA").save(folder / split / f"r_{k:03d}.png")
+            c2w = torch.linalg.inv(cam.world_to_camera) @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0],
+                                                                                 dtype=torch.float64))
+            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": c2w.tolist()})
+        (folder / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": 2 * math.atan(0.5 * group[0].width / float(group[0].K[0, 0])), "frames": frames}))
+    return folder, alphas
+
+
+def test_scene_coverage_is_the_files_alpha_downsampled_as_the_image(two_tone_scene, tmp_path):
+    from skimage.transform import resize
+
+    folder, alphas = two_tone_scene
+    scene = load_scene(folder, init=None, background=(0.0, 0.0, 0.0))
+    for k, cam in enumerate(scene.train_cameras[:3]):
+        full = scene.coverage(cam)
+        assert full.shape == (cam.height, cam.width, 1)
+        assert np.allclose(full[..., 0].numpy(), alphas[("train", k)], atol=1e-6)
+        half = scene.coverage(cam, 2)
+        ref = resize(alphas[("train", k)], (cam.height // 2, cam.width // 2), order=1, anti_aliasing=True)
+        assert half.shape == (cam.height // 2, cam.width // 2, 1)
+        assert np.allclose(half[..., 0].numpy(), ref, atol=1e-5)
+    # no alpha to read: alpha dropped (no background), an opaque file, an image given as a tensor
+    from mvgs_plugin.data import Scene
+
+    cams = scene.train_cameras[:2]
+    files = {c.uid: scene.image_file(c) for c in cams}
+    assert Scene(cams, [], files, background=None).coverage(cams[0]) is None
+    opaque = tmp_path / "opaque"
+    opaque.mkdir()
+    for split in ("train", "test"):
+        (opaque / split).mkdir()
+        for png in (folder / split).glob("*.png"):
+            rgba = np.asarray(Image.open(png)).copy()
+            rgba[..., 3] = 255
+            Image.fromarray(rgba, "RGBA").save(opaque / split / png.name)
+        (opaque / f"transforms_{split}.json").write_text((folder / f"transforms_{split}.json").read_text())
+    on_black = load_scene(opaque, init=None, background=(0.0, 0.0, 0.0))
+    assert on_black.coverage(on_black.train_cameras[0]) is None
+    given = Scene(cams, [], {c.uid: scene.image(c) for c in cams}, background=(0.0, 0.0, 0.0))
+    assert given.coverage(cams[0]) is None
+    assert Scene(cams, [], files, background=(0.0, 0.0, 0.0)).coverage(cams[0]) is not None
+
+
+def test_silhouettes_from_alpha_keep_a_part_in_the_backdrops_colour(two_tone_scene):
+    folder, _ = two_tone_scene
+    scene = load_scene(folder, init=None, background=(0.0, 0.0, 0.0))
+    assert backdrop_of(scene) == (0.0, 0.0, 0.0)
+    gen = torch.Generator().manual_seed(0)
+    dirs = torch.randn(2000, 3, generator=gen, dtype=torch.float64)
+    dirs = dirs / torch.linalg.norm(dirs, dim=1, keepdim=True)
+    radii = torch.rand(2000, 1, generator=gen, dtype=torch.float64)
+    inside = dirs * radii * 0.9 * RADIUS
+    lower = inside[:, 2] < -0.2 * RADIUS  # clear of the seam
+    by_alpha = on_silhouettes(inside, scene.train_cameras, scene.image, (0.0, 0.0, 0.0), coverage=scene.coverage)
+    by_colour = on_silhouettes(inside, scene.train_cameras, scene.image, (0.0, 0.0, 0.0))
+    assert bool(by_alpha.all())  # the whole sphere, its black half too
+    # read by colour the black half is backdrop in the views that see it, and is cut away
+    assert float(by_colour[lower].double().mean()) < 0.2
+    outside = dirs * RADIUS * (1.5 + 2.0 * radii)
+    assert not on_silhouettes(outside, scene.train_cameras, scene.image, (0.0, 0.0, 0.0), coverage=scene.coverage).any()
+
+
+def test_a_scene_without_points_starts_on_both_halves_of_the_two_tone_sphere(two_tone_scene):
+    folder, _ = two_tone_scene
+    scene = load_scene(folder, init="random", background=(0.0, 0.0, 0.0))
+    xyz = scene.points.xyz.double()
+    assert len(scene.points) == 10_000 and float(torch.linalg.norm(xyz, dim=1).max()) < 1.5 * RADIUS
+    # uniform in a hull symmetric about z = 0: half of the points below the seam
+    assert 0.4 < float((xyz[:, 2] < 0).double().mean()) < 0.6
+    assert "silhouettes (read from their alpha) on the backdrop [0.0, 0.0, 0.0]" in scene.points_origin
+    # coloured by the views: inside the sphere a point lands on both halves, the lower ones mostly on black
+    red = scene.points.rgb.double()[:, 0]
+    assert float(red[xyz[:, 2] < -0.2 * RADIUS].mean()) < 0.6 * float(red[xyz[:, 2] > 0.2 * RADIUS].mean())
+
+
+def test_views_without_alpha_are_read_by_colour_beside_those_with_it(two_tone_scene):
+    from mvgs_plugin.data.init import _silhouettes_read
+
+    folder, _ = two_tone_scene
+    scene = load_scene(folder, init=None, background=(0.0, 0.0, 0.0))
+    cams = scene.train_cameras
+    half = {c.uid for c in cams[::2]}
+
+    def some(cam, factor):  # alpha for every other view only
+        return scene.coverage(cam, factor) if cam.uid in half else None
+
+    assert _silhouettes_read(cams, some) == f" (read from the alpha of {len(half)} of {len(cams)} views, the others' by colour)"
+    assert _silhouettes_read(cams, scene.coverage) == " (read from their alpha)" and _silhouettes_read(cams, None) == ""
+    # each view votes by what it has: a point of the black half is content in the views with alpha only
+    gen = torch.Generator().manual_seed(2)
+    dirs = torch.randn(500, 3, generator=gen, dtype=torch.float64)
+    inside = 0.8 * RADIUS * dirs / torch.linalg.norm(dirs, dim=1, keepdim=True) * torch.rand(500, 1, generator=gen,
+                                                                                              dtype=torch.float64)
+    lower = inside[inside[:, 2] < -0.2 * RADIUS]
+    all_alpha = on_silhouettes(lower, cams, scene.image, (0.0, 0.0, 0.0), coverage=scene.coverage)
+    mixed = on_silhouettes(lower, cams, scene.image, (0.0, 0.0, 0.0), coverage=some)
+    colour = on_silhouettes(lower, cams, scene.image, (0.0, 0.0, 0.0))
+    assert bool(all_alpha.all()) and int(colour.sum()) <= int(mixed.sum()) < len(lower)
+

@@ -79,6 +79,10 @@ Variants (``--variant``):
   up at its scene. Its points lie on the objects only.
 * ``object-reflective``: ``object`` with the reflective variant's materials and sky light (a mirror
   ball that shows the hidden sky, rough copper and aluminium, glossy plastic).
+* ``object-dark``: ``object`` with a near-black matte ball (albedo 0.01) and a black glossy plastic
+  cylinder (diffuse 0.01 under a specular coat): parts as dark as a black backdrop
+  (``--background black``, 3DGS's default for NeRF-synthetic) where the sun does not reach them,
+  which only the images' alpha tells from the backdrop.
 * ``room-walk``: the same room seen by cameras that walk a loop of radius ROOM_WALK_RADIUS about
   its middle, each looking ahead along the loop (yaw jittered by up to 30 degrees either way):
   the axes spread every way and meet nowhere, as for the room, but the objects near the walls
@@ -106,11 +110,11 @@ from typing import Optional
 import numpy as np
 
 VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
-            "room", "room-walk", "arc", "aerial", "thin", "object", "object-reflective")
+            "room", "room-walk", "arc", "aerial", "thin", "object", "object-reflective", "object-dark")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 ROOM_VARIANTS = ("room", "room-walk")
 CLUTTER_CONTENT = ("clutter", "forward-clutter", "arc", "aerial")  # the clutter scene's primitives and light
-ALPHA_VARIANTS = ("object", "object-reflective")  # RGBA images: the backdrop (the hidden sky) is transparent
+ALPHA_VARIANTS = ("object", "object-reflective", "object-dark")  # RGBA images: the backdrop (the hidden sky) is transparent
 REFLECTIVE_MATERIALS = ("reflective", "object-reflective")  # a mirror ball, rough metals, glossy plastic
 TARGET = np.array([0.0, 0.0, 0.3])  # the point every camera looks at
 GROUND_RADIUS = 2.5
@@ -887,13 +891,18 @@ class SceneBuilder:
                 "cyl": {"type": "plastic", "diffuse_reflectance": {"type": "rgb",
                                                                    "value": [0.1, 0.2, 0.6]}},
             }
-        return {
+        mats = {
             "ground": ground,
             "ball": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.12, 0.1]}},
             "metal": {"type": "roughconductor", "material": "Au", "alpha": 0.2},
             "box": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": self.box_tex}},
             "cyl": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.12, 0.3, 0.65]}},
         }
+        if self.variant == "object-dark":  # a near-black matte ball and a black glossy plastic cylinder
+            black = {"type": "rgb", "value": [0.01, 0.01, 0.01]}
+            mats["ball"] = {"type": "diffuse", "reflectance": black}
+            mats["cyl"] = {"type": "plastic", "diffuse_reflectance": black}
+        return mats
 
     def clutter_materials(self) -> dict:
         def diffuse(rgb):

@@ -11,8 +11,8 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["image_size", "read_rgb", "read_mask", "downsample", "masked_downsample", "downsample_batch", "check_background", "may_have_alpha",
-           "has_transparency", "uniform_border"]
+__all__ = ["image_size", "read_rgb", "read_alpha", "read_mask", "downsample", "masked_downsample", "downsample_batch",
+           "check_background", "may_have_alpha", "has_transparency", "uniform_border"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, progressive, lossless, ...); C4, C8, CC are not frames.
@@ -246,6 +246,17 @@ def read_rgb(path: Path, background: Optional[Sequence[float]] = None) -> torch.
     if alpha is not None and bg is not None:
         color = color * alpha + np.asarray(bg, dtype=np.float32) * (1.0 - alpha)
     return torch.from_numpy(np.ascontiguousarray(color, dtype=np.float32))
+
+
+def read_alpha(path: Path) -> Optional[torch.Tensor]:
+    """The alpha channel of an image file as float32 [H, W, 1] in [0, 1] (the weight
+    :func:`read_rgb` composites its colour with), or None when the file has none or it is opaque
+    everywhere (then it says nothing of where the content is)."""
+    path = Path(path)
+    arr = _to_unit_float(_decode(path), path)
+    if arr.ndim != 3 or arr.shape[2] not in (2, 4) or not (arr[:, :, -1] < 1.0).any():
+        return None
+    return torch.from_numpy(np.ascontiguousarray(arr[:, :, -1:], dtype=np.float32))
 
 
 def read_mask(path: Path) -> torch.Tensor:

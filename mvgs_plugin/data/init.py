@@ -135,12 +135,13 @@ def _photo_level(cam: Camera, max_width: int) -> int:
     return max(1, -(-cam.width // max_width))
 
 
-def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: int, mask=None):
+def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: int, mask=None, coverage=None):
     """Per camera, what the points [P, 3] land on in its image downsampled to at most ``max_width``
     pixels across (``image(camera, factor)``): (the colour of the pixel each projects into [P, 3]
     float32, clamped to the frame; whether it lies in front of the camera and inside the frame [P];
     whether ``mask(camera, factor)`` keeps that pixel, weight 1/2 or more, [P], all True without
-    a mask)."""
+    a mask; the content's coverage of that pixel [P] from ``coverage(camera, factor)``
+    (:meth:`~mvgs_plugin.data.Scene.coverage`), None when it is not given or gives None)."""
     # float32 is plenty for a pixel lookup at <= 64 px
     pts = points.to(torch.float32)
     for cam in cameras:
@@ -157,7 +158,8 @@ def _lookups(points: torch.Tensor, cameras: Sequence[Camera], image, max_width: 
         at = py.clamp(0, small.height - 1).to(torch.int64) * small.width + px.clamp(0, small.width - 1).to(torch.int64)
         weights = None if mask is None else mask(cam, factor)
         kept = torch.ones_like(inside) if weights is None else weights.reshape(-1)[at] >= 0.5
-        yield img[at], inside, kept
+        alpha = None if coverage is None else coverage(cam, factor)
+        yield img[at], inside, kept, (None if alpha is None else alpha.reshape(-1)[at])
 
 
 def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
@@ -173,7 +175,7 @@ def view_colours(points: torch.Tensor, cameras: Sequence[Camera], image,
     total = torch.zeros(p, 3, dtype=torch.float64)
     squares = torch.zeros(p, dtype=torch.float64)
     count = torch.zeros(p, dtype=torch.float64)
-    for colour, inside, kept in _lookups(points, cameras, image, max_width, mask):
+    for colour, inside, kept, _ in _lookups(points, cameras, image, max_width, mask):
         inside &= kept  # an ignored pixel says nothing of what the point is
         colour = (colour * inside[:, None]).to(torch.float64)
         total += colour
@@ -230,7 +232,7 @@ def silhouettes_of(scene) -> Optional[tuple[float, float, float]]:
 
 
 def on_silhouettes(points: torch.Tensor, cameras: Sequence[Camera], image, backdrop: Sequence[float],
-                   max_width: int = PHOTO_WIDTH, mask=None) -> torch.Tensor:
+                   max_width: int = PHOTO_WIDTH, mask=None, coverage=None) -> torch.Tensor:
     """[P] bool: the points [P, 3] inside the visual hull of the training views' silhouettes,
     the content of views that show it on a one-colour ``backdrop``. A point is in when at least
     HULL_FRAMED of the views have it in their frame (a backdrop at the borders says the content
@@ -241,43 +243,61 @@ def on_silhouettes(points: torch.Tensor, cameras: Sequence[Camera], image, backd
     view that does not frame the point does not vote on its content, so a part of the object that
     leaves some frames is kept; the share, not every view, so that a patch of the object in the
     backdrop's colour seen in a few views does not cut a hole through it. ``mask``: as
-    :func:`view_colours`' (a view that ignores the pixel does not vote at all)."""
+    :func:`view_colours`' (a view that ignores the pixel does not vote at all). ``coverage``:
+    optionally ``coverage(camera, factor)``, the view's alpha [H', W', 1] or None
+    (:meth:`~mvgs_plugin.data.Scene.coverage`): a view that has one shows content where its
+    coverage is above ``BORDER_TOLERANCE``, whatever the colour there (a part in the backdrop's
+    colour is content too); the others are read by colour."""
     from .images import BORDER_TOLERANCE
 
     colour = torch.tensor([float(v) for v in backdrop], dtype=torch.float32)
     votes = torch.zeros(points.shape[0], dtype=torch.int64)  # views that do not ignore the pixel
     seen = torch.zeros(points.shape[0], dtype=torch.int64)  # ... and frame the point
     content = torch.zeros(points.shape[0], dtype=torch.int64)  # ... and show content there
-    for shown, inside, kept in _lookups(points, cameras, image, max_width, mask):
+    for shown, inside, kept, alpha in _lookups(points, cameras, image, max_width, mask, coverage):
         votes += kept
         seen += kept & inside
-        content += kept & inside & ((shown - colour).abs().amax(dim=1) > BORDER_TOLERANCE)
+        shows = (shown - colour).abs().amax(dim=1) > BORDER_TOLERANCE if alpha is None else alpha > BORDER_TOLERANCE
+        content += kept & inside & shows
     return (seen >= MIN_VIEWS) & (seen >= HULL_FRAMED * votes) & (content >= HULL_SHARE * seen)
 
 
 def hull_candidates(region: "InitRegion", cameras: Sequence[Camera], image, backdrop: Sequence[float], count: int,
-                    generator: torch.Generator, mask=None) -> tuple[torch.Tensor, str]:
+                    generator: torch.Generator, mask=None, coverage=None) -> tuple[torch.Tensor, str]:
     """Up to ``count`` points drawn uniformly in the part of the cube ``region`` inside the
     silhouettes' visual hull (:func:`on_silhouettes`): the cube cut into HULL_GRID cells a side,
     the cells whose centre is in the hull and their neighbours kept (a part thinner than a cell
     keeps the cell it passes through), ``count`` points drawn in them, and those in the hull
-    kept. Returns (points [k, 3] float64, what was done)."""
+    kept. ``mask``, ``coverage``: as :func:`on_silhouettes`'. Returns (points [k, 3] float64,
+    what was done)."""
     center = torch.as_tensor(region.center, dtype=torch.float64)
     g, half = HULL_GRID, float(region.half)
     step = 2.0 * half / g
     axis = (torch.arange(g, dtype=torch.float64) + 0.5) * step - half  # cell centres about the cube's centre
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3) + center
-    inside = on_silhouettes(grid, cameras, image, backdrop, mask=mask).reshape(1, 1, g, g, g).float()
+    inside = on_silhouettes(grid, cameras, image, backdrop, mask=mask, coverage=coverage).reshape(1, 1, g, g, g).float()
     cells = torch.nn.functional.max_pool3d(inside, 3, stride=1, padding=1).reshape(-1) > 0
     corners = grid[cells] - 0.5 * step
     if corners.shape[0] == 0:
         return torch.zeros(0, 3, dtype=torch.float64), f"no cell of a {g}^3 grid over the cube is inside the silhouettes"
     pick = torch.randint(corners.shape[0], (count,), generator=generator)
     points = corners[pick] + step * torch.rand(count, 3, generator=generator, dtype=torch.float64)
-    points = points[on_silhouettes(points, cameras, image, backdrop, mask=mask)]
-    return points, (f"carved to the training views' silhouettes on the backdrop {_rounded(backdrop)} "
+    points = points[on_silhouettes(points, cameras, image, backdrop, mask=mask, coverage=coverage)]
+    return points, (f"carved to the training views' silhouettes{_silhouettes_read(cameras, coverage)} "
+                    f"on the backdrop {_rounded(backdrop)} "
                     f"({int(inside.sum())} of {g ** 3} cells of a {g}^3 grid over the cube inside them, "
                     f"{points.shape[0]} of {count} candidates drawn near those inside)")
+
+
+def _silhouettes_read(cameras: Sequence[Camera], coverage) -> str:
+    """How many views' silhouettes come from their alpha (for the log), or ""."""
+    if coverage is None:
+        return ""
+    by_alpha = sum(coverage(cam, _photo_level(cam, PHOTO_WIDTH)) is not None for cam in cameras)
+    if not by_alpha:
+        return ""
+    return (" (read from their alpha)" if by_alpha == len(cameras) else
+            f" (read from the alpha of {by_alpha} of {len(cameras)} views, the others' by colour)")
 
 
 def random_init_points(scene, n: int, generator: torch.Generator,
@@ -296,7 +316,8 @@ def random_init_points(scene, n: int, generator: torch.Generator,
     backdrop = silhouettes_of(scene) if region.kind == "cube" and half_size is None and cameras else None
     if backdrop is not None:  # an object on a backdrop: where the silhouettes say it is
         candidates, carved = hull_candidates(region, cameras, scene.image, backdrop, CANDIDATES_PER_POINT * n,
-                                             generator, mask=getattr(scene, "mask", None))
+                                             generator, mask=getattr(scene, "mask", None),
+                                             coverage=getattr(scene, "coverage", None))
         if candidates.shape[0] >= n:
             # the first n: uniform in the hull, as 3DGS's are in its cube. Not the most photo-consistent:
             # inside an object of one colour every point is, and they would all go there (on the

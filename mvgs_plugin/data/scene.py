@@ -11,7 +11,8 @@ import torch
 
 from ..camera import Camera, _check_factor
 from .distortion import UndistortedImage
-from .images import check_background, downsample, image_size, masked_downsample, read_mask, read_rgb
+from .images import (check_background, downsample, image_size, masked_downsample, may_have_alpha, read_alpha, read_mask,
+                     read_rgb)
 
 __all__ = ["Scene", "PointCloud", "camera_normalization"]
 
@@ -164,6 +165,7 @@ class Scene:
             self._add_source(cam, images[uid], check_sizes)
         self._mask_sources: dict[int, ImageSource] = {}
         self._mask_cache: dict[tuple[int, float], torch.Tensor] = {}
+        self._coverage_cache: dict[tuple[int, float], Optional[torch.Tensor]] = {}
         for uid, src in (masks or {}).items():
             if uid not in self._by_uid:
                 raise ValueError(f"a mask is given for camera uid {uid!r}, which is not one of the scene's cameras")
@@ -236,6 +238,31 @@ class Scene:
                 self._mask_cache[key] = downsample(self._full_mask(base, keep=False), small.width,
                                                    small.height).clamp(0.0, 1.0)
         return self._mask_cache[key]
+
+    def coverage(self, cam: Camera, factor: float = 1) -> Optional[torch.Tensor]:
+        """How much of each pixel of ``cam``'s image at ``factor`` its content covers, float32
+        [H', W', 1] in [0, 1]: the image file's alpha channel (what :meth:`image` composites on
+        ``background``), downsampled as the image is; None when the scene has no background
+        (alpha dropped), the file has no alpha or is opaque everywhere, or the image was given as
+        a tensor or is read through a lens model. Where it is not None it tells content from
+        backdrop whatever their colours (a black part on a black backdrop); the initial points'
+        silhouettes use it (:func:`~mvgs_plugin.data.init.on_silhouettes`). Cached; do not modify
+        the result in place."""
+        base, factor = self._level(cam, factor)
+        key = (base.uid, factor)
+        if key not in self._coverage_cache:
+            src = self._sources[base.uid]
+            alpha = None
+            if self.background is not None and isinstance(src, Path) and may_have_alpha(src):
+                alpha = read_alpha(src)
+            if alpha is not None and tuple(alpha.shape) != (base.height, base.width, 1):
+                raise ValueError(f"image {src} is {alpha.shape[1]}x{alpha.shape[0]} but its camera {base.name!r} "
+                                 f"expects {base.width}x{base.height}")
+            if alpha is not None and factor != 1.0:
+                small = base.scaled(factor)
+                alpha = downsample(alpha, small.width, small.height).clamp(0.0, 1.0)
+            self._coverage_cache[key] = alpha
+        return self._coverage_cache[key]
 
     def _full_mask(self, cam: Camera, keep: bool = True) -> torch.Tensor:
         """The full-resolution mask, cached when ``keep`` (else read and not held)."""
@@ -356,11 +383,12 @@ class Scene:
         return src.undistortion if isinstance(src, UndistortedImage) else None
 
     def clear_cache(self) -> None:
-        """Forget decoded images and masks loaded from files (in-memory ones are kept)."""
+        """Forget decoded images, masks and coverage loaded from files (in-memory ones are kept)."""
         self._cache = {k: v for k, v in self._cache.items()
                        if k[1] == 1.0 and isinstance(self._sources[k[0]], torch.Tensor)}
         self._mask_cache = {k: v for k, v in self._mask_cache.items()
                             if k[1] == 1.0 and isinstance(self._mask_sources.get(k[0]), torch.Tensor)}
+        self._coverage_cache = {}
 
     def __repr__(self) -> str:
         pts = "no points" if self.points is None else f"{len(self.points)} points"

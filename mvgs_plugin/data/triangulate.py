@@ -42,7 +42,8 @@ import torch
 from ..camera import Camera
 from ..densify.mvad import camera_axes
 from .images import may_have_alpha
-from .init import CANDIDATES_PER_POINT, init_region, on_silhouettes, photo_consistent, random_init_points, silhouettes_of
+from .init import (CANDIDATES_PER_POINT, _silhouettes_read, init_region, on_silhouettes, photo_consistent, random_init_points,
+                   silhouettes_of)
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
@@ -64,7 +65,9 @@ COVER_RADIUS = 2
 DEPTH_MARGIN = 1.5
 # pycolmap extraction: images larger than this (longest side) are downscaled for SIFT
 MAX_IMAGE_SIZE = 1600
-_VERSION = 2  # bump when the cached result would change (2: fill and fall-back carved to silhouettes on a backdrop)
+# bump when the cached result would change (2: fill and fall-back carved to silhouettes on a backdrop;
+# 3: silhouettes from alpha)
+_VERSION = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -329,10 +332,12 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
         candidates[rows] = origin + direction * (1.0 / disparity / cos)[:, None]
     backdrop, carved = silhouettes_of(scene), ""
     if backdrop is not None:
-        inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None))
+        inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None),
+                                coverage=getattr(scene, "coverage", None))
         candidates = candidates[inside]
         n = min(n, candidates.shape[0])
-        carved = f", {candidates.shape[0]} of them inside the views' silhouettes on the backdrop {[round(v, 3) for v in backdrop]}"
+        carved = (f", {candidates.shape[0]} of them inside the views' silhouettes"
+                  f"{_silhouettes_read(cameras, getattr(scene, 'coverage', None))} on the backdrop {[round(v, 3) for v in backdrop]}")
     kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width, mask=getattr(scene, "mask", None))
     share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
     return kept, rgb, (f"{n} fill points where no track projects ({share:.0%} of the pixels at {max_width} px), the "
