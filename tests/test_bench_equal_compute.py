@@ -76,6 +76,12 @@ def test_a_bench_run_starts_from_the_examples_init_with_its_background_shell():
         torch.set_num_threads(threads)
     assert plain["gaussians"] == len(scene.points)
     assert shelled["gaussians"] == len(scene.points) + shell.shape[0] > len(scene.points)
+    # every test view's PSNR is kept: their mean is the run's PSNR, and the median is theirs
+    views = shelled["per_view_psnr"]
+    assert len(views) == len(scene.test_cameras) and abs(sum(views) / len(views) - shelled["psnr"]) < 1e-9
+    ordered = sorted(views)
+    middle = len(ordered) // 2
+    assert shelled["psnr_median"] == (ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2)
 
 
 def test_capped_run_kinds_take_the_budget_and_their_stage_plan(tmp_path):
@@ -185,3 +191,17 @@ def test_the_baseline_cap_kinds_order_growth_as_named():
         assert GS3DAdapter.from_scene(around, model).config.budget_growth_order == order
         with pytest.raises(ValueError, match="needs --max-gaussians"):
             bench.run_argv(kind, 3000, 4, 0, 1)
+
+
+def test_the_tables_give_the_median_view_beside_the_mean(tmp_path):
+    # a run whose mean falls on two bad views while its median view rises; a run saved before the
+    # median was recorded gets an empty cell
+    base = dict(run("baseline", 3000, 30.0, 100.0, [(100.0, 30.0)]), psnr_median=31.0)
+    cand = dict(run("default", 3000, 29.5, 90.0, [(90.0, 29.5)]), psnr_median=31.4)
+    old = run("compact", 3000, 29.0, 80.0, [(80.0, 29.0)])
+    rows = {r[1]: r for r in rows_of(bench.table([base, cand, old], "tabletop").split("\n", 2)[2])}
+    assert rows["baseline"][12] == "31.00" and rows["baseline"][13] == ""
+    assert rows["default"][6] == "-0.50" and rows["default"][12] == "31.40" and rows["default"][13] == "+0.40"
+    assert rows["compact"][12] == "" and rows["compact"][13] == ""
+    summed = {r[5]: r for r in rows_of(bench.summary([write(tmp_path / "a.json", "scenes/tabletop", [base, cand, old])]))}
+    assert summed["default"][7] == "-0.50" and summed["default"][13] == "+0.40" and summed["compact"][13] == ""
