@@ -667,14 +667,14 @@ class GS3DAdapter:
         if tuple(bg.shape) != (len(cams), 3):
             raise ValueError(f"backgrounds must be [C,3] with C={len(cams)}, got {list(bg.shape)}")
         colors = torch.cat([p["sh0"], p["shN"]], dim=1)  # [N, K, 3]
-        opacities = torch.sigmoid(p["opacities"])
+        scales, opacities = torch.exp(p["scales"]), torch.sigmoid(p["opacities"])
         drawn = None
         if self.config.beside_cull > 0:
-            drawn = ~beside_camera(p["means"].detach(), torch.exp(p["scales"].detach()), viewmats, Ks, width, height,
+            drawn = ~beside_camera(p["means"].detach(), scales.detach(), viewmats, Ks, width, height,
                                    self.config.beside_cull)
             opacities = opacities.reshape(1, -1) * drawn.to(opacities.dtype)  # [C, N]
         images, alphas, meta = self.config.rasterize(
-            p["means"], p["quats"], torch.exp(p["scales"]), opacities, colors,
+            p["means"], p["quats"], scales, opacities, colors,
             viewmats, Ks, width, height, sh_degree=self.active_sh_degree, packed=False,
             backgrounds=bg, **self.config.rasterize_kwargs,
         )

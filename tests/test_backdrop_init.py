@@ -58,17 +58,23 @@ def coverage(cam, sub=4):
     return per_pixel(hit)
 
 
-def write_rgba_scene(folder: Path, cams, n_test=4):
-    """A NeRF-synthetic folder: the sphere in COLOUR with straight alpha = its coverage, on a
-    transparent backdrop; the last n_test cameras are the test split."""
+def one_colour(cam):
+    """(coverage [H, W], straight colour [H, W, 3]) of the sphere in COLOUR."""
+    a = coverage(cam)
+    return a, np.array(COLOUR) * (a[..., None] > 0)
+
+
+def write_rgba_scene(folder: Path, cams, n_test=4, paint=one_colour):
+    """A NeRF-synthetic folder: the sphere as ``paint(camera)`` gives it (its coverage as straight
+    alpha and its colour), on a transparent backdrop; the last n_test cameras are the test split."""
     splits = {"train": cams[:-n_test], "test": cams[-n_test:]}
     for split, group in splits.items():
         (folder / split).mkdir(parents=True, exist_ok=True)
         frames = []
         for k, cam in enumerate(group):
-            a = coverage(cam)
+            a, straight = paint(cam)
             rgba = np.zeros((cam.height, cam.width, 4), dtype=np.uint8)
-            rgba[..., :3] = np.round(np.array(COLOUR) * 255).astype(np.uint8) * (a[..., None] > 0)
+            rgba[..., :3] = np.round(straight * 255).astype(np.uint8)
             rgba[..., 3] = np.round(a * 255).astype(np.uint8)
             Image.fromarray(rgba, "RGBA").save(folder / split / f"r_{k:03d}.png")
             c2w = torch.linalg.inv(cam.world_to_camera) @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0],
@@ -236,25 +242,15 @@ def two_tone(cam, sub=4):
 @pytest.fixture(scope="module")
 def two_tone_scene(tmp_path_factory):
     """A NeRF-synthetic folder of the two-tone sphere (straight colour: COLOUR where the covered
-    part is the upper half, black where it is the lower), and its images' alpha at full size."""
-    folder, cams = tmp_path_factory.mktemp("two_tone"), sphere_rig()
-    splits, alphas = {"train": cams[:-4], "test": cams[-4:]}, {}
-    for split, group in splits.items():
-        (folder / split).mkdir()
-        frames = []
-        for k, cam in enumerate(group):
-            a, up = two_tone(cam)
-            rgba = np.zeros((cam.height, cam.width, 4), dtype=np.uint8)
-            straight = np.where(a > 0, up / np.maximum(a, 1e-12), 0.0)[..., None] * np.array(COLOUR)
-            rgba[..., :3] = np.round(straight * 255).astype(np.uint8)
-            rgba[..., 3] = np.round(a * 255).astype(np.uint8)
-            alphas[(split, k)] = rgba[..., 3] / 255.0
-            Image.fromarray(rgba, "RGBA").save(folder / split / f"r_{k:03d}.png")
-            c2w = torch.linalg.inv(cam.world_to_camera) @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0],
-                                                                                 dtype=torch.float64))
-            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": c2w.tolist()})
-        (folder / f"transforms_{split}.json").write_text(json.dumps(
-            {"camera_angle_x": 2 * math.atan(0.5 * group[0].width / float(group[0].K[0, 0])), "frames": frames}))
+    part is the upper half, black where it is the lower), and its training images' alpha at full
+    size (as the PNG holds it, 8 bits)."""
+    def paint(cam):
+        a, up = two_tone(cam)
+        return a, np.where(a > 0, up / np.maximum(a, 1e-12), 0.0)[..., None] * np.array(COLOUR)
+
+    cams = sphere_rig()
+    folder = write_rgba_scene(tmp_path_factory.mktemp("two_tone"), cams, paint=paint)
+    alphas = {k: np.round(two_tone(cam)[0] * 255) / 255.0 for k, cam in enumerate(cams[:-4])}
     return folder, alphas
 
 
@@ -266,9 +262,9 @@ def test_scene_coverage_is_the_files_alpha_downsampled_as_the_image(two_tone_sce
     for k, cam in enumerate(scene.train_cameras[:3]):
         full = scene.coverage(cam)
         assert full.shape == (cam.height, cam.width, 1)
-        assert np.allclose(full[..., 0].numpy(), alphas[("train", k)], atol=1e-6)
+        assert np.allclose(full[..., 0].numpy(), alphas[k], atol=1e-6)
         half = scene.coverage(cam, 2)
-        ref = resize(alphas[("train", k)], (cam.height // 2, cam.width // 2), order=1, anti_aliasing=True)
+        ref = resize(alphas[k], (cam.height // 2, cam.width // 2), order=1, anti_aliasing=True)
         assert half.shape == (cam.height // 2, cam.width // 2, 1)
         assert np.allclose(half[..., 0].numpy(), ref, atol=1e-5)
     # no alpha to read: alpha dropped (no background), an opaque file, an image given as a tensor

@@ -174,11 +174,7 @@ def may_have_alpha(path: Path) -> bool:
 def has_transparency(path: Path) -> bool:
     """Whether an image file has an alpha channel with a pixel below fully opaque (decoded to
     tell; call may_have_alpha first to skip files whose header has none)."""
-    path = Path(path)
-    arr = _to_unit_float(_decode(path), path)
-    if arr.ndim != 3 or arr.shape[2] not in (2, 4):
-        return False
-    return bool(arr[:, :, -1].min() < 1.0)
+    return read_alpha(path) is not None
 
 
 # A rendered backdrop is one colour up to 8-bit rounding and JPEG's ringing (a few levels): a
