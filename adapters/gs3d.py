@@ -306,6 +306,20 @@ def far_last(order: Tensor, far: Tensor) -> Tensor:
     return order[torch.sort(far[order].to(torch.uint8), stable=True).indices]
 
 
+def growth_that_fits(score: Tensor, cost: Tensor, room: int, far: Optional[Tensor] = None) -> Tensor:
+    """[K] bool over K growth candidates: the ones a Gaussian budget lets grow. Ranked by `score`
+    [K] (largest first, ties in the given order; with `far` [K] bool, the ones it marks after all
+    others: budget_growth_order "inside-first"), the longest prefix whose `cost` [K] (the rows each
+    adds: a clone 1, a split its samples - 1) sums to at most `room`. The ranking GS3DAdapter,
+    GS4DAdapter and MVGSStrategy apply, and a hand-written loop can (examples/graphdeco_loop)."""
+    order = torch.sort(score, descending=True, stable=True).indices
+    if far is not None:
+        order = far_last(order, far)
+    fits = torch.zeros(len(score), dtype=torch.bool, device=score.device)
+    fits[order] = torch.cumsum(cost[order], 0) <= room
+    return fits
+
+
 SPREAD_LEVELS = 21  # spread_order's grid levels: 2^21 cells a side, a cell's code fits 63 bits
 
 
@@ -942,14 +956,10 @@ class GS3DAdapter:
         ranked = torch.cat([score[i] for i in idx])
         cost = torch.cat([torch.full((len(i),), c, dtype=torch.long, device=score.device)
                           for i, c in zip(idx, costs)])
-        order = torch.sort(ranked, descending=True, stable=True).indices
         # the order matters only when some candidates must fall: only then, and only for them, the far line
         far = (self._beyond_far_line(torch.cat(idx)) if self.config.budget_growth_order == "inside-first"
                and int(cost.sum()) > room else None)
-        if far is not None:
-            order = far_last(order, far)
-        fits = torch.zeros_like(ranked, dtype=torch.bool)
-        fits[order] = torch.cumsum(cost[order], 0) <= room
+        fits = growth_that_fits(ranked, cost, room, far)
         out, start = [], 0
         for m, i in zip(masks, idx):
             kept = torch.zeros_like(m)

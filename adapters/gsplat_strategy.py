@@ -99,8 +99,8 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
-from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, beyond_far_line, consistency_of, far_last, farthest_distance,
-                                       keep_scores_of)
+from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, beyond_far_line, consistency_of, farthest_distance,
+                                       growth_that_fits, keep_scores_of)
 from mvgs_plugin.adapters.knn import spacing_log_scale
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
@@ -707,14 +707,10 @@ class MVGSStrategy(DefaultStrategy):
         sq = state.get("mvgs_grad2d_sq")
         if self.config.densify_rank == "consistency" and isinstance(sq, Tensor) and len(sq) == len(mean):
             score = mean * consistency_of(grad2d, sq, count)
-        order = torch.sort(torch.where(cand, score, torch.full_like(score, -math.inf)), descending=True,
-                           stable=True).indices
-        order = order[:int(cand.sum())]  # the candidates, best first
+        idx = cand.nonzero().squeeze(1)
         far = (beyond_far_line(means, self.scene_center, self.far_distance) if self.budget_growth_order == "inside-first"
                and means is not None and len(means) == len(mean) else None)
-        if far is not None:
-            order = far_last(order, far)
-        dropped = order[torch.cumsum(cost[order], 0) > room]
+        dropped = idx[~growth_that_fits(score[idx], cost[idx], room, None if far is None else far[idx])]
         grad2d[dropped] = 0
         radii = state.get("radii")
         if isinstance(radii, Tensor) and len(radii) == len(mean):  # not split by their screen size either

@@ -15,6 +15,15 @@ thread), at most `--parallel` at a time. Rows:
   run's CPU time the same way.
 
     python benchmarks/bench_gsplat_loop.py --steps 1000 --table docs/gsplat_loop.md
+
+With --graphdeco-budget F it runs the graphdeco-shaped loop (examples/graphdeco_loop/train_mvgs.py)
+instead: "baseline" and each of --presets without a budget, then each with --max-gaussians F x
+the unbudgeted baseline's final count (a quarter: issue 27's gate), at --steps steps, with
+--threshold-width W on every run when given (800: the package's baseline); the table
+gives PSNR and its difference to the unbudgeted baseline, the final and the largest count held,
+CPU and wall seconds.
+
+    python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP = ROOT / "examples" / "gsplat_loop"
+GRAPHDECO = ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"
 
 
 def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, extra=()) -> dict:
@@ -38,6 +48,43 @@ def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, ex
         cmd += ["--data", str(data)]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads((out / "metrics.json").read_text())
+
+
+def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None) -> dict:
+    """One run of the graphdeco-shaped loop, with `budget` as --max-gaussians and `width` as
+    --threshold-width when given."""
+    cmd = [sys.executable, str(GRAPHDECO), "--steps", str(steps), "--out", str(out), "--threads", "1",
+           "--preset", preset, "--seed", str(seed), *(["--max-gaussians", str(budget)] if budget else []),
+           *(["--threshold-width", f"{width:g}"] if width is not None else []),
+           *(["--data", str(data)] if data is not None else [])]
+    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def graphdeco_table(args) -> str:
+    """The graphdeco loop without and with a budget of args.graphdeco_budget x the baseline's count."""
+    presets = ["baseline", *[p for p in args.presets if p != "baseline"]]
+    with ThreadPoolExecutor(args.parallel) as pool:
+        free = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}", args.data, p, args.seed,
+                               None, args.threshold_width) for p in presets}
+        free = {p: f.result() for p, f in free.items()}
+        n = max(1, round(args.graphdeco_budget * free["baseline"]["num_gaussians"]))
+        capped = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}_budget", args.data, p,
+                                 args.seed, n, args.threshold_width) for p in presets}
+        capped = {p: f.result() for p, f in capped.items()}
+    ref = free["baseline"]["psnr"]
+    width = "the presets' own" if args.threshold_width is None else f"{args.threshold_width:g} px"
+    lines = [f"Scene: {args.data or 'bundled tabletop'}; the graphdeco-shaped loop, {args.steps} steps, seed {args.seed}; "
+             f"threshold width {width}; "
+             f"one thread per run; budget N = {args.graphdeco_budget:g} x the unbudgeted baseline's "
+             f"{free['baseline']['num_gaussians']} Gaussians = {n}; CPU = user + sys of the training loop.", "",
+             "| run | budget | PSNR (dB) | vs baseline | Gaussians | most held | CPU (s) | wall (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for p in presets:
+        for m in (free[p], capped[p]):
+            lines.append(f"| {p} | {m['max_gaussians'] or '-'} | {m['psnr']:.2f} | {m['psnr'] - ref:+.2f} | "
+                         f"{m['num_gaussians']} | {m['most_held']} | {m['cpu_seconds']:.0f} | {m['train_seconds']:.0f} |")
+    return "\n".join(lines) + "\n"
 
 
 def row(name: str, m: dict) -> str:
@@ -54,7 +101,18 @@ def main(argv=None) -> str:
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("out/bench_gsplat_loop"))
     ap.add_argument("--table", type=Path, default=None, help="also write the table here")
+    ap.add_argument("--graphdeco-budget", type=float, default=None, metavar="F",
+                    help="run the graphdeco-shaped loop without and with a budget of F x its baseline's count instead")
+    ap.add_argument("--threshold-width", type=float, default=None, metavar="W",
+                    help="with --graphdeco-budget: every run's --threshold-width (800: the package's baseline "
+                         "threshold; default: each preset's own)")
     args = ap.parse_args(argv)
+    if args.graphdeco_budget is not None:
+        text = graphdeco_table(args)
+        print(text)
+        if args.table is not None:
+            args.table.write_text(text)
+        return text
     n, out = args.steps, args.out
 
     from mvgs_plugin.data import load_scene

@@ -4,12 +4,16 @@ interface trained by a train.py-shaped loop with MVGS.
 Checked against computations of their own: the render's viewspace gradient is the rasterizer's
 pixel gradient in NDC units; densify_and_prune grows and prunes the counts the 3DGS rules give
 by hand; the loop densifies, resets and hands over stages on the schedule's clock, clones from
-cross-ray boxes, and resumes from a checkpoint to the same tensors as an uninterrupted run.
+cross-ray boxes, and resumes from a checkpoint to the same tensors as an uninterrupted run; under a
+Gaussian budget the rows that grow are those of a ranking worked out row by row, and a run never
+holds more than the budget nor more than its growth schedule, worked out by hand, allows.
 """
 
+import json
 import math
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -113,3 +117,145 @@ def test_loop_trains_through_every_phase_and_resumes_exactly(tmp_path, scene, pr
     for a, b in zip(full.capture()[1:7], resumed.capture()[1:7]):
         assert torch.equal(a, b)
     assert math.isfinite(train_mvgs.evaluate(resumed, scene))
+
+
+def budget_ctx(scene, cap, beta=2e-4, rank_by="consistency", prune_large=False):
+    """The fields of a DensifyContext limit_growth and clone_in_boxes read."""
+    return SimpleNamespace(max_primitives=cap, grad_threshold=beta, scene_extent=scene.extent,
+                           scene_center=scene.center, prune_large=prune_large, rank_by=rank_by,
+                           boxes=None, max_new_from_boxes=None)
+
+
+def visits_of(n, seed):
+    """Per row, a list of per-visit screen-space gradient norms (0 to 5 visits, some rows with
+    one large visit and some with many even ones), and the sums a graphdeco model keeps of them."""
+    gen = torch.Generator().manual_seed(seed)
+    lists = []
+    for i in range(n):
+        k = int(torch.randint(0, 6, (1,), generator=gen))
+        g = (torch.rand(k, generator=gen, dtype=torch.float64) * 6e-4).tolist()
+        if i % 7 == 0 and k:  # one view holds it all
+            g = [0.0] * (k - 1) + [sum(g)]
+        lists.append(g)
+    accum = torch.tensor([sum(g) for g in lists], dtype=torch.float32)[:, None]
+    denom = torch.tensor([len(g) for g in lists], dtype=torch.float32)[:, None]
+    sq = torch.tensor([sum(x * x for x in g) for g in lists], dtype=torch.float32)
+    return lists, accum, denom, sq
+
+
+def hand_ranked(lists, eligible, room, beta, far=None):
+    """The rows that may grow, worked out one row at a time: mean gradient >= beta, score =
+    mean x (sum g)^2 / (n sum g^2), best first (far rows after all others), as many as `room`."""
+    rows = []
+    for i, g in enumerate(lists):
+        if not g or not eligible[i]:
+            continue
+        s, n = sum(g), len(g)
+        mean = float(torch.tensor(s / n, dtype=torch.float32))  # the model's float32 mean
+        if mean < beta:
+            continue
+        sq = sum(x * x for x in g)
+        score = mean * min(1.0, s * s / (n * sq)) if sq > 0 else 0.0
+        rows.append((bool(far[i]) if far is not None else False, -score, i))
+    return {i for _, _, i in sorted(rows)[:room]}
+
+
+@pytest.mark.parametrize("rank_by", ["consistency", "gradient"])
+def test_limit_growth_keeps_the_best_scored_candidates_that_fit_the_budget(scene, rank_by):
+    g = model(scene)
+    n = g.get_xyz.shape[0]
+    lists, g.xyz_gradient_accum, g.denom, sq = visits_of(n, seed=3)
+    with torch.no_grad():
+        g._opacity[-40:] = -8.0  # pruned by densify_and_prune: they leave room and grow nothing
+        g._scaling[: n // 2] = math.log(1e-3)  # clones; the rest split
+    kept_rows = n - 40
+    cap = kept_rows + 150
+    ctx = budget_ctx(scene, cap, rank_by=rank_by)
+    eligible = [i < n - 40 for i in range(n)]
+    if rank_by == "gradient":  # the mean alone: the hand ranking with every visit list made even
+        lists = [[sum(v) / len(v)] * len(v) if v else v for v in lists]
+    expected = hand_ranked(lists, eligible, 150, 2e-4)
+    candidates = sum(1 for i, v in enumerate(lists) if v and eligible[i] and sum(v) / len(v) >= 2e-4)
+    assert candidates > 300  # the budget binds: half of them at most may grow
+    dropped = train_mvgs.limit_growth(g, sq, ctx, far_distance=None, inside_first=False)
+    grows = set((g.xyz_gradient_accum.squeeze(-1) / g.denom.squeeze(-1).clamp_min(1) >= 2e-4).nonzero().squeeze(1)
+                .tolist()) - set(range(n - 40, n))
+    assert grows == expected and dropped == candidates - 150
+    g.densify_and_prune(2e-4, train_mvgs.MIN_OPACITY, scene.extent, None)
+    assert g.get_xyz.shape[0] == cap  # each clone or split adds one row; the pruned rows freed theirs
+
+
+def test_limit_growth_grows_the_far_background_last(scene):
+    g = model(scene)
+    n = g.get_xyz.shape[0]
+    lists, g.xyz_gradient_accum, g.denom, sq = visits_of(n, seed=4)
+    xyz = g.get_xyz.detach()
+    d = torch.linalg.vector_norm(xyz.double() - scene.center, dim=1)
+    far_distance = float(d.max())
+    far = (d >= 0.75 * far_distance).tolist()
+    assert 0 < sum(far) < n
+    expected = hand_ranked(lists, [True] * n, 200, 2e-4, far=far)
+    ctx = budget_ctx(scene, n + 200)
+    train_mvgs.limit_growth(g, sq, ctx, far_distance=far_distance, inside_first=True)
+    grows = set((g.xyz_gradient_accum.squeeze(-1) / g.denom.squeeze(-1).clamp_min(1) >= 2e-4).nonzero().squeeze(1)
+                .tolist())
+    assert grows == expected
+    inside = [i for i in range(n) if not far[i] and lists[i] and sum(lists[i]) / len(lists[i]) >= 2e-4]
+    assert len(inside) >= 200 and not any(far[i] for i in grows)  # every place went inside the far line
+
+
+def test_without_a_budget_limit_growth_changes_nothing(scene):
+    g = model(scene)
+    n = g.get_xyz.shape[0]
+    _, g.xyz_gradient_accum, g.denom, sq = visits_of(n, seed=5)
+    before = g.xyz_gradient_accum.clone()
+    assert train_mvgs.limit_growth(g, sq, budget_ctx(scene, None), None, False) == 0
+    assert torch.equal(g.xyz_gradient_accum, before)
+
+
+def test_a_budget_holds_through_every_phase_and_resumes_exactly(tmp_path, scene):
+    steps, n_budget = 300, 800
+    # half the budget for the initial points (cut from 2653), growth to the budget after: both
+    # halves of the rule run; the pyramid kept on this forward rig, so a stage hands over too; a
+    # lower threshold than the default's, so that the candidates outnumber the room
+    extra = {"min_densify_per_reset": 10, "max_gaussians": n_budget, "budget_initial_share": 0.5,
+             "forward_rig": "pyramid", "grad_threshold": 1e-4}
+    full, log = train_mvgs.training(scene, steps, "default", checkpoint_iterations=(85,), out=tmp_path, **extra)
+    cfg = train_mvgs.MVGSConfig.from_preset("default", **extra).with_total_steps(steps).for_scene(scene)
+    assert len(cfg.stages) > 1 and len(log["densify"]) >= 3 and log["reset"], log
+    counts = log["counts"]
+    assert counts[0] == n_budget // 2  # the cut, before the first step
+    assert max(counts) <= n_budget and log["dropped_by_budget"] > 0  # the budget bound
+    n0, lo, hi = n_budget // 2, cfg.densify_from, cfg.densify_until - cfg.densify_every
+    for step in log["densify"]:  # the growth schedule, worked out by hand: n0 + (N - n0)(1 - (1 - x)^2)
+        x = min(1.0, max(0.0, (log["clocks"][step - 1] - lo) / (hi - lo)))
+        assert counts[step - 1] <= n0 + (n_budget - n0) * (1 - (1 - x) ** 2) + 1e-9
+    assert counts[-1] >= 0.9 * n_budget  # it grew to the budget
+    resumed, log2 = train_mvgs.training(scene, steps, "default", start_checkpoint=tmp_path / "chkpnt85.pth",
+                                        out=tmp_path / "b", **extra)
+    assert log2["densify"] == [s for s in log["densify"] if s > 85] and len(log2["densify"]) >= 2
+    assert max(log2["counts"]) <= n_budget
+    for a, b in zip(full.capture()[1:7], resumed.capture()[1:7]):
+        assert torch.equal(a, b)
+    assert math.isfinite(train_mvgs.evaluate(resumed, scene))
+
+
+def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_gsplat_loop
+
+    text = bench_gsplat_loop.main(["--graphdeco-budget", "0.25", "--steps", "150", "--presets", "default",
+                                   "--data", str(FORWARD), "--out", str(tmp_path), "--parallel", "2",
+                                   "--threshold-width", "800"])
+    free = json.loads((tmp_path / "graphdeco_baseline" / "metrics.json").read_text())
+    n = round(0.25 * free["num_gaussians"])
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| baseline") or line.startswith("| default")]
+    assert [r[0].strip() for r in rows] == ["baseline", "baseline", "default", "default"]
+    for kind, r in zip(["", "_budget"] * 2, rows):
+        m = json.loads((tmp_path / f"graphdeco_{r[0].strip()}{kind}" / "metrics.json").read_text())
+        assert r[1].strip() == (str(n) if kind else "-") and m["max_gaussians"] == (n if kind else None)
+        assert float(r[2]) == pytest.approx(m["psnr"], abs=0.006)
+        assert float(r[3]) == pytest.approx(m["psnr"] - free["psnr"], abs=0.011)
+        assert int(r[4]) == m["num_gaussians"] and int(r[5]) == m["most_held"] and m["threshold_width"] == 800
+        if kind:
+            assert m["most_held"] <= n < free["num_gaussians"]

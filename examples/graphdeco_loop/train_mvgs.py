@@ -15,7 +15,14 @@ yours: same attributes, same methods). Lines marked `# MVGS` are what changes in
 - densification and opacity resets run when the plan says, with the schedule's threshold (MVAD
   halves it for spread cameras) as `max_grad`, after the Gaussians inside cross-ray boxes are
   cloned through `densification_postfix` (largest mean gradient first, at most crd_max_new of
-  the count).
+  the count);
+- with a Gaussian budget (`--max-gaussians N`, or the `compact` preset's budget from the data)
+  the run never holds more than N: points beyond the budget are cut before the model is built
+  (a subset spread over the scene, so the kept points' spacing sizes them), and each
+  densification lets only the candidates with the best multi-view score grow, as many as fit the
+  count the schedule allows at that step (`limit_growth`: it zeroes the others' statistics, so
+  the model's own densify_and_prune passes them over; the score needs each view's squared
+  gradient beside the model's sum, one more line after add_densification_stats).
 
     python examples/graphdeco_loop/train_mvgs.py --steps 1000 --preset multiview
 """
@@ -23,35 +30,95 @@ yours: same attributes, same methods). Lines marked `# MVGS` are what changes in
 from __future__ import annotations
 
 import argparse
+import json
+import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
 from gaussian_model import GaussianModel, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
-from mvgs_plugin.config import PRESETS
+from mvgs_plugin.adapters.gs3d import beyond_far_line, consistency_of, even_cut_order, farthest_distance, growth_that_fits
+from mvgs_plugin.config import MAX_SEED, PRESETS
 from mvgs_plugin.data import load_scene
+from mvgs_plugin.data.init import is_forward_facing
 from mvgs_plugin.densify import boxes_contain, top_by_score
-from mvgs_plugin.io import load_checked, save_checked
+from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, HelpFormatter, background_colour, int_at_least,  # noqa: E402
-                             scene_background, scene_folder)
+from mvgs_plugin.cli import (BUNDLED, MAX_PRIMITIVES, MAX_STEPS, HelpFormatter, background_colour,  # noqa: E402
+                             float_above, int_at_least, scene_background, scene_folder)
+
+
+MIN_OPACITY = 0.005  # densify_and_prune's min_opacity, as train.py passes it
+
+
+def budget_room(gaussians: GaussianModel, ctx) -> Optional[int]:
+    """The rows a densification may add under the Gaussian budget (ctx.max_primitives, None
+    without one): the count allowed at this step minus the rows that stay after the prune of
+    densify_and_prune (opacity below MIN_OPACITY; with ctx.prune_large, world size above 0.1 x
+    extent), which frees the room of the rows it removes."""
+    if ctx.max_primitives is None:
+        return None
+    return max(0, ctx.max_primitives - int((~doomed(gaussians, ctx)).sum()))
+
+
+def doomed(gaussians: GaussianModel, ctx) -> torch.Tensor:
+    """[N] bool: the rows densify_and_prune's prune removes (their clones and split children
+    inherit the opacity, and children are smaller, so none of them stays either)."""
+    gone = gaussians.get_opacity.detach().squeeze(-1) < MIN_OPACITY
+    if ctx.prune_large:
+        gone = gone | (gaussians.get_scaling.detach().max(dim=1).values > 0.1 * ctx.scene_extent)
+    return gone
+
+
+def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_distance: Optional[float],
+                 inside_first: bool) -> int:
+    """A Gaussian budget in densify_and_prune's own terms: of the growth candidates (mean
+    gradient >= ctx.grad_threshold, rows the prune keeps), the best by densify score whose rows
+    fit budget_room keep their statistics; the others' are zeroed, so densify_and_prune grows
+    none of them (a clone adds one row, a split of 2 children one). The score: the mean gradient,
+    times (ctx.rank_by "consistency") how evenly the views since the last densification share it,
+    (sum g)^2 / (n sum g^2) from the model's sum, its visit count and `grad_sq` [N'] (each visit's
+    squared gradient, rows past N' have none: cross-ray clones); with `inside_first`, candidates
+    beyond the far line (0.75 x far_distance from the scene centre) after all others. Returns how
+    many candidates fell (0 without a budget)."""
+    room = budget_room(gaussians, ctx)
+    if room is None:
+        return 0
+    accum, denom = gaussians.xyz_gradient_accum.squeeze(-1), gaussians.denom.squeeze(-1)
+    mean = torch.where(denom > 0, accum / denom.clamp_min(1), torch.zeros_like(accum))
+    cand = (mean >= ctx.grad_threshold) & ~doomed(gaussians, ctx)
+    idx = cand.nonzero().squeeze(1)
+    score = mean
+    if ctx.rank_by == "consistency":
+        sq = torch.cat([grad_sq, grad_sq.new_zeros(len(accum) - len(grad_sq))])
+        score = mean * consistency_of(accum, sq, denom)
+    far = beyond_far_line(gaussians.get_xyz.detach(), ctx.scene_center, far_distance) if inside_first else None
+    fits = growth_that_fits(score[idx], torch.ones(len(idx), dtype=torch.long), room,
+                            None if far is None else far[idx])
+    gaussians.xyz_gradient_accum[idx[~fits]] = 0.0
+    return int((~fits).sum())
 
 
 def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
     """Cross-ray densification on a graphdeco model: copy the Gaussians strictly inside
-    ctx.boxes (the largest mean gradients first, at most ctx.max_new_from_boxes) with
-    densification_postfix. The copies come before densify_and_prune, which then resets the
-    statistics: so the gradient rules see the statistics of the originals only (the copies have
-    none), as GS3DAdapter orders it."""
+    ctx.boxes (the largest mean gradients first, at most ctx.max_new_from_boxes, and under a
+    Gaussian budget at most budget_room) with densification_postfix. The copies come before
+    densify_and_prune, which then resets the statistics: so the gradient rules see the
+    statistics of the originals only (the copies have none), as GS3DAdapter orders it."""
     if ctx.boxes is None or not len(ctx.boxes):
         return 0
     sel = boxes_contain(gaussians.get_xyz, ctx.boxes)
-    if ctx.max_new_from_boxes is not None:
+    room = budget_room(gaussians, ctx)
+    if room is not None:  # what the prune removes is not copied into the budget's room
+        sel = sel & ~doomed(gaussians, ctx)
+    limits = [k for k in (ctx.max_new_from_boxes, room) if k is not None]
+    if limits:
         score = (gaussians.xyz_gradient_accum / gaussians.denom.clamp_min(1)).squeeze(-1)
-        sel = top_by_score(sel, score, ctx.max_new_from_boxes)
+        sel = top_by_score(sel, score, min(limits))
     n, accum, denom = int(sel.sum()), gaussians.xyz_gradient_accum, gaussians.denom
     if n:
         radii = gaussians.max_radii2D
@@ -70,18 +137,27 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
     views: M of the full-resolution stage (coarser stages keep their ratio), None: the preset's;
     overrides: MVGSConfig fields given to the preset (e.g. crd=CRDConfig(enabled=True))."""
     torch.manual_seed(seed)
-    gaussians = GaussianModel(sh_degree=3)
-    gaussians.create_from_pcd(scene.points.xyz, scene.points.rgb, spatial_lr_scale=scene.extent)
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
+    xyz, rgb = scene.points.xyz, scene.points.rgb
+    far_distance = farthest_distance(xyz, scene.center)  # MVGS: a budget grows the far background last
+    inside_first = not is_forward_facing(scene.train_cameras)  # MVGS: ... on a rig round the scene
+    cut = schedule.initial_cut(len(xyz))  # MVGS: with a budget, more points than it holds are cut first
+    if cut is not None:
+        keep = torch.sort(even_cut_order(xyz, scene.center), descending=True, stable=True).indices[:cut.max_primitives]
+        xyz, rgb = xyz[keep], rgb[keep]
+    gaussians = GaussianModel(sh_degree=3)
+    gaussians.create_from_pcd(xyz, rgb, spatial_lr_scale=scene.extent)
     clock_length = schedule.config.clock_length  # MVGS: the schedules' length (steps, or work on a work clock)
     gaussians.training_setup(clock_length)
+    grad_sq = torch.zeros(len(xyz))  # MVGS: each visit's squared gradient, for the budget's score
     if start_checkpoint:
-        model_params, first_iter, schedule_state, rng = load_checked(str(start_checkpoint))
+        model_params, first_iter, schedule_state, rng, *rest = load_checked(str(start_checkpoint))
+        grad_sq = rest[0] if rest else torch.zeros(len(model_params[1]))  # MVGS (a checkpoint from before: none)
         gaussians.restore(model_params, clock_length)
         schedule.load_state_dict(schedule_state)  # MVGS
         torch.set_rng_state(rng)
-    log = {"densify": [], "reset": [], "from_boxes": 0}
+    log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": []}
     sh_interval = max(1, round(1000 * clock_length / 30_000))
 
     for plan in schedule:  # MVGS: instead of viewpoint_stack.pop(randint(...))
@@ -112,13 +188,16 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
                 gaussians.max_radii2D[visibility_filter] = torch.max(gaussians.max_radii2D[visibility_filter],
                                                                      radii[visibility_filter])
                 gaussians.add_densification_stats(render_pkg["viewspace_points"], visibility_filter)
+                grad_sq[visibility_filter] += render_pkg["viewspace_points"].grad[visibility_filter, :2].square().sum(-1)  # MVGS
             if plan.densify:  # MVGS: the schedule's clock
                 xyz = gaussians.get_xyz.detach()
                 ctx = schedule.densify_context(plan, primitive_count=len(xyz),
                                                bounds=torch.stack([xyz.amin(0), xyz.amax(0)]).double())
                 log["from_boxes"] += clone_in_boxes(gaussians, ctx)  # MVGS: cross-ray densification
+                log["dropped_by_budget"] += limit_growth(gaussians, grad_sq, ctx, far_distance, inside_first)  # MVGS
                 size_threshold = 20 if ctx.prune_large else None
-                gaussians.densify_and_prune(ctx.grad_threshold, 0.005, ctx.scene_extent, size_threshold)
+                gaussians.densify_and_prune(ctx.grad_threshold, MIN_OPACITY, ctx.scene_extent, size_threshold)
+                grad_sq = torch.zeros(gaussians.get_xyz.shape[0])  # MVGS: the window restarts with the model's sums
                 log["densify"].append(iteration)
             if plan.reset_opacity:  # MVGS: the schedule's clock
                 gaussians.reset_opacity()
@@ -126,9 +205,11 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
             gaussians.optimizer.step()
             gaussians.optimizer.zero_grad(set_to_none=True)
             schedule.primitive_count = gaussians.get_xyz.shape[0]  # MVGS: sizes the next step's chunks
+        log["counts"].append(gaussians.get_xyz.shape[0])
+        log["clocks"].append(plan.clock)
 
         if iteration in checkpoint_iterations:
-            save_checked((gaussians.capture(), iteration, schedule.state_dict(), torch.get_rng_state()),
+            save_checked((gaussians.capture(), iteration, schedule.state_dict(), torch.get_rng_state(), grad_sq),
                          str(out / f"chkpnt{iteration}.pth"))
     return gaussians, log
 
@@ -149,6 +230,18 @@ if __name__ == "__main__":
                     help="the MVGS recipe (MVGSConfig.from_preset)")
     ap.add_argument("--views", type=int_at_least(1), default=None, help="views per full-resolution step (default: "
                     "the preset's)")
+    ap.add_argument("--max-gaussians", type=int_at_least(1, MAX_PRIMITIVES), default=None, metavar="N",
+                    help="a Gaussian budget: the run never holds more than N; growth follows a schedule that reaches N "
+                         "when densification ends, the candidates ranked by multi-view score (MVGSConfig.max_gaussians; "
+                         "default: the preset's, none but compact's)")
+    ap.add_argument("--threshold-width", type=float_above(0, inclusive=True), default=None, metavar="W",
+                    help="the densification threshold (2e-4) is meant for W px images and scaled to each level's width "
+                         "(MVGSConfig.grad_threshold_width; default: the preset's: 800 for default, none for baseline, "
+                         "3DGS's fixed threshold)")
+    ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0, help="torch's seed and the schedule's")
+    ap.add_argument("--threads", type=int_at_least(0), default=0, help="torch threads (0: torch's default)")
+    ap.add_argument("--out", type=Path, default=None, help="write metrics.json here (PSNR, Gaussians, the most held, "
+                    "CPU and wall seconds of training)")
     ap.add_argument("--images", type=str, default=None, metavar="DIR",
                     help="3DGS's -i: a COLMAP scene's image folder, relative to --data; a downscaled copy (images_4) "
                          "scales the cameras to it (default: images/, else --data)")
@@ -162,6 +255,21 @@ if __name__ == "__main__":
     except (ValueError, OSError) as err:
         ap.error(f"--data {args.data}: {err}")
     random_bg = {"background": "random"} if args.background == "random" else {}  # MVGS: ViewSchedule draws them
-    model, log = training(scene, args.steps, args.preset, views=args.views, **random_bg)
-    print(f"PSNR {evaluate(model, scene):.2f} dB, {model.get_xyz.shape[0]} Gaussians, densified at "
-          f"{len(log['densify'])} steps, opacity resets at {log['reset']}, {log['from_boxes']} cloned from boxes")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    budget = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
+    if args.threshold_width is not None:
+        budget["grad_threshold_width"] = args.threshold_width or None
+    cpu, wall = time.process_time(), time.perf_counter()
+    model, log = training(scene, args.steps, args.preset, seed=args.seed, views=args.views, **random_bg, **budget)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    metrics = {"psnr": evaluate(model, scene), "num_gaussians": model.get_xyz.shape[0], "most_held": max(log["counts"]),
+               "max_gaussians": args.max_gaussians, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
+               "densify_calls": len(log["densify"]), "resets": log["reset"], "from_boxes": log["from_boxes"],
+               "dropped_by_budget": log["dropped_by_budget"], "cpu_seconds": cpu, "train_seconds": wall}
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.out / "metrics.json", json.dumps(metrics, indent=1))
+    print(f"PSNR {metrics['psnr']:.2f} dB, {metrics['num_gaussians']} Gaussians (at most {metrics['most_held']}), "
+          f"densified at {len(log['densify'])} steps, opacity resets at {log['reset']}, {log['from_boxes']} cloned "
+          f"from boxes, {log['dropped_by_budget']} candidates held back by the budget, {cpu:.1f} s CPU")
