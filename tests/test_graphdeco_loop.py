@@ -244,7 +244,7 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_gsplat_loop
 
-    text = bench_gsplat_loop.main(["--graphdeco-budget", "0.25", "--steps", "150", "--presets", "default",
+    text = bench_gsplat_loop.main(["--graphdeco-budget", "0.25", "--steps", "80", "--presets", "default",
                                    "--data", str(FORWARD), "--out", str(tmp_path), "--parallel", "2",
                                    "--threshold-width", "800"])
     free = json.loads((tmp_path / "graphdeco_baseline" / "metrics.json").read_text())
