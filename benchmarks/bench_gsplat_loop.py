@@ -41,7 +41,8 @@ GRAPHDECO = ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"
 
 
 def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, extra=()) -> dict:
-    """One run of a loop; `preset` only for the MVGS loops (the single-view loop refuses it)."""
+    """One run of a loop (`script` under examples/gsplat_loop, or an absolute path); `preset` only
+    for the MVGS loops (the single-view loop refuses it)."""
     cmd = [sys.executable, str(LOOP / script), "--steps", str(steps), "--out", str(out), "--threads", "1",
            *(["--preset", preset] if preset else []), "--seed", str(seed), *extra]
     if data is not None:
@@ -51,14 +52,11 @@ def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, ex
 
 
 def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None) -> dict:
-    """One run of the graphdeco-shaped loop, with `budget` as --max-gaussians and `width` as
-    --threshold-width when given."""
-    cmd = [sys.executable, str(GRAPHDECO), "--steps", str(steps), "--out", str(out), "--threads", "1",
-           "--preset", preset, "--seed", str(seed), *(["--max-gaussians", str(budget)] if budget else []),
-           *(["--threshold-width", f"{width:g}"] if width is not None else []),
-           *(["--data", str(data)] if data is not None else [])]
-    subprocess.run(cmd, check=True, capture_output=True, text=True)
-    return json.loads((out / "metrics.json").read_text())
+    """One run of the graphdeco-shaped loop (run() on its script), with `budget` as --max-gaussians
+    and `width` as --threshold-width when given."""
+    extra = [*(["--max-gaussians", str(budget)] if budget else []),
+             *(["--threshold-width", f"{width:g}"] if width is not None else [])]
+    return run(str(GRAPHDECO), steps, out, data, preset, seed, extra)
 
 
 def graphdeco_table(args) -> str:

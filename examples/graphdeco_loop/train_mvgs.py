@@ -55,23 +55,21 @@ from mvgs_plugin.cli import (BUNDLED, MAX_PRIMITIVES, MAX_STEPS, HelpFormatter, 
 MIN_OPACITY = 0.005  # densify_and_prune's min_opacity, as train.py passes it
 
 
-def budget_room(gaussians: GaussianModel, ctx) -> Optional[int]:
-    """The rows a densification may add under the Gaussian budget (ctx.max_primitives, None
-    without one): the count allowed at this step minus the rows that stay after the prune of
-    densify_and_prune (opacity below MIN_OPACITY; with ctx.prune_large, world size above 0.1 x
-    extent), which frees the room of the rows it removes."""
-    if ctx.max_primitives is None:
-        return None
-    return max(0, ctx.max_primitives - int((~doomed(gaussians, ctx)).sum()))
-
-
 def doomed(gaussians: GaussianModel, ctx) -> torch.Tensor:
-    """[N] bool: the rows densify_and_prune's prune removes (their clones and split children
-    inherit the opacity, and children are smaller, so none of them stays either)."""
+    """[N] bool: the rows densify_and_prune's prune removes (opacity below MIN_OPACITY; with
+    ctx.prune_large, world size above 0.1 x extent). Their clones and split children inherit the
+    opacity, and children are smaller, so none of those stays either."""
     gone = gaussians.get_opacity.detach().squeeze(-1) < MIN_OPACITY
     if ctx.prune_large:
         gone = gone | (gaussians.get_scaling.detach().max(dim=1).values > 0.1 * ctx.scene_extent)
     return gone
+
+
+def budget_room(ctx, gone: torch.Tensor) -> int:
+    """The rows a densification may add under the Gaussian budget (ctx.max_primitives): the count
+    allowed at this step minus the rows that stay after the prune (`gone`: doomed()), which frees
+    the room of the rows it removes."""
+    return max(0, ctx.max_primitives - int((~gone).sum()))
 
 
 def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_distance: Optional[float],
@@ -85,19 +83,18 @@ def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_dista
     squared gradient, rows past N' have none: cross-ray clones); with `inside_first`, candidates
     beyond the far line (0.75 x far_distance from the scene centre) after all others. Returns how
     many candidates fell (0 without a budget)."""
-    room = budget_room(gaussians, ctx)
-    if room is None:
+    if ctx.max_primitives is None:
         return 0
+    gone = doomed(gaussians, ctx)
     accum, denom = gaussians.xyz_gradient_accum.squeeze(-1), gaussians.denom.squeeze(-1)
     mean = torch.where(denom > 0, accum / denom.clamp_min(1), torch.zeros_like(accum))
-    cand = (mean >= ctx.grad_threshold) & ~doomed(gaussians, ctx)
-    idx = cand.nonzero().squeeze(1)
+    idx = ((mean >= ctx.grad_threshold) & ~gone).nonzero().squeeze(1)
     score = mean
     if ctx.rank_by == "consistency":
         sq = torch.cat([grad_sq, grad_sq.new_zeros(len(accum) - len(grad_sq))])
         score = mean * consistency_of(accum, sq, denom)
     far = beyond_far_line(gaussians.get_xyz.detach(), ctx.scene_center, far_distance) if inside_first else None
-    fits = growth_that_fits(score[idx], torch.ones(len(idx), dtype=torch.long), room,
+    fits = growth_that_fits(score[idx], torch.ones(len(idx), dtype=torch.long), budget_room(ctx, gone),
                             None if far is None else far[idx])
     gaussians.xyz_gradient_accum[idx[~fits]] = 0.0
     return int((~fits).sum())
@@ -112,9 +109,10 @@ def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
     if ctx.boxes is None or not len(ctx.boxes):
         return 0
     sel = boxes_contain(gaussians.get_xyz, ctx.boxes)
-    room = budget_room(gaussians, ctx)
-    if room is not None:  # what the prune removes is not copied into the budget's room
-        sel = sel & ~doomed(gaussians, ctx)
+    room = None
+    if ctx.max_primitives is not None:  # what the prune removes is not copied into the budget's room
+        gone = doomed(gaussians, ctx)
+        sel, room = sel & ~gone, budget_room(ctx, gone)
     limits = [k for k in (ctx.max_new_from_boxes, room) if k is not None]
     if limits:
         score = (gaussians.xyz_gradient_accum / gaussians.denom.clamp_min(1)).squeeze(-1)
