@@ -19,11 +19,13 @@ thread), at most `--parallel` at a time. Rows:
 With --graphdeco-budget F it runs the graphdeco-shaped loop (examples/graphdeco_loop/train_mvgs.py)
 instead: "baseline" and each of --presets without a budget, then each with --max-gaussians F x
 the unbudgeted baseline's final count (a quarter: issue 27's gate), at --steps steps, with
---threshold-width W on every run when given (800: the package's baseline); the table
+--threshold-width W on every run when given (800: the package's baseline) and, with
+--package-rules, train_3dgs.py's far-background rules on every run (a shell of 2000 points, the
+distance size rule, resets that spare the far background); the table
 gives PSNR and its difference to the unbudgeted baseline, the final and the largest count held,
 CPU and wall seconds.
 
-    python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800
+    python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800 [--package-rules]
 """
 
 from __future__ import annotations
@@ -51,11 +53,17 @@ def run(script: str, steps: int, out: Path, data, preset=None, seed: int = 0, ex
     return json.loads((out / "metrics.json").read_text())
 
 
-def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None) -> dict:
-    """One run of the graphdeco-shaped loop (run() on its script), with `budget` as --max-gaussians
-    and `width` as --threshold-width when given."""
+# --package-rules: train_3dgs.py's far-background rules given to the graphdeco loop
+PACKAGE_RULES = ("--background-points", "2000", "--world-size-rule", "distance", "--opacity-reset-scope", "inside")
+
+
+def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None,
+                  rules: bool = False) -> dict:
+    """One run of the graphdeco-shaped loop (run() on its script), with `budget` as --max-gaussians,
+    `width` as --threshold-width when given and, with `rules`, PACKAGE_RULES."""
     extra = [*(["--max-gaussians", str(budget)] if budget else []),
-             *(["--threshold-width", f"{width:g}"] if width is not None else [])]
+             *(["--threshold-width", f"{width:g}"] if width is not None else []),
+             *(PACKAGE_RULES if rules else ())]
     return run(str(GRAPHDECO), steps, out, data, preset, seed, extra)
 
 
@@ -64,16 +72,16 @@ def graphdeco_table(args) -> str:
     presets = ["baseline", *[p for p in args.presets if p != "baseline"]]
     with ThreadPoolExecutor(args.parallel) as pool:
         free = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}", args.data, p, args.seed,
-                               None, args.threshold_width) for p in presets}
+                               None, args.threshold_width, args.package_rules) for p in presets}
         free = {p: f.result() for p, f in free.items()}
         n = max(1, round(args.graphdeco_budget * free["baseline"]["num_gaussians"]))
         capped = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}_budget", args.data, p,
-                                 args.seed, n, args.threshold_width) for p in presets}
+                                 args.seed, n, args.threshold_width, args.package_rules) for p in presets}
         capped = {p: f.result() for p, f in capped.items()}
     ref = free["baseline"]["psnr"]
     width = "the presets' own" if args.threshold_width is None else f"{args.threshold_width:g} px"
     lines = [f"Scene: {args.data or 'bundled tabletop'}; the graphdeco-shaped loop, {args.steps} steps, seed {args.seed}; "
-             f"threshold width {width}; "
+             f"threshold width {width}; {'train_3dgs.py' if args.package_rules else '3DGS'}'s far-background rules; "
              f"one thread per run; budget N = {args.graphdeco_budget:g} x the unbudgeted baseline's "
              f"{free['baseline']['num_gaussians']} Gaussians = {n}; CPU = user + sys of the training loop.", "",
              "| run | budget | PSNR (dB) | vs baseline | Gaussians | most held | CPU (s) | wall (s) |",
@@ -104,6 +112,9 @@ def main(argv=None) -> str:
     ap.add_argument("--threshold-width", type=float, default=None, metavar="W",
                     help="with --graphdeco-budget: every run's --threshold-width (800: the package's baseline "
                          "threshold; default: each preset's own)")
+    ap.add_argument("--package-rules", action="store_true",
+                    help="with --graphdeco-budget: every run with train_3dgs.py's far-background rules ("
+                         + " ".join(PACKAGE_RULES) + "; default: 3DGS's, the scene's points only)")
     args = ap.parse_args(argv)
     if args.graphdeco_budget is not None:
         text = graphdeco_table(args)

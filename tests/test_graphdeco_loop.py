@@ -259,3 +259,121 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
         assert int(r[4]) == m["num_gaussians"] and int(r[5]) == m["most_held"] and m["threshold_width"] == 800
         if kind:
             assert m["most_held"] <= n < free["num_gaussians"]
+
+
+def test_background_points_reach_the_loops_initial_model(tmp_path):
+    """--background-points N gives the loop the scene's points plus the far background's shell, as
+    load_scene draws it for that rig: on the bundled 360° rig the model starts with every one of
+    them (two steps: no densification yet), on the forward-facing rig with none."""
+    import subprocess
+
+    bundled = ROOT / "examples" / "scenes" / "tabletop"
+    for data, n in ((bundled, 300), (FORWARD, 300), (bundled, 0)):
+        out = tmp_path / f"{data.name}_{n}"
+        subprocess.run([sys.executable, str(ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"), "--data", str(data),
+                        "--steps", "2", "--threads", "1", "--background-points", str(n), "--out", str(out)],
+                       check=True, capture_output=True, text=True)
+        m = json.loads((out / "metrics.json").read_text())
+        plain = len(load_scene(data).points)
+        expected = len(load_scene(data, background_points=n).points)
+        assert m["background_points"] == n and m["densify_calls"] == 0
+        assert m["num_gaussians"] == expected
+        assert (expected > plain) == (data == bundled and n > 0)
+
+
+def rules_ctx(scene, prune_large=True):
+    return SimpleNamespace(grad_threshold=2e-4, scene_extent=scene.extent, scene_center=scene.center,
+                           prune_large=prune_large, max_primitives=None, boxes=None, max_new_from_boxes=None)
+
+
+def placed(scene, rows):
+    """A model on `scene` whose first len(rows) Gaussians sit at distance d from the scene centre
+    (along +x) with largest scale s, rows = [(d, s), ...] in units of the extent; no gradients."""
+    g = model(scene)
+    e, c = scene.extent, scene.center.float()
+    with torch.no_grad():
+        for i, (d, s) in enumerate(rows):
+            g._xyz[i] = c + torch.tensor([d * e, 0.0, 0.0])
+            g._scaling[i] = torch.tensor([math.log(s * e), math.log(1e-3 * e), math.log(1e-3 * e)])
+        g._opacity[:] = 0.0  # sigmoid 0.5: none pruned by opacity
+    g.xyz_gradient_accum = torch.zeros(g.get_xyz.shape[0], 1)
+    g.denom = torch.ones(g.get_xyz.shape[0], 1)
+    return g
+
+
+def test_the_size_rules_by_extent_and_by_distance(scene):
+    """too_large against limits worked out by hand: 0.1 x extent everywhere (3DGS), or 0.1 x
+    max(extent, d); densify_and_prune with each rule removes exactly those rows."""
+    rows = [(0.2, 0.05), (0.2, 0.2), (3.0, 0.2), (3.0, 0.35), (10.0, 0.9), (10.0, 1.1), (0.9, 0.09), (0.9, 0.11)]
+    by_extent = [s > 0.1 for _, s in rows]
+    by_distance = [s > 0.1 * max(1.0, d) for d, s in rows]
+    assert by_extent != by_distance
+    for rule, expected in (("extent", by_extent), ("distance", by_distance)):
+        g = placed(scene, rows)
+        mask = train_mvgs.too_large(g, rules_ctx(scene), rule)
+        assert mask[:len(rows)].tolist() == expected, rule
+        n, rest = g.get_xyz.shape[0], int(mask[len(rows):].sum())
+        kept_xyz = g.get_xyz.detach()[~mask].clone()
+        # the scene's own points: the rows the extent rule prunes and the distance rule keeps, one by one
+        e, c = scene.extent, scene.center
+        spared = sum(1 for x, s in zip(g.get_xyz.detach().double()[len(rows):], g.get_scaling.detach().double()[len(rows):])
+                     if 0.1 * e < float(s.max()) <= 0.1 * max(e, float(torch.dist(x, c))))
+        kept = train_mvgs.densify_and_prune(g, rules_ctx(scene), rule)
+        assert g.get_xyz.shape[0] == n - sum(expected) - rest
+        torch.testing.assert_close(g.get_xyz.detach(), kept_xyz)
+        assert kept == (sum(a and not b for a, b in zip(by_extent, by_distance)) + spared if rule == "distance" else 0)
+        # before the first reset (prune_large False) neither rule prunes by size
+        g = placed(scene, rows)
+        train_mvgs.densify_and_prune(g, rules_ctx(scene, prune_large=False), rule)
+        assert g.get_xyz.shape[0] == n
+
+
+def test_a_reset_inside_spares_the_far_background(scene):
+    """reset_opacity "inside": rows at 3/4 of far_distance or more from the centre keep their
+    opacity, every other row is capped at 0.01, the opacity group's Adam moments are zeroed; "all"
+    caps every row, as the model's own reset."""
+    g = placed(scene, [(1.0, 0.01), (2.9, 0.01), (3.1, 0.01), (4.0, 0.01)])
+    far_distance = 4.0 * scene.extent
+    with torch.no_grad():
+        g._opacity[:4] = torch.tensor([[2.0], [1.0], [0.5], [-1.0]])
+        g._opacity[4:] = -7.0  # sigmoid ~ 0.0009: below the cap already
+    g._opacity.grad = torch.ones_like(g._opacity)
+    g.optimizer.step()
+    before = torch.sigmoid(g._opacity.detach()).squeeze(-1)
+    d = torch.linalg.vector_norm(g.get_xyz.detach().double() - scene.center, dim=1)
+    spared_by_hand = d >= 0.75 * far_distance
+    assert spared_by_hand[:4].tolist() == [False, False, True, True]
+    n = train_mvgs.reset_opacity(g, "inside", scene.center, far_distance)
+    after = g.get_opacity.detach().squeeze(-1)
+    assert n == int(spared_by_hand.sum())
+    torch.testing.assert_close(after[spared_by_hand], before[spared_by_hand])
+    torch.testing.assert_close(after[~spared_by_hand], before[~spared_by_hand].clamp_max(0.01))
+    state = g.optimizer.state[g._opacity]
+    assert float(state["exp_avg"].abs().sum()) == 0 and float(state["exp_avg_sq"].abs().sum()) == 0
+    assert train_mvgs.reset_opacity(g, "all", scene.center, far_distance) == 0
+    assert float(g.get_opacity.detach().max()) <= 0.01 + 1e-6
+
+
+def test_the_loop_with_the_package_rules_through_every_phase_and_a_resume(tmp_path):
+    """The bundled 360° scene with a background shell, the distance size rule and resets that
+    spare the far background: a 300-step run densifies, prunes large Gaussians, resets (sparing
+    the shell), hands over a pyramid stage, and resumes from a checkpoint inside the window to the
+    same tensors."""
+    from mvgs_plugin.config import Stage
+
+    scene = load_scene(ROOT / "examples" / "scenes" / "tabletop", background_points=2000)
+    half = tuple(Stage(st.factor * 2, st.views, st.steps) for st in train_mvgs.MVGSConfig.from_preset("default").stages)
+    steps, extra = 300, {"min_densify_per_reset": 10, "world_size_rule": "distance", "reset_scope": "inside",
+                         "stages": half}  # at 64 px, as --resolution-scale 2
+    full, log = train_mvgs.training(scene, steps, "default", checkpoint_iterations=(85,), out=tmp_path, **extra)
+    assert len(half) > 1
+    assert len(log["densify"]) >= 3 and log["reset"] and log["spared_by_reset"] > 0, log
+    assert log["kept_by_distance"] > 0
+    resumed, log2 = train_mvgs.training(scene, steps, "default", start_checkpoint=tmp_path / "chkpnt85.pth",
+                                        out=tmp_path / "b", **extra)
+    assert log2["reset"] == [s for s in log["reset"] if s > 85] != []
+    for a, b in zip(full.capture()[1:7], resumed.capture()[1:7]):
+        assert torch.equal(a, b)
+    assert math.isfinite(train_mvgs.evaluate(resumed, scene))
+    with pytest.raises(ValueError, match="world_size_rule"):
+        train_mvgs.training(scene, steps, "default", world_size_rule="far")

@@ -24,7 +24,16 @@ yours: same attributes, same methods). Lines marked `# MVGS` are what changes in
   the model's own densify_and_prune passes them over; the score needs each view's squared
   gradient beside the model's sum, one more line after add_densification_stats).
 
+train_3dgs.py's far-background rules, off by default here (3DGS's init and rules) and each a flag:
+`--background-points N` (the scene's points plus a shell of N on a sphere twice the rig's radius,
+as load_scene draws it: 2000 in train_3dgs.py), `--world-size-rule distance` (the size prune's
+limit grows with the distance from the rig's centre: too_large, run after the model's
+densify_and_prune) and `--opacity-reset-scope inside` (resets leave the far background's
+opacities as they are: reset_opacity). Without them the shell is pruned as too large at the
+first densification after a reset, and capped by every reset.
+
     python examples/graphdeco_loop/train_mvgs.py --steps 1000 --preset multiview
+    python examples/graphdeco_loop/train_mvgs.py --steps 3000 --background-points 2000 --world-size-rule distance --opacity-reset-scope inside
 """
 
 from __future__ import annotations
@@ -37,7 +46,7 @@ from typing import Optional
 
 import torch
 
-from gaussian_model import GaussianModel, render
+from gaussian_model import GaussianModel, inverse_sigmoid, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.adapters.gs3d import beyond_far_line, consistency_of, even_cut_order, farthest_distance, growth_that_fits
 from mvgs_plugin.config import MAX_SEED, PRESETS
@@ -48,21 +57,73 @@ from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
 from mvgs_plugin.losses import l1_loss, ssim
 from mvgs_plugin.metrics import psnr
 
-from mvgs_plugin.cli import (BUNDLED, MAX_PRIMITIVES, MAX_STEPS, HelpFormatter, background_colour,  # noqa: E402
+from mvgs_plugin.cli import (BUNDLED, MAX_INIT_POINTS, MAX_PRIMITIVES, MAX_STEPS, HelpFormatter, background_colour,  # noqa: E402
                              float_above, int_at_least, scene_background, scene_folder)
 
 
 MIN_OPACITY = 0.005  # densify_and_prune's min_opacity, as train.py passes it
+MAX_SCREEN_SIZE = 20  # densify_and_prune's max_screen_size once large Gaussians are pruned, as train.py passes it
+MAX_WORLD_SIZE = 0.1  # densify_and_prune's world-size limit, in units of the extent
 
 
-def doomed(gaussians: GaussianModel, ctx) -> torch.Tensor:
+def too_large(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") -> torch.Tensor:
+    """[N] bool: the rows densify_and_prune's world-size rule removes once ctx.prune_large (largest
+    scale above MAX_WORLD_SIZE x extent). world_size_rule "distance" (train_3dgs.py's default,
+    --world-size-rule) lets the limit grow with the distance d from the scene centre,
+    MAX_WORLD_SIZE x max(extent, d): the far background keeps the Gaussians a camera sees as small
+    (the extent rule prunes the whole background shell). Its screen-size rule never removes a row:
+    growth zeroes max_radii2D before the prune reads it, as in the released 3DGS code."""
+    size = gaussians.get_scaling.detach().max(dim=1).values
+    limit = torch.full_like(size, MAX_WORLD_SIZE * ctx.scene_extent)
+    if world_size_rule == "distance" and ctx.scene_center is not None:
+        d = torch.linalg.vector_norm(gaussians.get_xyz.detach() - ctx.scene_center.to(size), dim=1)
+        limit = MAX_WORLD_SIZE * d.clamp_min(ctx.scene_extent)
+    return size > limit
+
+
+def doomed(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") -> torch.Tensor:
     """[N] bool: the rows densify_and_prune's prune removes (opacity below MIN_OPACITY; with
-    ctx.prune_large, world size above 0.1 x extent). Their clones and split children inherit the
-    opacity, and children are smaller, so none of those stays either."""
+    ctx.prune_large, too_large()). Their clones and split children inherit the opacity, and
+    children are smaller, so none of those stays either."""
     gone = gaussians.get_opacity.detach().squeeze(-1) < MIN_OPACITY
     if ctx.prune_large:
-        gone = gone | (gaussians.get_scaling.detach().max(dim=1).values > 0.1 * ctx.scene_extent)
+        gone = gone | too_large(gaussians, ctx, world_size_rule)
     return gone
+
+
+def densify_and_prune(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") -> int:
+    """The model's densify_and_prune at the schedule's threshold; with world_size_rule "distance"
+    its size rules are left to too_large(), run on the rows it leaves (the rows the model's own
+    prune tests: it prunes after growing). Returns how many rows the distance rule kept that the
+    extent rule would have pruned."""
+    if world_size_rule == "extent":
+        gaussians.densify_and_prune(ctx.grad_threshold, MIN_OPACITY, ctx.scene_extent,
+                                    MAX_SCREEN_SIZE if ctx.prune_large else None)
+        return 0
+    gaussians.densify_and_prune(ctx.grad_threshold, MIN_OPACITY, ctx.scene_extent, None)
+    if not ctx.prune_large:
+        return 0
+    gone = too_large(gaussians, ctx, world_size_rule)
+    kept = int((too_large(gaussians, ctx, "extent") & ~gone).sum())
+    gaussians.prune_points(gone)
+    return kept
+
+
+def reset_opacity(gaussians: GaussianModel, scope: str, center: torch.Tensor, far_distance: Optional[float]) -> int:
+    """The model's reset_opacity (opacities capped at 0.01, the group's Adam moments zeroed), or
+    with scope "inside" (--opacity-reset-scope, train_3dgs.py's default) the same cap on every row
+    but those beyond the far line (FAR_RESET_FRACTION x far_distance from `center`: the far
+    background), which keep their opacities: a reset that leaves the background shell as it is.
+    Returns how many rows it spared."""
+    spared = beyond_far_line(gaussians.get_xyz, center, far_distance) if scope == "inside" else None
+    if spared is None:
+        gaussians.reset_opacity()
+        return 0
+    raw = gaussians._opacity.detach()
+    capped = inverse_sigmoid(torch.clamp_max(gaussians.get_opacity.detach(), 0.01))
+    gaussians._opacity = gaussians.replace_tensor_to_optimizer(torch.where(spared[:, None], raw, capped),
+                                                               "opacity")["opacity"]
+    return int(spared.sum())
 
 
 def budget_room(ctx, gone: torch.Tensor) -> int:
@@ -73,7 +134,7 @@ def budget_room(ctx, gone: torch.Tensor) -> int:
 
 
 def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_distance: Optional[float],
-                 inside_first: bool) -> int:
+                 inside_first: bool, world_size_rule: str = "extent") -> int:
     """A Gaussian budget in densify_and_prune's own terms: of the growth candidates (mean
     gradient >= ctx.grad_threshold, rows the prune keeps), the best by densify score whose rows
     fit budget_room keep their statistics; the others' are zeroed, so densify_and_prune grows
@@ -85,7 +146,7 @@ def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_dista
     many candidates fell (0 without a budget)."""
     if ctx.max_primitives is None:
         return 0
-    gone = doomed(gaussians, ctx)
+    gone = doomed(gaussians, ctx, world_size_rule)
     accum, denom = gaussians.xyz_gradient_accum.squeeze(-1), gaussians.denom.squeeze(-1)
     mean = torch.where(denom > 0, accum / denom.clamp_min(1), torch.zeros_like(accum))
     idx = ((mean >= ctx.grad_threshold) & ~gone).nonzero().squeeze(1)
@@ -100,7 +161,7 @@ def limit_growth(gaussians: GaussianModel, grad_sq: torch.Tensor, ctx, far_dista
     return int((~fits).sum())
 
 
-def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
+def clone_in_boxes(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") -> int:
     """Cross-ray densification on a graphdeco model: copy the Gaussians strictly inside
     ctx.boxes (the largest mean gradients first, at most ctx.max_new_from_boxes, and under a
     Gaussian budget at most budget_room) with densification_postfix. The copies come before
@@ -111,7 +172,7 @@ def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
     sel = boxes_contain(gaussians.get_xyz, ctx.boxes)
     room = None
     if ctx.max_primitives is not None:  # what the prune removes is not copied into the budget's room
-        gone = doomed(gaussians, ctx)
+        gone = doomed(gaussians, ctx, world_size_rule)
         sel, room = sel & ~gone, budget_room(ctx, gone)
     limits = [k for k in (ctx.max_new_from_boxes, room) if k is not None]
     if limits:
@@ -130,10 +191,16 @@ def clone_in_boxes(gaussians: GaussianModel, ctx) -> int:
 
 def training(scene, iterations: int, preset: str = "default", seed: int = 0, checkpoint_iterations=(),
              start_checkpoint=None, out: Path = Path("out/graphdeco_loop"), lambda_dssim: float = 0.2,
-             views=None, **overrides):
+             views=None, world_size_rule: str = "extent", reset_scope: str = "all", **overrides):
     """Returns the trained GaussianModel and a log of what ran (densify / reset steps).
     views: M of the full-resolution stage (coarser stages keep their ratio), None: the preset's;
+    world_size_rule "extent" (3DGS) or "distance" (too_large); reset_scope "all" (3DGS) or
+    "inside" (resets spare the Gaussians beyond the far line: reset_opacity);
     overrides: MVGSConfig fields given to the preset (e.g. crd=CRDConfig(enabled=True))."""
+    if world_size_rule not in ("extent", "distance"):
+        raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {world_size_rule!r}")
+    if reset_scope not in ("all", "inside"):
+        raise ValueError(f"reset_scope must be 'all' or 'inside', got {reset_scope!r}")
     torch.manual_seed(seed)
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
@@ -155,7 +222,8 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         gaussians.restore(model_params, clock_length)
         schedule.load_state_dict(schedule_state)  # MVGS
         torch.set_rng_state(rng)
-    log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": []}
+    log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": [],
+           "spared_by_reset": 0, "kept_by_distance": 0}
     sh_interval = max(1, round(1000 * clock_length / 30_000))
 
     for plan in schedule:  # MVGS: instead of viewpoint_stack.pop(randint(...))
@@ -163,7 +231,7 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         gaussians.update_learning_rate(plan.clock)
         gaussians.active_sh_degree = min(plan.clock // sh_interval, gaussians.max_sh_degree)
         if plan.handoff_reset:  # MVGS (paper preset): reset opacities when a pyramid stage hands over
-            gaussians.reset_opacity()
+            log["spared_by_reset"] += reset_opacity(gaussians, reset_scope, scene.center, far_distance)
 
         visits = []
         for cameras, targets, backgrounds, collect_stats in plan:  # MVGS: the step's views, chunk by chunk
@@ -191,14 +259,14 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
                 xyz = gaussians.get_xyz.detach()
                 ctx = schedule.densify_context(plan, primitive_count=len(xyz),
                                                bounds=torch.stack([xyz.amin(0), xyz.amax(0)]).double())
-                log["from_boxes"] += clone_in_boxes(gaussians, ctx)  # MVGS: cross-ray densification
-                log["dropped_by_budget"] += limit_growth(gaussians, grad_sq, ctx, far_distance, inside_first)  # MVGS
-                size_threshold = 20 if ctx.prune_large else None
-                gaussians.densify_and_prune(ctx.grad_threshold, MIN_OPACITY, ctx.scene_extent, size_threshold)
+                log["from_boxes"] += clone_in_boxes(gaussians, ctx, world_size_rule)  # MVGS: cross-ray densification
+                log["dropped_by_budget"] += limit_growth(gaussians, grad_sq, ctx, far_distance, inside_first,  # MVGS
+                                                         world_size_rule)
+                log["kept_by_distance"] += densify_and_prune(gaussians, ctx, world_size_rule)  # MVGS: the model's
                 grad_sq = torch.zeros(gaussians.get_xyz.shape[0])  # MVGS: the window restarts with the model's sums
                 log["densify"].append(iteration)
             if plan.reset_opacity:  # MVGS: the schedule's clock
-                gaussians.reset_opacity()
+                log["spared_by_reset"] += reset_opacity(gaussians, reset_scope, scene.center, far_distance)  # MVGS
                 log["reset"].append(iteration)
             gaussians.optimizer.step()
             gaussians.optimizer.zero_grad(set_to_none=True)
@@ -247,9 +315,22 @@ if __name__ == "__main__":
                     help="3DGS's -w is white: the colour behind the Gaussians and the one RGBA images are composited "
                          "on (default: auto, the scene's: see docs/data.md); random is 3DGS's --random_background "
                          "(a new colour behind every training view, images composited as with auto)")
+    ap.add_argument("--background-points", type=int_at_least(0, MAX_INIT_POINTS), default=0, metavar="N",
+                    help="N more initial points on a sphere twice the rig's radius for the far background, as "
+                         "train_3dgs.py adds (2000 there), when the cameras surround the scene (none on a forward-facing "
+                         "rig or an object on a backdrop); 0: the scene's points only, 3DGS's init (default: 0)")
+    ap.add_argument("--world-size-rule", choices=("extent", "distance"), default="extent",
+                    help="size pruning: extent is 3DGS's (world size above 0.1 x the extent everywhere, which prunes "
+                         "the background shell); distance is train_3dgs.py's (0.1 x the distance from the rig's centre "
+                         "beyond the extent; too_large) (default: extent)")
+    ap.add_argument("--opacity-reset-scope", choices=("all", "inside"), default="all",
+                    help="which opacities a reset caps: all is 3DGS's; inside is train_3dgs.py's, the far background "
+                         "(beyond 3/4 of the initial points' farthest distance from the rig's centre) kept as it is "
+                         "(default: all)")
     args = ap.parse_args()
     try:  # a scene without points gets them (triangulated, else drawn where the cameras look)
-        scene = load_scene(args.data, images=args.images, background=scene_background(args))
+        scene = load_scene(args.data, images=args.images, background=scene_background(args),
+                           background_points=args.background_points)  # MVGS: the far background's shell
     except (ValueError, OSError) as err:
         ap.error(f"--data {args.data}: {err}")
     random_bg = {"background": "random"} if args.background == "random" else {}  # MVGS: ViewSchedule draws them
@@ -259,12 +340,15 @@ if __name__ == "__main__":
     if args.threshold_width is not None:
         budget["grad_threshold_width"] = args.threshold_width or None
     cpu, wall = time.process_time(), time.perf_counter()
-    model, log = training(scene, args.steps, args.preset, seed=args.seed, views=args.views, **random_bg, **budget)
+    model, log = training(scene, args.steps, args.preset, seed=args.seed, views=args.views,
+                          world_size_rule=args.world_size_rule, reset_scope=args.opacity_reset_scope, **random_bg, **budget)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     metrics = {"psnr": evaluate(model, scene), "num_gaussians": model.get_xyz.shape[0], "most_held": max(log["counts"]),
-               "max_gaussians": args.max_gaussians, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
+               "max_gaussians": args.max_gaussians, "background_points": args.background_points,
+               "world_size_rule": args.world_size_rule, "opacity_reset_scope": args.opacity_reset_scope, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
                "densify_calls": len(log["densify"]), "resets": log["reset"], "from_boxes": log["from_boxes"],
-               "dropped_by_budget": log["dropped_by_budget"], "cpu_seconds": cpu, "train_seconds": wall}
+               "dropped_by_budget": log["dropped_by_budget"],
+               "spared_by_reset": log["spared_by_reset"], "kept_by_distance": log["kept_by_distance"], "cpu_seconds": cpu, "train_seconds": wall}
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.out / "metrics.json", json.dumps(metrics, indent=1))
