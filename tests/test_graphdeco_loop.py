@@ -246,7 +246,7 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
 
     text = bench_gsplat_loop.main(["--graphdeco-budget", "0.25", "--steps", "80", "--presets", "default",
                                    "--data", str(FORWARD), "--out", str(tmp_path), "--parallel", "2",
-                                   "--threshold-width", "800"])
+                                   "--threshold-width", "800", "--package-rules"])
     free = json.loads((tmp_path / "graphdeco_baseline" / "metrics.json").read_text())
     n = round(0.25 * free["num_gaussians"])
     rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| baseline") or line.startswith("| default")]
@@ -257,6 +257,7 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
         assert float(r[2]) == pytest.approx(m["psnr"], abs=0.006)
         assert float(r[3]) == pytest.approx(m["psnr"] - free["psnr"], abs=0.011)
         assert int(r[4]) == m["num_gaussians"] and int(r[5]) == m["most_held"] and m["threshold_width"] == 800
+        assert (m["background_points"], m["world_size_rule"], m["opacity_reset_scope"]) == (2000, "distance", "inside")
         if kind:
             assert m["most_held"] <= n < free["num_gaussians"]
 
