@@ -291,6 +291,17 @@ def farthest_distance(means: Tensor, center: Optional[Tensor]) -> Optional[float
     return float(torch.linalg.vector_norm(means.detach().double().cpu() - center, dim=1).max())
 
 
+def world_size_limit(means: Tensor, extent: float, center: Optional[Tensor], rule: str,
+                     max_world_size: float) -> Tensor:
+    """[N] the largest scale a size prune keeps for each row of `means`: max_world_size x extent
+    (world_size_rule "extent", or no centre), or with "distance" x max(extent, d), d the row's
+    distance from `center` (a fixed angle as seen from the rig beyond the extent)."""
+    if rule == "distance" and center is not None:
+        d = torch.linalg.vector_norm(means.detach() - torch.as_tensor(center).to(means), dim=1)
+        return max_world_size * torch.clamp_min(d, extent)
+    return torch.full((means.shape[0],), max_world_size * extent, dtype=means.dtype, device=means.device)
+
+
 def beyond_far_line(means: Tensor, center: Optional[Tensor], far_distance: Optional[float]) -> Optional[Tensor]:
     """bool per row of `means`: at least FAR_RESET_FRACTION * far_distance from `center` (the far
     background of a rig round the scene); None without a centre or far_distance."""
@@ -998,12 +1009,7 @@ class GS3DAdapter:
         prune = torch.sigmoid(rows["opacities"]) < c.min_opacity
         if prune_large:
             size = torch.exp(rows["scales"]).max(dim=1).values
-            if c.world_size_rule == "distance" and center is not None:
-                means = rows["means"]
-                d = torch.linalg.norm(means - torch.as_tensor(center).to(means), dim=1)
-                prune |= size > c.max_world_size * torch.clamp_min(d, extent)
-            else:
-                prune |= size > c.max_world_size * extent
+            prune |= size > world_size_limit(rows["means"], extent, center, c.world_size_rule, c.max_world_size)
             if c.max_screen_size is not None:
                 prune |= radii > c.max_screen_size
         return prune

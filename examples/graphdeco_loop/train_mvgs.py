@@ -48,7 +48,8 @@ import torch
 
 from gaussian_model import GaussianModel, inverse_sigmoid, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
-from mvgs_plugin.adapters.gs3d import beyond_far_line, consistency_of, even_cut_order, farthest_distance, growth_that_fits
+from mvgs_plugin.adapters.gs3d import (beyond_far_line, consistency_of, even_cut_order, farthest_distance, growth_that_fits,
+                                       world_size_limit)
 from mvgs_plugin.config import MAX_SEED, PRESETS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.init import is_forward_facing
@@ -74,11 +75,7 @@ def too_large(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") ->
     (the extent rule prunes the whole background shell). Its screen-size rule never removes a row:
     growth zeroes max_radii2D before the prune reads it, as in the released 3DGS code."""
     size = gaussians.get_scaling.detach().max(dim=1).values
-    limit = torch.full_like(size, MAX_WORLD_SIZE * ctx.scene_extent)
-    if world_size_rule == "distance" and ctx.scene_center is not None:
-        d = torch.linalg.vector_norm(gaussians.get_xyz.detach() - ctx.scene_center.to(size), dim=1)
-        limit = MAX_WORLD_SIZE * d.clamp_min(ctx.scene_extent)
-    return size > limit
+    return size > world_size_limit(gaussians.get_xyz, ctx.scene_extent, ctx.scene_center, world_size_rule, MAX_WORLD_SIZE)
 
 
 def doomed(gaussians: GaussianModel, ctx, world_size_rule: str = "extent") -> torch.Tensor:
