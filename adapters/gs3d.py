@@ -74,6 +74,8 @@ MAX_MEAN_EXTENTS = 1e4
 # background shell at twice the rig's radius, that is beyond 1.5 rig radii: the far background
 FAR_RESET_FRACTION = 0.75
 OPACITY_RESET_SCOPES = ("all", "inside")
+# GS3DConfig.world_size_rule: the size prune's limit, the same everywhere or growing with distance
+WORLD_SIZE_RULES = ("extent", "distance")
 # GS3DConfig.budget_growth_order: how growth candidates are ordered when a Gaussian budget binds
 BUDGET_GROWTH_ORDERS = ("auto", "inside-first", "score")
 # GS3DConfig.means_lr_rule: how a mean's Adam step scales with its distance from the scene centre
@@ -224,7 +226,7 @@ class GS3DConfig:
         for name in ("random_init_half_size", "max_screen_size"):
             if getattr(self, name) is not None:
                 check_float(name, getattr(self, name), positive=True)
-        if self.world_size_rule not in ("extent", "distance"):
+        if self.world_size_rule not in WORLD_SIZE_RULES:
             raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {self.world_size_rule!r}")
         if self.opacity_reset_scope not in OPACITY_RESET_SCOPES:
             raise ValueError(f"opacity_reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, "

@@ -59,6 +59,11 @@ What reaches the wrapped strategy, and how:
   ``crd_max_new`` of the count, largest mean gradient first) is copied with gsplat's
   ``ops.duplicate``, the copies starting with empty statistics. Without ``renders`` the rule is
   skipped with one warning.
+- **The far background (optional, off by default).** ``world_size_rule="distance"`` lets the
+  size prune's limit grow with a row's distance from the rig's centre (prune_scale3d x
+  max(scene_scale, d)) and ``opacity_reset_scope="inside"`` leaves the rows beyond the far line
+  out of opacity resets: the package trainer's rules, which keep a far background (a shell of
+  points round the rig, sky) that gsplat's rules remove or cap (docs/gsplat_loop.md).
 - **Mistakes said once.** A step whose gradient reaches only some of the views rendered
   together (a loss on ``colors[0]``), or reaches one batch position far more than the others
   over many steps (an SSIM term on ``colors[0]`` beside an L1 on all), gets one warning; with
@@ -99,8 +104,9 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
-from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, beyond_far_line, consistency_of, farthest_distance,
-                                       growth_that_fits, keep_scores_of)
+from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, OPACITY_RESET_SCOPES, WORLD_SIZE_RULES, beyond_far_line,
+                                       consistency_of, farthest_distance, growth_that_fits, keep_scores_of,
+                                       world_size_limit)
 from mvgs_plugin.adapters.knn import spacing_log_scale
 from mvgs_plugin.camera import Camera, scaled_size
 from mvgs_plugin.config import MVGSConfig
@@ -254,15 +260,37 @@ class MVGSStrategy(DefaultStrategy):
             a scene centre, else "inside-first"). The far line is taken at the first
             check_sanity (before the run's first step, before the budget's cut), or at the first
             refine when the loop never called it.
+        world_size_rule: the size prune's limit (it runs where DefaultStrategy's does: at a refine
+            after the first reset period). "extent" (default, gsplat's): prune_scale3d x
+            scene_scale for every row. "distance": prune_scale3d x max(scene_scale, d), d the
+            row's distance from the scene centre (the rig's centre), as GS3DConfig.world_size_rule
+            (the package trainer's default): a fixed angle as seen from the rig, so a far
+            background (a shell of points at twice the rig's radius, sky, a far wall) keeps the
+            large Gaussians a camera sees as small instead of losing them all at the first
+            refine after a reset. The wrapped strategy's own prune runs with its 3D size rule
+            off and the rows above the distance limit are removed after it (gsplat's
+            ops.remove): the same rows a single prune with that limit removes.
+        opacity_reset_scope: "all" (default, gsplat's ops.reset_opa: every opacity capped at
+            2 x prune_opa) or "inside": the same reset, but the rows beyond the far line
+            (FAR_RESET_FRACTION of the initial model's farthest mean from the scene centre,
+            taken as for budget_growth_order) keep their opacities, as GS3DConfig's "inside"
+            (the package trainer's default). The opacities' Adam moments are zeroed for every
+            row either way (ops.reset_opa's).
+        Both rules are off by default: a wrapped strategy prunes and resets as gsplat's.
 
     Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, ``plan`` (the
     current step's StepPlan), ``budget_growth_order`` (resolved: "score" or "inside-first"),
-    ``far_distance`` (None until taken), and after each refine ``last_refine`` (dict: step,
-    threshold, boxes, from_boxes, before, after).
+    ``far_distance`` (None until taken), ``world_size_rule``, ``opacity_reset_scope``,
+    ``kept_by_distance`` (rows the extent rule would have pruned that the distance rule kept, over
+    the run), ``spared_by_reset`` (rows a reset left alone, summed over the resets), ``most_held``
+    (the largest count a step's render calls reported, over the run), and after each
+    refine ``last_refine`` (dict: step, threshold, boxes, from_boxes, before, after,
+    kept_by_distance).
     """
 
     def __init__(self, strategy: DefaultStrategy, scene, config: Union[MVGSConfig, str] = "default",
-                 steps: Optional[int] = None, clock: str = "strategy", budget_growth_order: str = "auto"):
+                 steps: Optional[int] = None, clock: str = "strategy", budget_growth_order: str = "auto",
+                 world_size_rule: str = "extent", opacity_reset_scope: str = "all"):
         if isinstance(strategy, MVGSStrategy):
             raise TypeError("strategy is already an MVGSStrategy: wrap the DefaultStrategy itself, once")
         if not isinstance(strategy, DefaultStrategy):
@@ -277,6 +305,12 @@ class MVGSStrategy(DefaultStrategy):
         if budget_growth_order not in BUDGET_GROWTH_ORDERS:
             raise ValueError(f"budget_growth_order must be one of {', '.join(map(repr, BUDGET_GROWTH_ORDERS))}, "
                              f"got {budget_growth_order!r}")
+        if world_size_rule not in WORLD_SIZE_RULES:
+            raise ValueError(f"world_size_rule must be one of {', '.join(map(repr, WORLD_SIZE_RULES))}, "
+                             f"got {world_size_rule!r}")
+        if opacity_reset_scope not in OPACITY_RESET_SCOPES:
+            raise ValueError(f"opacity_reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, "
+                             f"got {opacity_reset_scope!r}")
         if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_world_size() > 1:
             raise RuntimeError(f"MVGSStrategy runs in one process: under gsplat's distributed mode "
                                f"({torch.distributed.get_world_size()} ranks) every rank's schedule would draw the same "
@@ -337,6 +371,9 @@ class MVGSStrategy(DefaultStrategy):
             budget_growth_order = "score" if is_forward_facing(views.train_cameras) else "inside-first"
         self.budget_growth_order = budget_growth_order
         self.far_distance: Optional[float] = None
+        self.world_size_rule, self.opacity_reset_scope = world_size_rule, opacity_reset_scope
+        self.kept_by_distance, self.spared_by_reset = 0, 0
+        self.most_held = 0  # the largest count a step rendered
 
     @property
     def total_steps(self) -> int:
@@ -426,6 +463,7 @@ class MVGSStrategy(DefaultStrategy):
             raise RuntimeError(f"step {step}: step_post_backward reported {self._reported + c} views for a step of "
                                f"{m}; call it once per render call of the step's views")
         last_call = self._reported + c == m
+        self.most_held = max(self.most_held, len(params["means"]))  # the count this call rendered
         collect = any(plan.stats) and (self.config.stats_from == "all" or last_call)
         if collect and self.config.stats_from == "last" and c > 1 and "last" not in self._warned:
             self._warned.add("last")
@@ -630,9 +668,10 @@ class MVGSStrategy(DefaultStrategy):
             if work["densify"]:
                 self._refine(params, optimizers, state, work["plan"], work["step"])
             if work["reset"]:
-                reset_opa(params=params, optimizers=optimizers, state=state, value=self.strategy.prune_opa * 2.0)
+                spared = self._reset_opacities(params, optimizers, state)
                 if self.verbose:
-                    print(f"Step {work['step']}: opacities reset to {self.strategy.prune_opa * 2.0:g}.")
+                    print(f"Step {work['step']}: opacities reset to {self.strategy.prune_opa * 2.0:g}"
+                          + (f" ({spared} beyond the far line spared)." if spared else "."))
 
     def _score_statistics(self, state, info, packed: bool, n: int) -> None:
         """The budget's statistics beside gsplat's grad2d and count, from the same gradient
@@ -664,9 +703,9 @@ class MVGSStrategy(DefaultStrategy):
         `scale2d`, a screen radius above grow_scale2d; [N] the rows it adds if they grow: 2 for
         a small row that is both duplicated and split by its screen radius, else 1; [N] removed
         for certain whatever they grow: an opacity under prune_opa or, with `prune_large`, a
-        screen radius above prune_scale2d (`scale2d`) or too large in the world without growing
-        (copies inherit opacity and radius, ops.duplicate / ops.split; a split's children are
-        smaller, so a large row that grows is not counted))."""
+        screen radius above prune_scale2d (`scale2d`) or too large in the world (world_size_rule)
+        without growing (copies inherit opacity and radius, ops.duplicate / ops.split; a split's
+        children are smaller, so a large row that grows is not counted))."""
         s, n = self.strategy, len(params["means"])
         dev = params["means"].device
         grad2d, count, radii = state.get("grad2d"), state.get("count"), state.get("radii")
@@ -681,10 +720,50 @@ class MVGSStrategy(DefaultStrategy):
         cost = 1 + (high & small & wide).long()
         doomed = torch.sigmoid(params["opacities"].detach().reshape(-1)) < s.prune_opa
         if prune_large:
-            doomed = doomed | ((scale > s.prune_scale3d * float(state["scene_scale"])) & ~grow)
+            doomed = doomed | ((scale > self._size_limit(params, state)) & ~grow)
             if radii is not None:
                 doomed = doomed | (radii > s.prune_scale2d)
         return grow, cost, doomed
+
+    def _size_limit(self, params, state) -> Tensor:
+        """[N] the largest world scale the size prune keeps per row (world_size_rule):
+        prune_scale3d x scene_scale, or with "distance" x max(scene_scale, distance from the
+        scene centre)."""
+        return world_size_limit(params["means"].detach(), float(state["scene_scale"]), self.scene_center,
+                                self.world_size_rule, self.strategy.prune_scale3d)
+
+    def _prune_by_distance(self, params, optimizers, state) -> int:
+        """world_size_rule "distance" at a refine with size pruning: remove the rows whose
+        largest scale is above the distance limit (the strategy's own prune ran without its 3D
+        size rule). Returns how many rows the extent rule would also have removed but this one
+        keeps (added to kept_by_distance)."""
+        scale = torch.exp(params["scales"].detach()).max(-1).values
+        too_big = scale > self._size_limit(params, state)
+        kept = int(((scale > self.strategy.prune_scale3d * float(state["scene_scale"])) & ~too_big).sum())
+        if bool(too_big.any()):
+            remove(params=params, optimizers=optimizers, state=state, mask=too_big)
+        self.kept_by_distance += kept
+        return kept
+
+    def _far_rows(self, params) -> Optional[Tensor]:
+        """bool per row: beyond the far line (the far line taken now when no check_sanity or
+        refine took it before); None without a scene centre."""
+        if self.far_distance is None:
+            self.far_distance = farthest_distance(params["means"], self.scene_center)
+        return beyond_far_line(params["means"].detach(), self.scene_center, self.far_distance)
+
+    def _reset_opacities(self, params, optimizers, state) -> int:
+        """gsplat's ops.reset_opa at 2 x prune_opa; with opacity_reset_scope "inside" the rows
+        beyond the far line get their opacities back (their Adam moments zeroed as every row's).
+        Returns how many were spared."""
+        spared = self._far_rows(params) if self.opacity_reset_scope == "inside" else None
+        kept = None if spared is None else params["opacities"].detach()[spared].clone()
+        reset_opa(params=params, optimizers=optimizers, state=state, value=self.strategy.prune_opa * 2.0)
+        if spared is None or not len(kept):
+            return 0
+        params["opacities"].data[spared] = kept
+        self.spared_by_reset += len(kept)
+        return len(kept)
 
     def _rank_growth(self, state, threshold: float, room: int, means: Optional[Tensor] = None,
                      grow: Optional[Tensor] = None, cost: Optional[Tensor] = None) -> int:
@@ -750,6 +829,9 @@ class MVGSStrategy(DefaultStrategy):
                 print(f"Step {step}: {from_boxes} GSs copied in {len(ctx.boxes)} cross-ray boxes. "
                       f"Now having {len(params['means'])} GSs.")
         self._call_strategy(params, optimizers, state, None, False, refine=ctx, step=step)
+        by_distance = 0
+        if ctx.prune_large and self.world_size_rule == "distance":
+            by_distance = self._prune_by_distance(params, optimizers, state)
         if cap is not None:
             shed = int(self._shed(params, optimizers, state, cap).sum())  # the boxes' clones may have taken room
             for key in ("mvgs_grad2d_sq", "mvgs_coverage"):  # the window restarts, as gsplat's grad2d
@@ -759,7 +841,8 @@ class MVGSStrategy(DefaultStrategy):
                             "threshold": float(ctx.grad_threshold),
                             "boxes": 0 if ctx.boxes is None else len(ctx.boxes), "from_boxes": from_boxes,
                             "before": before, "after": len(params["means"]), "cap": cap,
-                            "dropped_by_max_gaussians": dropped, "shed_to_cap": shed, "swapped": swapped}
+                            "dropped_by_max_gaussians": dropped, "shed_to_cap": shed, "swapped": swapped,
+                            "kept_by_distance": by_distance}
 
     def _swap_out(self, params, optimizers, state, grow: Tensor, cost: Tensor, doomed: Tensor, room: int, cap: int,
                   share: float) -> Tuple[int, Tensor]:
@@ -824,6 +907,8 @@ class MVGSStrategy(DefaultStrategy):
             return
         view.refine_start_iter, view.refine_stop_iter, view.refine_every = 0, 4, 1
         view.reset_every = 2 if refine.prune_large else 4
+        if self.world_size_rule == "distance":  # the 3D size rule runs after it (_prune_by_distance)
+            view.prune_scale3d = math.inf
         view.grow_grad2d = float(refine.grad_threshold)
         view.refine_scale2d_stop_iter = (4 if refine.step < self._scale2d_until else 1) if scale2d else 0
         out = io.StringIO()
@@ -901,6 +986,9 @@ class MVGSStrategy(DefaultStrategy):
                        "maps": [t.cpu() for t in w["plan"].recorded], "before": w["before"]}
         return {"schedule": sched, "config": self.config.to_dict(), "pending": pending,
                 "growth": {"order": self.budget_growth_order, "far_distance": self.far_distance},
+                "rules": {"world_size_rule": self.world_size_rule, "opacity_reset_scope": self.opacity_reset_scope,
+                          "kept_by_distance": self.kept_by_distance, "spared_by_reset": self.spared_by_reset},
+                "most_held": self.most_held,
                 "count": self.schedule.primitive_count}  # the model size the next steps' chunks are sized by
 
     def load_state_dict(self, state: Dict[str, Any], params=None, optimizers=None, strategy_state=None) -> None:
@@ -910,6 +998,13 @@ class MVGSStrategy(DefaultStrategy):
         if diff:
             raise ValueError("the checkpoint's MVGS config differs from this run's: "
                              + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, a, b in diff))
+        # a checkpoint from before the rules were options pruned and reset as gsplat's
+        rules = state.get("rules") or {"world_size_rule": "extent", "opacity_reset_scope": "all"}
+        differ = [f"{k}={rules[k]!r} (this strategy: {getattr(self, k)!r})" for k in ("world_size_rule", "opacity_reset_scope")
+                  if rules[k] != getattr(self, k)]
+        if differ:
+            raise ValueError(f"the checkpoint's run pruned and reset with {', '.join(differ)}: resume with the "
+                             "checkpoint's rules")
         self.schedule.load_state_dict(state["schedule"])
         if state.get("count") is not None:  # not the fresh model's that check_sanity saw (one saved before: that)
             self.schedule.primitive_count = int(state["count"])
@@ -920,6 +1015,8 @@ class MVGSStrategy(DefaultStrategy):
         if self._order_given and growth["order"] != self.budget_growth_order:
             raise ValueError(f"the checkpoint's run grew with budget_growth_order={growth['order']!r}, this strategy was "
                              f"given {self.budget_growth_order!r}: resume with the checkpoint's (or 'auto')")
+        self.kept_by_distance, self.spared_by_reset = int(rules.get("kept_by_distance", 0)), int(rules.get("spared_by_reset", 0))
+        self.most_held = int(state.get("most_held", 0))
         self.budget_growth_order = growth["order"]
         self.far_distance = None if growth["far_distance"] is None else float(growth["far_distance"])
         self._queue.clear()

@@ -26,6 +26,13 @@ gives PSNR and its difference to the unbudgeted baseline, the final and the larg
 CPU and wall seconds.
 
     python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800 [--package-rules]
+
+--gsplat-budget F makes the same table in the port of gsplat's loop (simple_trainer_mvgs.py): its
+"baseline" preset is given --grow-grad2d 2e-4 x 800 / W (the package baseline's threshold at W-px
+images; the other presets scale gsplat's 2e-4 themselves), and --package-rules gives every run the
+shell and MVGSStrategy's distance size rule and resets that spare the far background.
+
+    python benchmarks/bench_gsplat_loop.py --gsplat-budget 0.25 --steps 3000 --presets default [--package-rules]
 """
 
 from __future__ import annotations
@@ -67,29 +74,52 @@ def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budge
     return run(str(GRAPHDECO), steps, out, data, preset, seed, extra)
 
 
-def graphdeco_table(args) -> str:
-    """The graphdeco loop without and with a budget of args.graphdeco_budget x the baseline's count."""
+def run_gsplat(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None,
+               rules: bool = False) -> dict:
+    """One run of the port of gsplat's loop with MVGSStrategy (simple_trainer_mvgs.py), with
+    `budget` as --max-gaussians, for the baseline preset --grow-grad2d 2e-4 x 800 / `width` (the
+    images' width) and, with `rules`, PACKAGE_RULES."""
+    extra = [*(["--max-gaussians", str(budget)] if budget else []),
+             *(["--grow-grad2d", f"{2e-4 * 800 / width:.6g}"] if preset == "baseline" else []),
+             *(PACKAGE_RULES if rules else ())]
+    return run("simple_trainer_mvgs.py", steps, out, data, preset, seed, extra)
+
+
+def budget_table(args, loop: str) -> str:
+    """The graphdeco loop or the port of gsplat's (`loop`) without and with a budget of F x the
+    baseline's count (F: args.graphdeco_budget or args.gsplat_budget)."""
     presets = ["baseline", *[p for p in args.presets if p != "baseline"]]
+    if loop == "graphdeco":
+        share, runner, width, name = args.graphdeco_budget, run_graphdeco, args.threshold_width, "the graphdeco-shaped loop"
+    else:
+        from mvgs_plugin.data import load_scene
+
+        share, runner, name = args.gsplat_budget, run_gsplat, "the port of gsplat's loop (MVGSStrategy)"
+        width = load_scene(args.data or ROOT / "examples" / "scenes" / "tabletop").train_cameras[0].width
     with ThreadPoolExecutor(args.parallel) as pool:
-        free = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}", args.data, p, args.seed,
-                               None, args.threshold_width, args.package_rules) for p in presets}
+        free = {p: pool.submit(runner, args.steps, args.out / f"{loop}_{p}", args.data, p, args.seed,
+                               None, width, args.package_rules) for p in presets}
         free = {p: f.result() for p, f in free.items()}
-        n = max(1, round(args.graphdeco_budget * free["baseline"]["num_gaussians"]))
-        capped = {p: pool.submit(run_graphdeco, args.steps, args.out / f"graphdeco_{p}_budget", args.data, p,
-                                 args.seed, n, args.threshold_width, args.package_rules) for p in presets}
+        n = max(1, round(share * free["baseline"]["num_gaussians"]))
+        capped = {p: pool.submit(runner, args.steps, args.out / f"{loop}_{p}_budget", args.data, p,
+                                 args.seed, n, width, args.package_rules) for p in presets}
         capped = {p: f.result() for p, f in capped.items()}
     ref = free["baseline"]["psnr"]
-    width = "the presets' own" if args.threshold_width is None else f"{args.threshold_width:g} px"
-    lines = [f"Scene: {args.data or 'bundled tabletop'}; the graphdeco-shaped loop, {args.steps} steps, seed {args.seed}; "
-             f"threshold width {width}; {'train_3dgs.py' if args.package_rules else '3DGS'}'s far-background rules; "
-             f"one thread per run; budget N = {args.graphdeco_budget:g} x the unbudgeted baseline's "
+    if loop == "graphdeco":
+        threshold = "the presets' own" if width is None else f"{width:g} px"
+    else:
+        threshold = f"2e-4 x 800 / {width} px (baseline's --grow-grad2d)"
+    lines = [f"Scene: {args.data or 'bundled tabletop'}; {name}, {args.steps} steps, seed {args.seed}; "
+             f"threshold width {threshold}; {'train_3dgs.py' if args.package_rules else '3DGS'}'s far-background rules; "
+             f"one thread per run; budget N = {share:g} x the unbudgeted baseline's "
              f"{free['baseline']['num_gaussians']} Gaussians = {n}; CPU = user + sys of the training loop.", "",
              "| run | budget | PSNR (dB) | vs baseline | Gaussians | most held | CPU (s) | wall (s) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for p in presets:
         for m in (free[p], capped[p]):
-            lines.append(f"| {p} | {m['max_gaussians'] or '-'} | {m['psnr']:.2f} | {m['psnr'] - ref:+.2f} | "
-                         f"{m['num_gaussians']} | {m['most_held']} | {m['cpu_seconds']:.0f} | {m['train_seconds']:.0f} |")
+            lines.append(f"| {p} | {m.get('max_gaussians') or '-'} | {m['psnr']:.2f} | {m['psnr'] - ref:+.2f} | "
+                         f"{m['num_gaussians']} | {m.get('most_held', '-')} | {m['cpu_seconds']:.0f} | "
+                         f"{m['train_seconds']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -109,15 +139,19 @@ def main(argv=None) -> str:
     ap.add_argument("--table", type=Path, default=None, help="also write the table here")
     ap.add_argument("--graphdeco-budget", type=float, default=None, metavar="F",
                     help="run the graphdeco-shaped loop without and with a budget of F x its baseline's count instead")
+    ap.add_argument("--gsplat-budget", type=float, default=None, metavar="F",
+                    help="the same table in the port of gsplat's loop (simple_trainer_mvgs.py) instead")
     ap.add_argument("--threshold-width", type=float, default=None, metavar="W",
                     help="with --graphdeco-budget: every run's --threshold-width (800: the package's baseline "
                          "threshold; default: each preset's own)")
     ap.add_argument("--package-rules", action="store_true",
-                    help="with --graphdeco-budget: every run with train_3dgs.py's far-background rules ("
+                    help="with --graphdeco-budget or --gsplat-budget: every run with train_3dgs.py's far-background rules ("
                          + " ".join(PACKAGE_RULES) + "; default: 3DGS's, the scene's points only)")
     args = ap.parse_args(argv)
-    if args.graphdeco_budget is not None:
-        text = graphdeco_table(args)
+    if args.graphdeco_budget is not None or args.gsplat_budget is not None:
+        if args.graphdeco_budget is not None and args.gsplat_budget is not None:
+            ap.error("--graphdeco-budget and --gsplat-budget make two tables: give one")
+        text = budget_table(args, "graphdeco" if args.graphdeco_budget is not None else "gsplat")
         print(text)
         if args.table is not None:
             args.table.write_text(text)

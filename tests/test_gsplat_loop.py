@@ -11,6 +11,7 @@ to the same tensors. gsplat 1.5.3's DefaultStrategy is installed by the [dev] ex
 
 import copy
 import difflib
+import json
 import math
 import re
 import shutil
@@ -25,7 +26,7 @@ import torch.nn.functional as F
 from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
 from mvgs_plugin import CRDConfig, MVGSConfig
-from mvgs_plugin.adapters.gs3d import even_cut_order
+from mvgs_plugin.adapters.gs3d import beyond_far_line, even_cut_order
 from mvgs_plugin.adapters.gsplat_strategy import MVGSStrategy, views_of
 from mvgs_plugin.adapters import gsplat_strategy
 from mvgs_plugin.data import load_scene
@@ -158,7 +159,8 @@ def test_mvgs_loop_adds_four_lines_to_the_single_view_loop_and_to_gsplats_own():
     minus = [line for line in patch if line.startswith("-") and not line.startswith("---")]
     assert hunks and all(re.fullmatch(r"@@ -\d+,0 \+\d+(,\d+)? @@.*", h) for h in hunks)
     assert not minus and len(plus) <= 5
-    assert [p.replace("cfg.mvgs_preset", '"default"') for p in added] == plus
+    # the port passes its command line's size and reset rules (--world-size-rule, --opacity-reset-scope) on
+    assert [p.replace("cfg.mvgs_preset", '"default"').replace(", **cfg.mvgs_rules", "") for p in added] == plus
     # docs/gsplat_loop.md (linked from the README) shows the added lines
     page = (ROOT / "docs" / "gsplat_loop.md").read_text()
     for line in added + plus:
@@ -752,7 +754,9 @@ def test_a_flag_the_loop_does_not_read_is_refused_by_name(tmp_path, capsys):
     cases = [(simple_trainer, ["--preset", "default"], "--preset"),
              (simple_trainer, ["--max-gaussians", "300"], "--max-gaussians"),
              (simple_trainer, ["--pixels-per-gaussian", "50", "--chunk-size", "2"], "--pixels-per-gaussian --chunk-size"),
-             (simple_trainer_mvgs, ["--chunk-size", "2"], "--chunk-size")]
+             (simple_trainer_mvgs, ["--chunk-size", "2"], "--chunk-size"),
+             (simple_trainer, ["--world-size-rule", "distance", "--opacity-reset-scope", "inside"],
+              "--world-size-rule --opacity-reset-scope")]
     for k, (module, flags, named) in enumerate(cases):
         cfg = common.parse_config(base + ["--out", str(tmp_path / f"r{k}"), *flags])
         with pytest.raises(SystemExit) as err:
@@ -1365,3 +1369,159 @@ def test_a_model_above_the_budget_after_the_first_step_is_refused_by_check_sanit
         strategy.check_sanity(bigger, opts)
     assert len(bigger["means"]) == n
     strategy.check_sanity(splats, optimizers)  # the run's own model, within the budget: nothing to say
+
+
+# ---- the far background's rules in the wrap (world_size_rule, opacity_reset_scope) --------------
+# Rows of rows_at_distances (distances 0.5 ... 8 from the scene centre) with linear scales chosen
+# here; with scene_scale 1 and prune_scale3d 0.1 the extent rule's limit is 0.1 everywhere and the
+# distance rule's 0.1 x max(1, d): 0.1, 0.1, 0.3, 0.55, 0.65, 0.7, 0.75, 0.8.
+ROW_SIZES = [0.05, 0.2, 0.25, 0.5, 0.7, 0.6, 0.9, 0.7]
+
+
+@pytest.mark.parametrize("rule", ["extent", "distance"])
+def test_the_wraps_size_rule_prunes_the_rows_a_limit_worked_by_hand_prunes(tabletop, rule):
+    """At a refine with size pruning, MVGSStrategy(world_size_rule=...) removes exactly the rows
+    whose largest scale is above the limit computed here by hand (no row grows: no gradient),
+    keeps the others in order, counts the rows only the extent rule would have removed, and the
+    budget's _fate marks the same rows as doomed."""
+    center = torch.as_tensor(tabletop.center, dtype=torch.float64)
+    splats, optimizers = rows_at_distances(center)
+    with torch.no_grad():
+        splats["scales"].copy_(torch.log(torch.tensor(ROW_SIZES))[:, None].expand(-1, 3))
+        splats["scales"][:, 1:] -= 1.0  # anisotropic: the largest axis decides
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(), steps=12, world_size_rule=rule)
+    assert (strategy.world_size_rule, strategy.opacity_reset_scope) == (rule, "all")
+    state0 = strategy.initialize_state(scene_scale=1.0)
+    limit = [0.1 * (max(1.0, d) if rule == "distance" else 1.0) for d in ROW_DISTANCES]
+    too_big = [size > lim for size, lim in zip(ROW_SIZES, limit)]
+    extent_too_big = [size > 0.1 for size in ROW_SIZES]
+    n = len(ROW_SIZES)
+    zero = {**state0, "grad2d": torch.zeros(n), "count": torch.ones(n)}
+    grow, cost, doomed = strategy._fate(splats, dict(zero), 1e-3, prune_large=True, scale2d=False)
+    assert doomed.tolist() == too_big and not bool(grow.any())
+    orig = splats["means"].detach().clone()
+    refine_on(splats, optimizers, strategy, lambda n, t: dict(zero), prune_large=True)
+    kept = [i for i in range(n) if not too_big[i]]
+    assert torch.equal(splats["means"].detach(), orig[kept])
+    by_hand = sum(e and not t for e, t in zip(extent_too_big, too_big))
+    assert strategy.last_refine["kept_by_distance"] == strategy.kept_by_distance == by_hand
+    assert by_hand == (4 if rule == "distance" else 0)
+    for name, opt in optimizers.items():  # the optimizers hold the pruned parameters
+        assert opt.param_groups[0]["params"][0] is splats[name] and len(splats[name]) == len(kept)
+    with pytest.raises(ValueError, match="world_size_rule must be one of 'extent', 'distance', got 'far'"):
+        MVGSStrategy(small_clock(), tabletop, "default", steps=12, world_size_rule="far")
+
+
+@pytest.mark.parametrize("scope", ["all", "inside"])
+def test_a_reset_inside_spares_exactly_the_rows_beyond_the_far_line(tabletop, scope):
+    """A reset of MVGSStrategy(opacity_reset_scope="inside"): every opacity capped at 2 x prune_opa
+    but the rows at 3/4 of the initial model's farthest distance or beyond (rows 4-7 of
+    rows_at_distances: 6.5 ... 8 against a line at 6), which keep theirs to the bit; the opacities'
+    Adam moments zeroed for every row, as gsplat's reset_opa; "all" caps every row."""
+    center = torch.as_tensor(tabletop.center, dtype=torch.float64)
+    splats, optimizers = rows_at_distances(center)
+    strategy = MVGSStrategy(small_clock(), tabletop, MVGSConfig.default(), steps=12, opacity_reset_scope=scope)
+    strategy.check_sanity(splats, optimizers)
+    state = strategy.initialize_state(scene_scale=1.0)
+    with torch.no_grad():
+        splats["opacities"].copy_(torch.logit(torch.linspace(0.3, 0.95, len(ROW_DISTANCES))))
+    splats["opacities"].grad = torch.linspace(-1, 1, len(ROW_DISTANCES))
+    optimizers["opacities"].step()  # moments to zero
+    optimizers["opacities"].zero_grad(set_to_none=True)
+    before = splats["opacities"].detach().clone()
+    plan = strategy.schedule.next()
+    strategy._apply({"plan": plan, "densify": False, "reset": True, "step": 0, "params": splats,
+                     "optimizers": optimizers, "state": state})
+    ceiling = 2 * strategy.strategy.prune_opa
+    spared = [scope == "inside" and d >= 0.75 * max(ROW_DISTANCES) for d in ROW_DISTANCES]
+    assert sum(spared) == (4 if scope == "inside" else 0) and strategy.spared_by_reset == sum(spared)
+    after = splats["opacities"].detach()
+    for i, keep in enumerate(spared):
+        if keep:
+            assert after[i] == before[i]
+        else:
+            assert float(torch.sigmoid(after[i])) == pytest.approx(ceiling, rel=1e-5)
+    opt = optimizers["opacities"]
+    assert opt.param_groups[0]["params"][0] is splats["opacities"]
+    moments = opt.state[splats["opacities"]]
+    assert not bool(moments["exp_avg"].any()) and not bool(moments["exp_avg_sq"].any())
+
+
+def test_the_loops_far_background_flags_reach_the_model_and_the_strategy(tmp_path, forward, tabletop):
+    """--background-points N adds load_scene's shell to the port's Parser (and so to the initial
+    splats) on a rig round the scene and nothing on a forward-facing one; --world-size-rule and
+    --opacity-reset-scope reach MVGSStrategy; a checkpoint made with other rules is refused."""
+    shell = load_scene(TABLETOP, background_points=2000)
+    argv = ["--data", str(TABLETOP), "--steps", "300", "--threads", "1", "--background-points", "2000",
+            "--world-size-rule", "distance", "--opacity-reset-scope", "inside", "--out", str(tmp_path / "a")]
+    cfg = common.parse_config(argv)
+    assert (cfg.background_points, cfg.mvgs_rules) == (2000, {"world_size_rule": "distance", "opacity_reset_scope": "inside"})
+    runner = simple_trainer_mvgs.Runner(cfg)
+    assert len(shell.points.xyz) > len(tabletop.points.xyz)
+    assert torch.equal(runner.splats["means"].detach(), shell.points.xyz.float())
+    s = runner.cfg.strategy
+    assert (s.world_size_rule, s.opacity_reset_scope) == ("distance", "inside")
+    assert s.far_distance == pytest.approx(float((shell.points.xyz.double() - torch.as_tensor(tabletop.center)).norm(dim=1).max()))
+    assert s.far_distance > 1.5 * float((tabletop.points.xyz.double() - torch.as_tensor(tabletop.center)).norm(dim=1).max())
+    plain = simple_trainer.Runner(common.parse_config(argv[:6] + ["--background-points", "2000", "--out", str(tmp_path / "b")]))
+    assert len(plain.splats["means"]) == len(shell.points.xyz)  # the single-view loop reads the shell too
+    fwd = simple_trainer_mvgs.Runner(common.parse_config(["--data", str(FORWARD), "--steps", "300", "--background-points",
+                                                          "2000", "--out", str(tmp_path / "c")]))
+    assert len(fwd.splats["means"]) == len(forward.points.xyz)  # no shell on a forward-facing rig
+    other = MVGSStrategy(small_clock(), tabletop, "default", steps=12)
+    mine = MVGSStrategy(small_clock(), tabletop, "default", steps=12, world_size_rule="distance")
+    with pytest.raises(ValueError, match="world_size_rule='extent' .this strategy: 'distance'."):
+        mine.load_state_dict(other.state_dict())
+
+
+def test_the_loop_with_the_far_background_rules_trains_through_every_phase_and_resumes(tmp_path, tabletop):
+    """simple_trainer_mvgs.py on the bundled 360-degree rig with the shell and both rules, 300
+    steps: densification (every 10 steps from 50 to 150), a size prune by distance that keeps
+    shell rows the extent rule would have removed, an opacity reset at 100 that spares the far
+    background, the pyramid's hand-off, a checkpoint at 120 and a resume to the same tensors."""
+    rules = dict(background_points=2000, world_size_rule="distance", opacity_reset_scope="inside")
+    cfg = example_config(tmp_path / "a", 300, "default", data=TABLETOP, save_steps=[120], **rules)
+    torch.manual_seed(0)
+    runner = simple_trainer_mvgs.Runner(cfg)
+    runner.train()
+    strategy = runner.cfg.strategy
+    assert len(strategy.strategy.log["grow"]) >= 5 and len(strategy.config.stages) > 1
+    assert strategy.kept_by_distance > 0 and strategy.spared_by_reset > 0
+    far = beyond_far_line(runner.splats["means"].detach(), strategy.scene_center, strategy.far_distance)
+    assert int(far.sum()) > 0  # the far background is still there at the end
+    resumed_cfg = example_config(tmp_path / "b", 300, "default", data=TABLETOP, resume=tmp_path / "a" / "ckpt_120.pt",
+                                 **rules)
+    torch.manual_seed(123)
+    resumed = simple_trainer_mvgs.Runner(resumed_cfg)
+    resumed.train()
+    assert resumed.cfg.strategy.kept_by_distance == strategy.kept_by_distance
+    assert resumed.cfg.strategy.spared_by_reset == strategy.spared_by_reset
+    for k in runner.splats.keys():
+        assert torch.equal(resumed.splats[k], runner.splats[k]), k
+
+
+def test_the_benchmark_table_budgets_a_share_of_the_gsplat_loops_baseline(tmp_path, forward):
+    """bench_gsplat_loop.py --gsplat-budget F: the port's baseline (its --grow-grad2d 2e-4 x 800 / W)
+    and default without a budget, then each with F x the baseline's count, every run with the
+    far-background rules (--package-rules); each row is its run's metrics.json."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_gsplat_loop
+
+    text = bench_gsplat_loop.main(["--gsplat-budget", "0.25", "--steps", "80", "--presets", "default", "--data",
+                                   str(FORWARD), "--out", str(tmp_path), "--parallel", "2", "--package-rules"])
+    free = json.loads((tmp_path / "gsplat_baseline" / "metrics.json").read_text())
+    n = round(0.25 * free["num_gaussians"])
+    width = forward.train_cameras[0].width
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith(("| baseline", "| default"))]
+    assert [r[0].strip() for r in rows] == ["baseline", "baseline", "default", "default"]
+    for kind, r in zip(["", "_budget"] * 2, rows):
+        m = json.loads((tmp_path / f"gsplat_{r[0].strip()}{kind}" / "metrics.json").read_text())
+        assert m["preset"] == r[0].strip() and m["max_gaussians"] == (n if kind else None)
+        assert r[1].strip() == (str(n) if kind else "-")
+        assert float(r[2]) == pytest.approx(m["psnr"], abs=0.006)
+        assert float(r[3]) == pytest.approx(m["psnr"] - free["psnr"], abs=0.011)
+        assert int(r[4]) == m["num_gaussians"] and int(r[5]) == m["most_held"]
+        assert (m["background_points"], m["world_size_rule"], m["opacity_reset_scope"]) == (2000, "distance", "inside")
+        assert m["grow_grad2d"] == pytest.approx(2e-4 * 800 / width if m["preset"] == "baseline" else 2e-4, rel=1e-5)
+        if kind:
+            assert m["most_held"] <= n < free["num_gaussians"]

@@ -39,10 +39,10 @@ from torch import Tensor
 
 from gsplat.strategy import DefaultStrategy
 
-from mvgs_plugin.adapters.gs3d import SH_C0, knn_mean_sq_dist
+from mvgs_plugin.adapters.gs3d import OPACITY_RESET_SCOPES, SH_C0, WORLD_SIZE_RULES, knn_mean_sq_dist
 from mvgs_plugin.adapters.gsplat_strategy import MVGSLoader
-from mvgs_plugin.cli import (BUNDLED, MAX_STEPS, budget_scope_args, check_device, check_out, float_above, int_at_least,
-                             out_folder, rasterize_function)
+from mvgs_plugin.cli import (BUNDLED, MAX_INIT_POINTS, MAX_STEPS, budget_scope_args, check_device, check_out,
+                             float_above, int_at_least, out_folder, rasterize_function)
 from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import atomic_write_text, load_checked, save_checked
@@ -62,6 +62,9 @@ class Config:
     num_workers: int = 0  # gsplat's trainer uses 4 (a GPU machine); here the CPU trains
     chunk_size: Optional[int] = None  # views per render call of simple_trainer_chunked.py (None: the memory bound)
     mvgs_flags: Tuple[str, ...] = ()  # the MVGS-only flags the command line gave (run() refuses them where unread)
+    background_points: int = 0  # our port: a shell of N more initial points for the far background (Parser)
+    world_size_rule: str = "extent"  # MVGSStrategy's size prune: gsplat's ("extent") or "distance"
+    opacity_reset_scope: str = "all"  # MVGSStrategy's resets: gsplat's ("all") or "inside" (the far background spared)
     max_steps: int = 30_000
     save_steps: List[int] = field(default_factory=list)
     resume: Optional[Path] = None
@@ -91,6 +94,11 @@ class Config:
     rasterizer: str = "reference"
     strategy: Any = None  # a DefaultStrategy, built by make_strategy() from the fields above
 
+    @property
+    def mvgs_rules(self) -> Dict[str, str]:
+        """The size-prune and reset rules MVGSStrategy is built with (its keyword arguments)."""
+        return {"world_size_rule": self.world_size_rule, "opacity_reset_scope": self.opacity_reset_scope}
+
     def adjust_steps(self, steps: int) -> None:
         """A run of `steps` steps: every step-valued field scaled by steps / max_steps, with the
         floors described in the module docstring; the strategy is rebuilt from them."""
@@ -114,13 +122,18 @@ class Parser:
     Ks_dict / imsize_dict per camera id, image_names, points [P, 3] and points_rgb [P, 3]
     (uint8), scene_scale (the largest camera distance from their mean), plus background (the
     colour RGBA images were composited on, or None). Every `test_every`-th image is held out
-    unless the scene names its test views. Built on mvgs_plugin.data.load_scene."""
+    unless the scene names its test views. Built on mvgs_plugin.data.load_scene; our port's
+    `background_points` (default 0: the scene's points only, as gsplat's) adds that many points on
+    a sphere twice the rig's radius when the cameras surround the scene, as load_scene draws them
+    (examples/train_3dgs.py adds 2000)."""
 
-    def __init__(self, data_dir, factor: int = 1, normalize: bool = False, test_every: int = 8):
+    def __init__(self, data_dir, factor: int = 1, normalize: bool = False, test_every: int = 8,
+                 background_points: int = 0):
         if normalize:
             raise ValueError("this port reads scenes in their own coordinates (no normalize)")
         # gsplat's factor: a COLMAP scene's images_<factor>/ copies, each camera scaled to them
-        self.scene = scene = load_scene(data_dir, images=None if factor == 1 else f"images_{factor}")
+        self.scene = scene = load_scene(data_dir, images=None if factor == 1 else f"images_{factor}",
+                                        background_points=background_points)
         cams = scene.train_cameras + scene.test_cameras
         self.n_train = len(scene.train_cameras)
         self.camtoworlds = np.stack([c.camera_to_world.numpy() for c in cams])
@@ -391,6 +404,18 @@ def parse_config(argv=None, doc: str = "") -> Config:
                     help="budget from the data (MVGSConfig.pixels_per_gaussian): --max-gaussians = the training "
                          "views' pixels / P (ignored with --max-gaussians; default: no budget)")
     budget_scope_args(ap)
+    ap.add_argument("--background-points", type=int_at_least(0, MAX_INIT_POINTS), default=0, metavar="N",
+                    help="our port: N more initial points on a sphere twice the rig's radius for the far background, as "
+                         "train_3dgs.py adds (2000 there), when the cameras surround the scene (none on a forward-facing "
+                         "rig); 0: the scene's points only, as gsplat's Parser (default: 0)")
+    ap.add_argument("--world-size-rule", choices=WORLD_SIZE_RULES, default=None,
+                    help="MVGSStrategy's size prune (MVGS loops): extent is gsplat's (a world scale above prune_scale3d x "
+                         "scene_scale everywhere, which prunes the background shell); distance is train_3dgs.py's "
+                         "(x the distance from the rig's centre beyond scene_scale) (default: extent)")
+    ap.add_argument("--opacity-reset-scope", choices=OPACITY_RESET_SCOPES, default=None,
+                    help="which opacities MVGSStrategy's resets cap (MVGS loops): all is gsplat's; inside is "
+                         "train_3dgs.py's, the far background (beyond 3/4 of the initial points' farthest distance from "
+                         "the rig's centre) kept as it is (default: all)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
@@ -412,7 +437,9 @@ def parse_config(argv=None, doc: str = "") -> Config:
     given = tuple(flag for flag, value in (("--preset", args.preset), ("--max-gaussians", args.max_gaussians),
                                            ("--pixels-per-gaussian", args.pixels_per_gaussian),
                                            ("--budget-views", args.budget_views), ("--budget-rigs", args.budget_rigs),
-                                           ("--chunk-size", args.chunk_size)) if value is not None)
+                                           ("--chunk-size", args.chunk_size),
+                                           ("--world-size-rule", args.world_size_rule),
+                                           ("--opacity-reset-scope", args.opacity_reset_scope)) if value is not None)
     args.preset = args.preset or "default"
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
                                 ("pixels_per_gaussian", args.pixels_per_gaussian),
@@ -423,7 +450,8 @@ def parse_config(argv=None, doc: str = "") -> Config:
     cfg = Config(data_dir=args.data, data_factor=args.data_factor, result_dir=args.out, mvgs_preset=preset, save_steps=args.save_steps,
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
                  grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size,
-                 mvgs_flags=given)
+                 mvgs_flags=given, background_points=args.background_points,
+                 world_size_rule=args.world_size_rule or "extent", opacity_reset_scope=args.opacity_reset_scope or "all")
     cfg.adjust_steps(args.steps)
     return cfg
 
@@ -445,7 +473,7 @@ def run(runner_class, cfg: Config) -> Dict:
     strategy, preset, per view."""
     torch.manual_seed(cfg.seed)
     _RUN_SETTINGS.clear()
-    _RUN_SETTINGS.update(seed=cfg.seed)
+    _RUN_SETTINGS.update(seed=cfg.seed, background_points=cfg.background_points)
     made = not cfg.result_dir.exists()
     cfg.result_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -463,7 +491,8 @@ def run(runner_class, cfg: Config) -> Dict:
         script = Path(sys.argv[0]).name
         print(f"{script}: error: {' '.join(unread)}: not read by this loop ({script}, "
               f"{type(runner.cfg.strategy).__name__}); --preset, --max-gaussians, --pixels-per-gaussian, "
-              "--budget-views and --budget-rigs are read by simple_trainer_mvgs.py and simple_trainer_chunked.py, "
+              "--budget-views, --budget-rigs, --world-size-rule and --opacity-reset-scope are read by "
+              "simple_trainer_mvgs.py and simple_trainer_chunked.py, "
               "--chunk-size by "
               "simple_trainer_chunked.py", file=sys.stderr)
         raise SystemExit(2)
@@ -485,7 +514,12 @@ def run(runner_class, cfg: Config) -> Dict:
     strategy = runner.cfg.strategy
     mvgs = getattr(strategy, "config", None)
     extra = {"strategy": type(strategy).__name__, "preset": mvgs.preset if mvgs else "single view",
-             "work": strategy.schedule.work_done if mvgs else float(cfg.max_steps)}
+             "work": strategy.schedule.work_done if mvgs else float(cfg.max_steps),
+             "grow_grad2d": cfg.grow_grad2d, "background_points": cfg.background_points, "initial_points": 0 if runner.parser.points is None else len(runner.parser.points)}
+    if mvgs:  # the strategy's size and reset rules, and what they did
+        extra.update(world_size_rule=strategy.world_size_rule, opacity_reset_scope=strategy.opacity_reset_scope,
+                     kept_by_distance=strategy.kept_by_distance, spared_by_reset=strategy.spared_by_reset,
+                     max_gaussians=mvgs.max_gaussians, most_held=strategy.most_held)
     result = evaluate(runner.splats, cfg, runner.parser)
     metrics = {"psnr": result["psnr"], "ssim": result["ssim"], "num_gaussians": len(runner.splats["means"]),
                "steps": cfg.max_steps, "seed": cfg.seed, "cpu_seconds": cpu, "train_seconds": wall,

@@ -26,7 +26,8 @@ class Runner:
     def __init__(self, cfg: Config):
         self.cfg = cfg
         self.device = cfg.device
-        self.parser = Parser(data_dir=cfg.data_dir, factor=cfg.data_factor, normalize=False, test_every=8)
+        self.parser = Parser(data_dir=cfg.data_dir, factor=cfg.data_factor, normalize=False, test_every=8,
+                             background_points=cfg.background_points)
         self.trainset = Dataset(self.parser, split="train")
         self.valset = Dataset(self.parser, split="val")
         self.scene_scale = self.parser.scene_scale * 1.1

@@ -1,0 +1,169 @@
+"""Where a full-resolution training view's CPU time goes, for trained models of the port of
+gsplat's loop (checkpoints of examples/gsplat_loop/simple_trainer*.py); prints a markdown table.
+
+Made to answer why a Gaussian budget cuts the count 3-4x but the CPU of a run much less: each
+checkpoint's model is rendered at every training view at full resolution, its loss (0.8 L1 +
+0.2 D-SSIM, the loop's) backpropagated and an Adam step taken, one thread, and the reference
+renderer's compiled parts are timed apart: projection, depth binning, compositing (forward and
+backward). Beside the times: the Gaussians, those visible per view, the tile-Gaussian pairs per
+view (the rasterizer's lists), and the screen area the visible ones cover (their 3-sigma boxes
+clipped to the image, summed, per pixel).
+
+    python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --threads 1 --save-steps 3000 --out out/a [...]
+    python benchmarks/bench_step_parts.py out/a/ckpt_3000.pt out/b/ckpt_3000.pt [--data SCENE] [--repeats 2]
+
+CPU ms per view (process time, user + sys) over --repeats passes of the training views after one
+pass of warm-up; an Adam step of every parameter is included, at lr 0 (the work of a step, and
+the model stays the checkpoint's, so every pass renders the same). Rows of one run compare;
+runs on a loaded machine differ by their load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+import torch.nn.functional as F
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
+
+import common  # noqa: E402
+from mvgs_plugin.io import load_checked  # noqa: E402
+from mvgs_plugin.losses import ssim  # noqa: E402
+from mvgs_plugin.reference_renderer import rendering  # noqa: E402
+
+KERNELS = ("project_forward", "bin_by_depth", "forward", "backward", "project_backward")
+
+
+class KernelClock:
+    """CPU seconds spent in each compiled kernel of the reference renderer while installed."""
+
+    def __init__(self):
+        self.seconds: Dict[str, float] = collections.defaultdict(float)
+        self._real = {}
+
+    def __enter__(self):
+        for name in KERNELS:
+            real = self._real[name] = getattr(rendering._cpp, name)
+            setattr(rendering._cpp, name, self._timed(name, real))
+        return self
+
+    def __exit__(self, *exc):
+        for name, real in self._real.items():
+            setattr(rendering._cpp, name, real)
+
+    def _timed(self, name, fn):
+        def call(*args, **kwargs):
+            c = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[name] += time.process_time() - c
+        return call
+
+
+def covered_per_pixel(info, width: int, height: int) -> float:
+    """The visible Gaussians' 3-sigma boxes (means2d +- radii) clipped to the image, summed, per
+    pixel, for a one-camera info."""
+    r = info["radii"][0].float()
+    m = info["means2d"].detach()[0].float()
+    seen = (r > 0).all(-1)
+    wx = ((m[:, 0] + r[:, 0]).clamp(0, width) - (m[:, 0] - r[:, 0]).clamp(0, width)).clamp_min(0)
+    wy = ((m[:, 1] + r[:, 1]).clamp(0, height) - (m[:, 1] - r[:, 1]).clamp(0, height)).clamp_min(0)
+    return float((wx * wy)[seen].sum()) / (width * height)
+
+
+def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:
+    """One checkpoint's row: counts and CPU ms per full-resolution training view."""
+    saved = load_checked(str(ckpt))
+    if not (isinstance(saved, dict) and "splats" in saved):
+        raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
+    splats = torch.nn.ParameterDict({k: torch.nn.Parameter(v.float()) for k, v in saved["splats"].items()})
+    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
+    cfg = common.Config(sh_degree=degree)
+    cfg.make_strategy()
+    optimizers = {k: torch.optim.Adam([splats[k]], lr=0.0, eps=1e-15) for k in splats}
+    views = common.Dataset(parser, "train")
+    parts = collections.defaultdict(float)
+    counts = collections.defaultdict(float)
+    n = 0
+    for rep in range(repeats + 1):
+        timed = rep > 0  # the first pass warms up
+        with KernelClock() as clock:
+            for i in range(len(views)):
+                d = views[i]
+                pixels = d["image"][None] / 255.0
+                h, w = pixels.shape[1:3]
+                c0 = time.process_time()
+                colors, _, info = common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None],
+                                                          d["K"][None], w, h, sh_degree=degree)
+                c1 = time.process_time()
+                loss = 0.8 * F.l1_loss(colors, pixels) + 0.2 * (1.0 - ssim(colors, pixels, padding="valid"))
+                c2 = time.process_time()
+                loss.backward()
+                c3 = time.process_time()
+                for opt in optimizers.values():
+                    opt.step()
+                    opt.zero_grad(set_to_none=True)
+                c4 = time.process_time()
+                if timed:
+                    n += 1
+                    parts["render"] += c1 - c0
+                    parts["loss"] += c2 - c1
+                    parts["backward"] += c3 - c2
+                    parts["adam"] += c4 - c3
+                    counts["visible"] += int((info["radii"] > 0).all(-1).sum())
+                    counts["pairs"] += len(info["flatten_ids"])
+                    counts["covered"] += covered_per_pixel(info, w, h)
+        if timed:
+            for k, v in clock.seconds.items():
+                parts["k_" + k] += v
+    row = {"checkpoint": str(ckpt), "gaussians": len(splats["means"]), "views": n}
+    row.update({k: 1000.0 * v / n for k, v in parts.items()})
+    row.update({k: v / n for k, v in counts.items()})
+    row["total"] = row["render"] + row["loss"] + row["backward"] + row["adam"]
+    return row
+
+
+def table(rows: List[Dict[str, float]]) -> str:
+    lines = ["| checkpoint | Gaussians | visible / view | tile pairs / view | covered / pixel | project | bin | "
+             "composite fwd | loss | composite bwd | project bwd | Adam | whole view (ms) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['checkpoint']} | {r['gaussians']} | {r['visible']:.0f} | {r['pairs']:.0f} | {r['covered']:.1f} | "
+                     + " | ".join(f"{r.get(k, 0.0):.2f}" for k in ("k_project_forward", "k_bin_by_depth", "k_forward", "loss",
+                                                                     "k_backward", "k_project_backward", "adam"))
+                     + f" | {r['total']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("checkpoints", type=Path, nargs="+", help="ckpt_<step>.pt files of the gsplat loop")
+    ap.add_argument("--data", type=Path, default=ROOT / "examples" / "scenes" / "tabletop",
+                    help="the scene they were trained on (default: the bundled tabletop)")
+    ap.add_argument("--repeats", type=int, default=2, help="timed passes over the training views (default: 2)")
+    args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats {args.repeats}: at least 1")
+    missing = [str(p) for p in args.checkpoints if not p.is_file()]
+    if missing:
+        ap.error(f"no such checkpoint: {', '.join(missing)}")
+    torch.set_num_threads(1)
+    parser = common.Parser(args.data)
+    rows = [measure(ckpt, parser, args.repeats) for ckpt in args.checkpoints]
+    text = (f"Scene: {args.data}; CPU ms per full-resolution training view, one thread, {args.repeats} timed "
+            "passes; project / bin / composite / project bwd are the reference renderer's compiled kernels.\n\n"
+            + table(rows))
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
