@@ -19,7 +19,9 @@ tensorboard, packed mode. Changed: the rasterizer is given the colour a scene's 
 composited on (Parser.background), and the strategy's step-valued fields scale with the run's
 length with the floors of MVGSConfig.with_total_steps (densify every >= 10 steps, from >= 50,
 resets >= 10 intervals apart), where simple_trainer's --steps_scaler would densify every 3
-steps of a 1000-step run.
+steps of a 1000-step run. Optional, off by default: train_3dgs.py's far-background rules
+(--background-points N: a shell of points round the rig, read by the Parser; --world-size-rule
+distance and --opacity-reset-scope inside: MVGSStrategy's options, through Config.mvgs_rules).
 """
 
 from __future__ import annotations
