@@ -745,11 +745,15 @@ class MVGSStrategy(DefaultStrategy):
         self.kept_by_distance += kept
         return kept
 
-    def _far_rows(self, params) -> Optional[Tensor]:
-        """bool per row: beyond the far line (the far line taken now when no check_sanity or
-        refine took it before); None without a scene centre."""
+    def _take_far_line(self, means: Tensor) -> None:
+        """far_distance from `means` when no check_sanity took it before the run's first step (a
+        loop that never calls it): the first refine or reset that needs the far line takes it."""
         if self.far_distance is None:
-            self.far_distance = farthest_distance(params["means"], self.scene_center)
+            self.far_distance = farthest_distance(means, self.scene_center)
+
+    def _far_rows(self, params) -> Optional[Tensor]:
+        """bool per row: beyond the far line; None without a scene centre."""
+        self._take_far_line(params["means"])
         return beyond_far_line(params["means"].detach(), self.scene_center, self.far_distance)
 
     def _reset_opacities(self, params, optimizers, state) -> int:
@@ -808,8 +812,8 @@ class MVGSStrategy(DefaultStrategy):
         box_score = grad2d / count.clamp_min(1) if boxes and isinstance(grad2d, Tensor) else None
         doomed = None
         if cap is not None:  # growth ranked into the room the budget leaves (see _fate)
-            if self.far_distance is None and self.budget_growth_order == "inside-first":  # check_sanity never ran
-                self.far_distance = farthest_distance(means, self.scene_center)
+            if self.budget_growth_order == "inside-first":
+                self._take_far_line(means)
             threshold = float(ctx.grad_threshold)
             scale2d = self.strategy.refine_scale2d_stop_iter > 0 and ctx.step < self._scale2d_until
             grow, cost, doomed = self._fate(params, state, threshold, ctx.prune_large, scale2d)

@@ -48,8 +48,8 @@ import torch
 
 from gaussian_model import GaussianModel, inverse_sigmoid, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
-from mvgs_plugin.adapters.gs3d import (beyond_far_line, consistency_of, even_cut_order, farthest_distance, growth_that_fits,
-                                       world_size_limit)
+from mvgs_plugin.adapters.gs3d import (OPACITY_RESET_SCOPES, WORLD_SIZE_RULES, beyond_far_line, consistency_of,
+                                       even_cut_order, farthest_distance, growth_that_fits, world_size_limit)
 from mvgs_plugin.config import MAX_SEED, PRESETS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.init import is_forward_facing
@@ -316,11 +316,11 @@ if __name__ == "__main__":
                     help="N more initial points on a sphere twice the rig's radius for the far background, as "
                          "train_3dgs.py adds (2000 there), when the cameras surround the scene (none on a forward-facing "
                          "rig or an object on a backdrop); 0: the scene's points only, 3DGS's init (default: 0)")
-    ap.add_argument("--world-size-rule", choices=("extent", "distance"), default="extent",
+    ap.add_argument("--world-size-rule", choices=WORLD_SIZE_RULES, default="extent",
                     help="size pruning: extent is 3DGS's (world size above 0.1 x the extent everywhere, which prunes "
                          "the background shell); distance is train_3dgs.py's (0.1 x the distance from the rig's centre "
                          "beyond the extent; too_large) (default: extent)")
-    ap.add_argument("--opacity-reset-scope", choices=("all", "inside"), default="all",
+    ap.add_argument("--opacity-reset-scope", choices=OPACITY_RESET_SCOPES, default="all",
                     help="which opacities a reset caps: all is 3DGS's; inside is train_3dgs.py's, the far background "
                          "(beyond 3/4 of the initial points' farthest distance from the rig's centre) kept as it is "
                          "(default: all)")
