@@ -21,11 +21,12 @@ instead: "baseline" and each of --presets without a budget, then each with --max
 the unbudgeted baseline's final count (a quarter: issue 27's gate), at --steps steps, with
 --threshold-width W on every run when given (800: the package's baseline) and, with
 --package-rules, train_3dgs.py's far-background rules on every run (a shell of 2000 points, the
-distance size rule, resets that spare the far background); the table
+distance size rule, resets that spare the far background) and with --opacity-lr LR every run's
+--opacity-lr (5e-2: train_3dgs.py's; the loop's own is graphdeco's 2.5e-2); the table
 gives PSNR and its difference to the unbudgeted baseline, the final and the largest count held,
 CPU and wall seconds.
 
-    python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800 [--package-rules]
+    python benchmarks/bench_gsplat_loop.py --graphdeco-budget 0.25 --steps 3000 --presets default --threshold-width 800 [--package-rules] [--opacity-lr 0.05]
 
 --gsplat-budget F makes the same table in the port of gsplat's loop (simple_trainer_mvgs.py): its
 "baseline" preset is given --grow-grad2d 2e-4 x 800 / W (the package baseline's threshold at W-px
@@ -65,11 +66,13 @@ PACKAGE_RULES = ("--background-points", "2000", "--world-size-rule", "distance",
 
 
 def run_graphdeco(steps: int, out: Path, data, preset: str, seed: int = 0, budget=None, width=None,
-                  rules: bool = False) -> dict:
+                  rules: bool = False, opacity_lr=None) -> dict:
     """One run of the graphdeco-shaped loop (run() on its script), with `budget` as --max-gaussians,
-    `width` as --threshold-width when given and, with `rules`, PACKAGE_RULES."""
+    `width` as --threshold-width and `opacity_lr` as --opacity-lr when given and, with `rules`,
+    PACKAGE_RULES."""
     extra = [*(["--max-gaussians", str(budget)] if budget else []),
              *(["--threshold-width", f"{width:g}"] if width is not None else []),
+             *(["--opacity-lr", f"{opacity_lr:g}"] if opacity_lr is not None else []),
              *(PACKAGE_RULES if rules else ())]
     return run(str(GRAPHDECO), steps, out, data, preset, seed, extra)
 
@@ -90,7 +93,8 @@ def budget_table(args, loop: str) -> str:
     baseline's count (F: args.graphdeco_budget or args.gsplat_budget)."""
     presets = ["baseline", *[p for p in args.presets if p != "baseline"]]
     if loop == "graphdeco":
-        share, runner, width, name = args.graphdeco_budget, run_graphdeco, args.threshold_width, "the graphdeco-shaped loop"
+        share, width, name = args.graphdeco_budget, args.threshold_width, "the graphdeco-shaped loop"
+        runner = lambda *a: run_graphdeco(*a, opacity_lr=args.opacity_lr)  # noqa: E731
     else:
         from mvgs_plugin.data import load_scene
 
@@ -111,6 +115,7 @@ def budget_table(args, loop: str) -> str:
         threshold = f"2e-4 x 800 / {width} px (baseline's --grow-grad2d)"
     lines = [f"Scene: {args.data or 'bundled tabletop'}; {name}, {args.steps} steps, seed {args.seed}; "
              f"threshold width {threshold}; {'train_3dgs.py' if args.package_rules else '3DGS'}'s far-background rules; "
+             f"{'' if args.opacity_lr is None else f'opacity learning rate {args.opacity_lr:g}; '}"
              f"one thread per run; budget N = {share:g} x the unbudgeted baseline's "
              f"{free['baseline']['num_gaussians']} Gaussians = {n}; CPU = user + sys of the training loop.", "",
              "| run | budget | PSNR (dB) | vs baseline | Gaussians | most held | CPU (s) | wall (s) |",
@@ -147,7 +152,12 @@ def main(argv=None) -> str:
     ap.add_argument("--package-rules", action="store_true",
                     help="with --graphdeco-budget or --gsplat-budget: every run with train_3dgs.py's far-background rules ("
                          + " ".join(PACKAGE_RULES) + "; default: 3DGS's, the scene's points only)")
+    ap.add_argument("--opacity-lr", type=float, default=None, metavar="LR",
+                    help="with --graphdeco-budget: every run's --opacity-lr (5e-2: train_3dgs.py's; default: the "
+                         "loop's, graphdeco's 2.5e-2)")
     args = ap.parse_args(argv)
+    if args.opacity_lr is not None and args.graphdeco_budget is None:
+        ap.error("--opacity-lr is the graphdeco loop's: give it with --graphdeco-budget")
     if args.graphdeco_budget is not None or args.gsplat_budget is not None:
         if args.graphdeco_budget is not None and args.gsplat_budget is not None:
             ap.error("--graphdeco-budget and --gsplat-budget make two tables: give one")

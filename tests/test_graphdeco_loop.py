@@ -246,7 +246,7 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
 
     text = bench_gsplat_loop.main(["--graphdeco-budget", "0.25", "--steps", "80", "--presets", "default",
                                    "--data", str(FORWARD), "--out", str(tmp_path), "--parallel", "2",
-                                   "--threshold-width", "800", "--package-rules"])
+                                   "--threshold-width", "800", "--package-rules", "--opacity-lr", "0.05"])
     free = json.loads((tmp_path / "graphdeco_baseline" / "metrics.json").read_text())
     n = round(0.25 * free["num_gaussians"])
     rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| baseline") or line.startswith("| default")]
@@ -258,6 +258,7 @@ def test_the_benchmark_table_budgets_a_share_of_the_baselines_count(tmp_path):
         assert float(r[3]) == pytest.approx(m["psnr"] - free["psnr"], abs=0.011)
         assert int(r[4]) == m["num_gaussians"] and int(r[5]) == m["most_held"] and m["threshold_width"] == 800
         assert (m["background_points"], m["world_size_rule"], m["opacity_reset_scope"]) == (2000, "distance", "inside")
+        assert m["opacity_lr"] == 0.05
         if kind:
             assert m["most_held"] <= n < free["num_gaussians"]
 
@@ -365,7 +366,7 @@ def test_the_loop_with_the_package_rules_through_every_phase_and_a_resume(tmp_pa
     scene = load_scene(ROOT / "examples" / "scenes" / "tabletop", background_points=2000)
     half = tuple(Stage(st.factor * 2, st.views, st.steps) for st in train_mvgs.MVGSConfig.from_preset("default").stages)
     steps, extra = 300, {"min_densify_per_reset": 10, "world_size_rule": "distance", "reset_scope": "inside",
-                         "stages": half}  # at 64 px, as --resolution-scale 2
+                         "stages": half, "opacity_lr": 0.05}  # at 64 px, as --resolution-scale 2
     full, log = train_mvgs.training(scene, steps, "default", checkpoint_iterations=(85,), out=tmp_path, **extra)
     assert len(half) > 1
     assert len(log["densify"]) >= 3 and log["reset"] and log["spared_by_reset"] > 0, log
@@ -375,6 +376,49 @@ def test_the_loop_with_the_package_rules_through_every_phase_and_a_resume(tmp_pa
     assert log2["reset"] == [s for s in log["reset"] if s > 85] != []
     for a, b in zip(full.capture()[1:7], resumed.capture()[1:7]):
         assert torch.equal(a, b)
+    for g in (full, resumed):  # --opacity-lr reaches Adam, and a resume keeps it
+        lrs = {group["name"]: group["lr"] for group in g.optimizer.param_groups}
+        assert lrs["opacity"] == 0.05 and lrs["f_dc"] == 2.5e-3
     assert math.isfinite(train_mvgs.evaluate(resumed, scene))
+    with pytest.raises(ValueError, match=r"opacity_lr must be a finite number > 0, got -0\.1"):
+        train_mvgs.training(scene, steps, "default", opacity_lr=-0.1)
     with pytest.raises(ValueError, match="world_size_rule"):
         train_mvgs.training(scene, steps, "default", world_size_rule="far")
+
+
+def graphdeco_ssim(img1, img2):
+    """3DGS's SSIM as its utils/loss_utils.py computes it, written out here: [3, H, W] images, an
+    11-tap Gaussian window (sigma 1.5) applied as one 2D kernel per channel with zero padding of
+    5 pixels, C1 = 0.01^2, C2 = 0.03^2, the map's mean."""
+    x = torch.arange(11, dtype=torch.float64) - 5
+    g = torch.exp(-x * x / (2 * 1.5 ** 2))
+    g = g / g.sum()
+    window = (g[:, None] @ g[None, :]).expand(3, 1, 11, 11).to(img1.dtype)
+    conv = lambda t: torch.nn.functional.conv2d(t[None], window, padding=5, groups=3)[0]  # noqa: E731
+    mu1, mu2 = conv(img1), conv(img2)
+    s11, s22, s12 = conv(img1 * img1) - mu1 ** 2, conv(img2 * img2) - mu2 ** 2, conv(img1 * img2) - mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return (((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1 ** 2 + mu2 ** 2 + c1) * (s11 + s22 + c2))).mean()
+
+
+@pytest.mark.filterwarnings("ignore:this run densifies at no step")
+def test_the_loops_loss_is_3dgs_with_its_zero_padded_ssim(scene, monkeypatch):
+    """Every view's SSIM term is 3DGS's (zero padding at the border, where scikit-image's "valid"
+    SSIM leaves out 5 pixels a side): the values the loop's SSIM gave, against the formula written
+    out above on the same images."""
+    seen = []
+
+    def recording_ssim(img1, img2, **kw):
+        value = train_mvgs_ssim(img1, img2, **kw)
+        seen.append((img1.detach().clone(), img2.detach().clone(), value.detach()))
+        return value
+
+    train_mvgs_ssim = train_mvgs.ssim
+    monkeypatch.setattr(train_mvgs, "ssim", recording_ssim)
+    train_mvgs.training(scene, 3, "baseline")
+    assert len(seen) == 3
+    for img1, img2, value in seen:
+        expected = graphdeco_ssim(img1.permute(2, 0, 1).double(), img2.permute(2, 0, 1).double())
+        valid = train_mvgs_ssim(img1.double(), img2.double(), padding="valid")
+        assert abs(float(value) - float(expected)) < 1e-5
+        assert abs(float(valid) - float(expected)) > 1e-3  # the border matters on these images

@@ -84,6 +84,8 @@ class GaussianModel:
     def training_setup(self, iterations: int, position_lr_init: float = 1.6e-4, position_lr_final: float = 1.6e-6,
                        feature_lr: float = 2.5e-3, opacity_lr: float = 2.5e-2, scaling_lr: float = 5e-3,
                        rotation_lr: float = 1e-3) -> None:
+        # opacity_lr 2.5e-2 is graphdeco's arguments today; its first release (2023), gsplat's simple_trainer
+        # and the package's GS3DAdapter use 5e-2 (train_mvgs.py --opacity-lr)
         n = self._xyz.shape[0]
         self.xyz_gradient_accum = torch.zeros((n, 1))
         self.denom = torch.zeros((n, 1))
@@ -203,12 +205,13 @@ class GaussianModel:
                 self._scaling.detach(), self._rotation.detach(), self._opacity.detach(), self.max_radii2D,
                 self.xyz_gradient_accum, self.denom, self.optimizer.state_dict(), self.spatial_lr_scale)
 
-    def restore(self, model_args, iterations: int) -> None:
+    def restore(self, model_args, iterations: int, **lrs) -> None:
+        """As the original's restore(model_args, training_args): lrs are training_setup's."""
         (self.active_sh_degree, xyz, f_dc, f_rest, scaling, rotation, opacity, max_radii2D, accum, denom, opt_state,
          self.spatial_lr_scale) = model_args
         self._xyz, self._features_dc, self._features_rest = (torch.nn.Parameter(t.clone()) for t in (xyz, f_dc, f_rest))
         self._scaling, self._rotation, self._opacity = (torch.nn.Parameter(t.clone()) for t in (scaling, rotation, opacity))
-        self.training_setup(iterations)
+        self.training_setup(iterations, **lrs)
         self.xyz_gradient_accum, self.denom, self.max_radii2D = accum.clone(), denom.clone(), max_radii2D.clone()
         self.optimizer.load_state_dict(opt_state)
 

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 from typing import Optional
@@ -188,16 +189,20 @@ def clone_in_boxes(gaussians: GaussianModel, ctx, world_size_rule: str = "extent
 
 def training(scene, iterations: int, preset: str = "default", seed: int = 0, checkpoint_iterations=(),
              start_checkpoint=None, out: Path = Path("out/graphdeco_loop"), lambda_dssim: float = 0.2,
-             views=None, world_size_rule: str = "extent", reset_scope: str = "all", **overrides):
+             views=None, world_size_rule: str = "extent", reset_scope: str = "all", opacity_lr: float = 2.5e-2,
+             **overrides):
     """Returns the trained GaussianModel and a log of what ran (densify / reset steps).
     views: M of the full-resolution stage (coarser stages keep their ratio), None: the preset's;
     world_size_rule "extent" (3DGS) or "distance" (too_large); reset_scope "all" (3DGS) or
-    "inside" (resets spare the Gaussians beyond the far line: reset_opacity);
+    "inside" (resets spare the Gaussians beyond the far line: reset_opacity); opacity_lr: Adam's step
+    on the opacity logits (graphdeco's 2.5e-2; 5e-2 in its 2023 release and the package's GS3DAdapter);
     overrides: MVGSConfig fields given to the preset (e.g. crd=CRDConfig(enabled=True))."""
     if world_size_rule not in ("extent", "distance"):
         raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {world_size_rule!r}")
     if reset_scope not in ("all", "inside"):
         raise ValueError(f"reset_scope must be 'all' or 'inside', got {reset_scope!r}")
+    if not (isinstance(opacity_lr, (int, float)) and math.isfinite(opacity_lr) and opacity_lr > 0):
+        raise ValueError(f"opacity_lr must be a finite number > 0, got {opacity_lr!r}")
     torch.manual_seed(seed)
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
@@ -211,12 +216,12 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
     gaussians = GaussianModel(sh_degree=3)
     gaussians.create_from_pcd(xyz, rgb, spatial_lr_scale=scene.extent)
     clock_length = schedule.config.clock_length  # MVGS: the schedules' length (steps, or work on a work clock)
-    gaussians.training_setup(clock_length)
+    gaussians.training_setup(clock_length, opacity_lr=opacity_lr)
     grad_sq = torch.zeros(len(xyz))  # MVGS: each visit's squared gradient, for the budget's score
     if start_checkpoint:
         model_params, first_iter, schedule_state, rng, *rest = load_checked(str(start_checkpoint))
         grad_sq = rest[0] if rest else torch.zeros(len(model_params[1]))  # MVGS (a checkpoint from before: none)
-        gaussians.restore(model_params, clock_length)
+        gaussians.restore(model_params, clock_length, opacity_lr=opacity_lr)
         schedule.load_state_dict(schedule_state)  # MVGS
         torch.set_rng_state(rng)
     log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": [],
@@ -239,7 +244,7 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
                 if mask is not None:
                     image, gt_image = image * mask, gt_image * mask
                 Ll1 = l1_loss(image, gt_image)
-                loss = (1.0 - lambda_dssim) * Ll1 + lambda_dssim * (1.0 - ssim(image, gt_image))
+                loss = (1.0 - lambda_dssim) * Ll1 + lambda_dssim * (1.0 - ssim(image, gt_image, padding="zero"))  # 3DGS's SSIM
                 (plan.weight * loss).backward()  # MVGS: the step's loss is the weighted sum over its views
                 plan.record([image], [gt_image])  # MVGS: cross-ray densification's loss maps
                 if collect_stats:
@@ -324,6 +329,10 @@ if __name__ == "__main__":
                     help="which opacities a reset caps: all is 3DGS's; inside is train_3dgs.py's, the far background "
                          "(beyond 3/4 of the initial points' farthest distance from the rig's centre) kept as it is "
                          "(default: all)")
+    ap.add_argument("--opacity-lr", type=float_above(0), default=2.5e-2, metavar="LR",
+                    help="Adam's learning rate on the opacity logits: 2.5e-2 is graphdeco's train.py today, 5e-2 its "
+                         "2023 release's and train_3dgs.py's; with a few thousand steps (resets 300 apart) 5e-2 lets "
+                         "opacities recover between resets (docs/gsplat_loop.md) (default: 2.5e-2)")
     args = ap.parse_args()
     try:  # a scene without points gets them (triangulated, else drawn where the cameras look)
         scene = load_scene(args.data, images=args.images, background=scene_background(args),
@@ -338,11 +347,13 @@ if __name__ == "__main__":
         budget["grad_threshold_width"] = args.threshold_width or None
     cpu, wall = time.process_time(), time.perf_counter()
     model, log = training(scene, args.steps, args.preset, seed=args.seed, views=args.views,
-                          world_size_rule=args.world_size_rule, reset_scope=args.opacity_reset_scope, **random_bg, **budget)
+                          world_size_rule=args.world_size_rule, reset_scope=args.opacity_reset_scope,
+                          opacity_lr=args.opacity_lr, **random_bg, **budget)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     metrics = {"psnr": evaluate(model, scene), "num_gaussians": model.get_xyz.shape[0], "most_held": max(log["counts"]),
                "max_gaussians": args.max_gaussians, "background_points": args.background_points,
-               "world_size_rule": args.world_size_rule, "opacity_reset_scope": args.opacity_reset_scope, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
+               "world_size_rule": args.world_size_rule, "opacity_reset_scope": args.opacity_reset_scope,
+               "opacity_lr": args.opacity_lr, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
                "densify_calls": len(log["densify"]), "resets": log["reset"], "from_boxes": log["from_boxes"],
                "dropped_by_budget": log["dropped_by_budget"],
                "spared_by_reset": log["spared_by_reset"], "kept_by_distance": log["kept_by_distance"], "cpu_seconds": cpu, "train_seconds": wall}
