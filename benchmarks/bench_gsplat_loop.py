@@ -43,6 +43,7 @@ import json
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,7 +95,7 @@ def budget_table(args, loop: str) -> str:
     presets = ["baseline", *[p for p in args.presets if p != "baseline"]]
     if loop == "graphdeco":
         share, width, name = args.graphdeco_budget, args.threshold_width, "the graphdeco-shaped loop"
-        runner = lambda *a: run_graphdeco(*a, opacity_lr=args.opacity_lr)  # noqa: E731
+        runner = partial(run_graphdeco, opacity_lr=args.opacity_lr)
     else:
         from mvgs_plugin.data import load_scene
 

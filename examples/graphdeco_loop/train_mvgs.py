@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 from typing import Optional
@@ -51,6 +50,7 @@ from gaussian_model import GaussianModel, inverse_sigmoid, render
 from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.adapters.gs3d import (OPACITY_RESET_SCOPES, WORLD_SIZE_RULES, beyond_far_line, consistency_of,
                                        even_cut_order, farthest_distance, growth_that_fits, world_size_limit)
+from mvgs_plugin.checks import check_float
 from mvgs_plugin.config import MAX_SEED, PRESETS
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.init import is_forward_facing
@@ -197,12 +197,11 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
     "inside" (resets spare the Gaussians beyond the far line: reset_opacity); opacity_lr: Adam's step
     on the opacity logits (graphdeco's 2.5e-2; 5e-2 in its 2023 release and the package's GS3DAdapter);
     overrides: MVGSConfig fields given to the preset (e.g. crd=CRDConfig(enabled=True))."""
-    if world_size_rule not in ("extent", "distance"):
-        raise ValueError(f"world_size_rule must be 'extent' or 'distance', got {world_size_rule!r}")
-    if reset_scope not in ("all", "inside"):
-        raise ValueError(f"reset_scope must be 'all' or 'inside', got {reset_scope!r}")
-    if not (isinstance(opacity_lr, (int, float)) and math.isfinite(opacity_lr) and opacity_lr > 0):
-        raise ValueError(f"opacity_lr must be a finite number > 0, got {opacity_lr!r}")
+    if world_size_rule not in WORLD_SIZE_RULES:
+        raise ValueError(f"world_size_rule must be one of {', '.join(map(repr, WORLD_SIZE_RULES))}, got {world_size_rule!r}")
+    if reset_scope not in OPACITY_RESET_SCOPES:
+        raise ValueError(f"reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, got {reset_scope!r}")
+    opacity_lr = check_float("opacity_lr", opacity_lr, positive=True)
     torch.manual_seed(seed)
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
