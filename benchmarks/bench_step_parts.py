@@ -6,8 +6,10 @@ checkpoint's model is rendered at every training view at full resolution, its lo
 0.2 D-SSIM, the loop's) backpropagated and an Adam step taken, one thread, and the reference
 renderer's compiled parts are timed apart: projection, depth binning, compositing (forward and
 backward). Beside the times: the Gaussians, those visible per view, the tile-Gaussian pairs per
-view (the rasterizer's lists), and the screen area the visible ones cover (their 3-sigma boxes
-clipped to the image, summed, per pixel).
+view (the rasterizer's lists), the screen area the visible ones cover (their 3-sigma boxes
+clipped to the image, summed, per pixel), and the Gaussians the image formation blends per pixel
+(alpha >= 1/255 before the pixel stops; counted densely in float64 at each training view, in
+the warm-up pass: the compositing's work per pixel follows it).
 
     python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --threads 1 --save-steps 3000 --out out/a [...]
     python benchmarks/bench_step_parts.py out/a/ckpt_3000.pt out/b/ckpt_3000.pt [--data SCENE] [--repeats 2]
@@ -79,6 +81,55 @@ def covered_per_pixel(info, width: int, height: int) -> float:
     return float((wx * wy)[seen].sum()) / (width * height)
 
 
+def contributors_per_pixel(info, width: int, height: int, chunk: int = 256):
+    """Per pixel of a one-camera info: how many Gaussians the image formation blends (alpha >= 1/255,
+    before the transmittance would fall below 1e-4), and the transmittance left. Computed densely
+    here, in float64, tile by tile: every visible Gaussian whose 3-sigma radius reaches the tile
+    (the rules' tile lists, made here from the radii) against every pixel of it, in depth order;
+    not by the renderer's kernels, whose work per pixel is about this count (twice: forward and
+    backward). Returns (counts [H, W], transmittance [H, W])."""
+    seen = (info["radii"][0] > 0).all(-1)
+    order = torch.argsort(info["depths"][0][seen], stable=True)
+    m = info["means2d"].detach()[0][seen][order].double()
+    q = info["conics"].detach()[0][seen][order].double()
+    o = info["opacities"].detach()
+    o = (o[0] if o.dim() == 2 else o)[seen][order].double()
+    tile = int(info["tile_size"])
+    r = info["radii"][0][seen][order][:, :1].double()
+    lo = torch.floor((m - r) / tile)  # the tile range of a radius (project.cpp's rects): [lo, hi)
+    hi = torch.floor((m + r + tile - 1) / tile)
+    counts = torch.zeros(height, width, dtype=torch.float64)
+    trans = torch.ones(height, width, dtype=torch.float64)
+    for ty in range(-(-height // tile)):
+        for tx in range(-(-width // tile)):
+            ys, xs = torch.meshgrid(torch.arange(ty * tile, min(height, (ty + 1) * tile), dtype=torch.float64) + 0.5,
+                                    torch.arange(tx * tile, min(width, (tx + 1) * tile), dtype=torch.float64) + 0.5,
+                                    indexing="ij")
+            px, py = xs.reshape(-1), ys.reshape(-1)
+            ids = torch.nonzero((lo[:, 0] <= tx) & (tx < hi[:, 0]) & (lo[:, 1] <= ty) & (ty < hi[:, 1]))[:, 0]
+            t_pix = torch.ones_like(px)
+            n_pix = torch.zeros_like(px)
+            stopped = torch.zeros_like(px, dtype=torch.bool)
+            for i in range(0, len(ids), chunk):
+                g = ids[i:i + chunk]
+                dx = m[g, 0, None] - px
+                dy = m[g, 1, None] - py
+                sigma = 0.5 * (q[g, 0, None] * dx * dx + q[g, 2, None] * dy * dy) + q[g, 1, None] * dx * dy
+                alpha = torch.clamp(o[g, None] * torch.exp(-sigma), max=0.999)
+                alpha = torch.where((sigma >= 0) & (alpha >= 1.0 / 255.0), alpha, torch.zeros_like(alpha))
+                after = t_pix * torch.cumprod(1.0 - alpha, dim=0)
+                # the transmittance only falls: from the Gaussian that would take it below 1e-4 on,
+                # nothing is blended, so a blended Gaussian is one that leaves it at 1e-4 or above,
+                # in a pixel no earlier chunk stopped
+                blended = (alpha > 0) & (after >= 1e-4) & ~stopped
+                stopped = stopped | ((alpha > 0) & (after < 1e-4)).any(0)
+                n_pix += blended.sum(0)
+                t_pix = torch.where(blended, after, torch.full_like(after, 2.0)).amin(0).clamp(max=1.0).minimum(t_pix)
+            counts[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = n_pix.reshape(xs.shape)
+            trans[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = t_pix.reshape(xs.shape)
+    return counts, trans
+
+
 def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:
     """One checkpoint's row: counts and CPU ms per full-resolution training view."""
     saved = load_checked(str(ckpt))
@@ -92,6 +143,7 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
     views = common.Dataset(parser, "train")
     parts = collections.defaultdict(float)
     counts = collections.defaultdict(float)
+    blended = [0.0, 0]
     n = 0
     for rep in range(repeats + 1):
         timed = rep > 0  # the first pass warms up
@@ -112,6 +164,9 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
                     opt.step()
                     opt.zero_grad(set_to_none=True)
                 c4 = time.process_time()
+                if not timed:  # once per view, outside the timed passes
+                    blended[0] += float(contributors_per_pixel(info, w, h)[0].mean())
+                    blended[1] += 1
                 if timed:
                     n += 1
                     parts["render"] += c1 - c0
@@ -127,16 +182,17 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
     row = {"checkpoint": str(ckpt), "gaussians": len(splats["means"]), "views": n}
     row.update({k: 1000.0 * v / n for k, v in parts.items()})
     row.update({k: v / n for k, v in counts.items()})
+    row["blended"] = blended[0] / max(blended[1], 1)
     row["total"] = row["render"] + row["loss"] + row["backward"] + row["adam"]
     return row
 
 
 def table(rows: List[Dict[str, float]]) -> str:
-    lines = ["| checkpoint | Gaussians | visible / view | tile pairs / view | covered / pixel | project | bin | "
+    lines = ["| checkpoint | Gaussians | visible / view | tile pairs / view | covered / pixel | blended / pixel | project | bin | "
              "composite fwd | loss | composite bwd | project bwd | Adam | whole view (ms) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['checkpoint']} | {r['gaussians']} | {r['visible']:.0f} | {r['pairs']:.0f} | {r['covered']:.1f} | "
+        lines.append(f"| {r['checkpoint']} | {r['gaussians']} | {r['visible']:.0f} | {r['pairs']:.0f} | {r['covered']:.1f} | {r['blended']:.1f} | "
                      + " | ".join(f"{r.get(k, 0.0):.2f}" for k in ("k_project_forward", "k_bin_by_depth", "k_forward", "loss",
                                                                      "k_backward", "k_project_backward", "adam"))
                      + f" | {r['total']:.2f} |")

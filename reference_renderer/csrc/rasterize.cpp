@@ -173,14 +173,28 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
 // pixel) measured fastest: 6 % under 2 x 2 blocks and 13 % under 4 x 4 for 8 views of 128 px
 // and 10k Gaussians, equal for 48 views of 16 px (benchmarks/bench_step.py's scene). Neither changes the image:
 // a Gaussian left out has alpha < 1/255 at the pixel, and a stopped pixel takes nothing more.
+// A block's list is a bit mask over the batch (kBatch / 64 words; 8 KiB for a 16 x 16 tile, so
+// it stays in the L1 cache), walked in bit order, which is depth order: growing per-pixel
+// vectors spent 15-20 % of the compositing in their capacity checks (perf, 2026-11-30).
 constexpr int64_t kBlock = 1;
 constexpr int64_t kBatch = 256;
+constexpr int64_t kWords = kBatch / 64;
+
+// Calls fn(k) for every set bit k of a block's mask, in increasing order, until fn returns false.
+template <typename Fn>
+inline void for_each_bit(const uint64_t* mask, Fn&& fn) {
+    for (int64_t w = 0; w < kWords; ++w) {
+        for (uint64_t bits = mask[w]; bits != 0; bits &= bits - 1) {
+            if (!fn(static_cast<int32_t>(w * 64 + __builtin_ctzll(bits)))) return;
+        }
+    }
+}
 
 // Pixel range of a tile and the lists of one batch per pixel block (indices into the batch).
 template <typename T>
 struct Blocks {
     int64_t bx = 0, by = 0, x_begin = 0, y_begin = 0, x_end = 0, y_end = 0;
-    std::vector<std::vector<int32_t>> lists;
+    std::vector<uint64_t> masks;  // [blocks, kWords]: bit k set when batch Gaussian k may reach the block
 
     void set_tile(const Grid& grid, int64_t tx, int64_t ty) {
         x_begin = tx * grid.tile;
@@ -189,7 +203,7 @@ struct Blocks {
         y_end = std::min(grid.height, y_begin + grid.tile);
         bx = (x_end - x_begin + kBlock - 1) / kBlock;
         by = (y_end - y_begin + kBlock - 1) / kBlock;
-        if (static_cast<int64_t>(lists.size()) < bx * by) lists.resize(bx * by);
+        if (static_cast<int64_t>(masks.size()) < bx * by * kWords) masks.resize(bx * by * kWords);
     }
     int64_t width() const { return x_end - x_begin; }
     int64_t pixels() const { return (x_end - x_begin) * (y_end - y_begin); }
@@ -197,7 +211,7 @@ struct Blocks {
     void box(double out[4]) const { out[0] = x_begin + 0.5; out[1] = x_end - 0.5; out[2] = y_begin + 0.5; out[3] = y_end - 0.5; }
 
     void build(const TileSplats<T>& splats) {
-        for (int64_t i = 0; i < bx * by; ++i) lists[i].clear();
+        std::fill(masks.begin(), masks.begin() + bx * by * kWords, uint64_t(0));
         auto range = [](float lo, float hi, int64_t begin, int64_t n, int64_t& r0, int64_t& r1) {
             // blocks holding a pixel x with lo <= x + 0.5 <= hi (the box is already widened)
             const double first = std::ceil(double(lo) - 0.5) - double(begin);
@@ -210,39 +224,67 @@ struct Blocks {
             int64_t x0, x1, y0, y1;
             range(bb[0], bb[1], x_begin, bx, x0, x1);
             range(bb[2], bb[3], y_begin, by, y0, y1);
+            const uint64_t bit = uint64_t(1) << (k & 63);
+            uint64_t* word = masks.data() + (k >> 6);
             for (int64_t j = y0; j < y1; ++j)
-                for (int64_t i = x0; i < x1; ++i) lists[j * bx + i].push_back(static_cast<int32_t>(k));
+                for (int64_t i = x0; i < x1; ++i) word[(j * bx + i) * kWords] |= bit;
         }
     }
 
-    // fn(x, y, p, list) for every pixel of the tile (p: its index in the tile), block by block.
+    // fn(x, y, p, mask) for every pixel of the tile (p: its index in the tile), block by block.
     template <typename Fn>
     void for_pixels(Fn&& fn) const {
         for (int64_t j = 0; j < by; ++j) {
             for (int64_t i = 0; i < bx; ++i) {
-                const std::vector<int32_t>& list = lists[j * bx + i];
+                const uint64_t* mask = masks.data() + (j * bx + i) * kWords;
                 const int64_t x0 = x_begin + i * kBlock, y0 = y_begin + j * kBlock;
                 for (int64_t y = y0; y < std::min(y_end, y0 + kBlock); ++y)
                     for (int64_t x = x0; x < std::min(x_end, x0 + kBlock); ++x)
-                        fn(x, y, (y - y_begin) * width() + (x - x_begin), list);
+                        fn(x, y, (y - y_begin) * width() + (x - x_begin), mask);
             }
         }
     }
 };
 
+// Per-thread scratch of the compositing passes, reused from tile to tile. Reached through a
+// local reference: a thread_local named inside the per-pixel loops costs a TLS lookup per use
+// in a shared library (2-3 % of a training step, perf, 2026-11-30).
 template <typename T>
-void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d, const T* conics,
+struct Scratch {
+    Blocks<T> blocks;
+    TileSplats<T> splats;
+    std::vector<T> acc, trans;
+    std::vector<int32_t> last;
+    std::vector<uint8_t> done;
+};
+
+template <typename T>
+Scratch<T>& thread_scratch() {
+    thread_local Scratch<T> scratch;
+    return scratch;
+}
+
+// kD > 0: the colour channels as a compile-time constant (the channel loops unroll); 0: D.
+// Only float (the training path) unrolls: in double, the tests' reference precision, the
+// arithmetic stays the generic loop's, rounding and all.
+template <typename T>
+constexpr bool kUnroll = std::is_same<T, float>::value;
+template <typename T, int kD>
+void forward(const Grid& grid, int64_t C, int64_t N, int64_t D_, const T* means2d, const T* conics,
              const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
              const int32_t* ids, T* out_color, T* out_trans, int32_t* out_last, int n_threads) {
+    const int64_t D = kD > 0 ? kD : D_;
     const int64_t n_tiles = grid.n_tiles();
     parallel_for(C * n_tiles, n_threads, [&](int64_t item, int) {
         const int64_t cam = item / n_tiles, t = item % n_tiles;
         const int64_t begin = offsets[item], end = offsets[item + 1];
-        thread_local Blocks<T> blocks;
-        thread_local TileSplats<T> splats;
-        thread_local std::vector<T> acc, trans;
-        thread_local std::vector<int32_t> last;
-        thread_local std::vector<uint8_t> done;
+        Scratch<T>& s = thread_scratch<T>();
+        Blocks<T>& blocks = s.blocks;
+        TileSplats<T>& splats = s.splats;
+        std::vector<T>& acc = s.acc;
+        std::vector<T>& trans = s.trans;
+        std::vector<int32_t>& last = s.last;
+        std::vector<uint8_t>& done = s.done;
         blocks.set_tile(grid, t % grid.tiles_x, t / grid.tiles_x);
         const int64_t n_pix = blocks.pixels();
         acc.assign(n_pix * D, T(0));
@@ -257,29 +299,37 @@ void forward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d
                         opacities, colors, box);
             if (splats.count == 0) continue;
             blocks.build(splats);
-            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>& list) {
+            const T* geo = splats.geo.data();
+            const T* col = splats.color.data();
+            const int64_t* slot = splats.slot.data();
+            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const uint64_t* mask) {
                 if (done[p]) return;
                 const T px = T(x) + T(0.5), py = T(y) + T(0.5);
                 T* a = &acc[p * D];
-                for (int32_t k : list) {
+                T tr = trans[p];
+                int32_t lst = last[p];
+                for_each_bit(mask, [&](int32_t k) {
                     T alpha, raw, dx, dy;
-                    if (!splat_alpha(&splats.geo[k * 7], px, py, alpha, raw, dx, dy)) continue;
-                    const T next = trans[p] * (T(1) - alpha);
+                    if (!splat_alpha(geo + k * 7, px, py, alpha, raw, dx, dy)) return true;
+                    const T next = tr * (T(1) - alpha);
                     if (next < Consts<T>::t_min) {
                         done[p] = 1;
                         --running;
-                        return;
+                        return false;
                     }
-                    const T w = alpha * trans[p];
-                    const T* c = &splats.color[k * D];
+                    const T w = alpha * tr;
+                    const T* c = col + k * D;
                     for (int64_t ch = 0; ch < D; ++ch) a[ch] += w * c[ch];
-                    trans[p] = next;
-                    last[p] = static_cast<int32_t>(splats.slot[k] + 1);
-                }
+                    tr = next;
+                    lst = static_cast<int32_t>(slot[k] + 1);
+                    return true;
+                });
+                trans[p] = tr;
+                last[p] = lst;
             });
         }
         const T* bg = backgrounds + cam * D;
-        blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>&) {
+        blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const uint64_t*) {
             const int64_t pix = (cam * grid.height + y) * grid.width + x;
             for (int64_t ch = 0; ch < D; ++ch) out_color[pix * D + ch] = acc[p * D + ch] + trans[p] * bg[ch];
             out_trans[pix] = trans[p];
@@ -297,11 +347,12 @@ constexpr int64_t kGeoSlots = 8;
 // exact transmittances (no division by 1 - alpha to walk back from the final one). What a
 // contributor hides behind it (later colours and the background) is the pixel's colour minus
 // what it and those before it added: out_color - sum_{j <= k} c_j w_j.
-template <typename T>
-void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2d, const T* conics,
+template <typename T, int kD>
+void backward(const Grid& grid, int64_t C, int64_t N, int64_t D_, const T* means2d, const T* conics,
               const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
               const int32_t* ids, const T* out_color, const T* out_trans, const int32_t* out_last,
               const T* grad_color, const T* grad_alpha, T* isect_grads, int n_threads) {
+    const int64_t D = kD > 0 ? kD : D_;
     const int64_t n_tiles = grid.n_tiles();
     const int64_t slots = kGeoSlots + D;
     parallel_for(C * n_tiles, n_threads, [&](int64_t item, int) {
@@ -310,15 +361,17 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
         if (end == begin) return;
         T* g_tile = isect_grads + begin * slots;
         std::fill(g_tile, g_tile + (end - begin) * slots, T(0));
-        thread_local Blocks<T> blocks;
-        thread_local TileSplats<T> splats;
-        thread_local std::vector<T> trans, added;
+        Scratch<T>& s = thread_scratch<T>();
+        Blocks<T>& blocks = s.blocks;
+        TileSplats<T>& splats = s.splats;
+        std::vector<T>& trans = s.trans;
+        std::vector<T>& added = s.acc;
         blocks.set_tile(grid, t % grid.tiles_x, t / grid.tiles_x);
         const int64_t n_pix = blocks.pixels();
         trans.assign(n_pix, T(1));
         added.assign(n_pix * D, T(0));
         int64_t max_last = 0;
-        blocks.for_pixels([&](int64_t x, int64_t y, int64_t, const std::vector<int32_t>&) {
+        blocks.for_pixels([&](int64_t x, int64_t y, int64_t, const uint64_t*) {
             max_last = std::max<int64_t>(max_last, out_last[(cam * grid.height + y) * grid.width + x]);
         });
         double box[4];
@@ -328,7 +381,10 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
                         opacities, colors, box);
             if (splats.count == 0) continue;
             blocks.build(splats);
-            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const std::vector<int32_t>& list) {
+            const T* geo = splats.geo.data();
+            const T* col = splats.color.data();
+            const int64_t* slot = splats.slot.data();
+            blocks.for_pixels([&](int64_t x, int64_t y, int64_t p, const uint64_t* mask) {
                 const int64_t pix = (cam * grid.height + y) * grid.width + x;
                 const int32_t last = out_last[pix];
                 if (last <= b0) return;
@@ -337,14 +393,15 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
                 const T* gc = grad_color + pix * D;
                 const T* color = out_color + pix * D;
                 T* sum = &added[p * D];
-                for (int32_t k : list) {
-                    if (splats.slot[k] >= last) break;
+                T tr = trans[p];
+                for_each_bit(mask, [&](int32_t k) {
+                    if (slot[k] >= last) return false;
                     T alpha, raw, dx, dy;
-                    const T* q = &splats.geo[k * 7];
-                    if (!splat_alpha(q, px, py, alpha, raw, dx, dy)) continue;
-                    const T* c = &splats.color[k * D];
-                    T* g = g_tile + splats.slot[k] * slots;
-                    const T w = alpha * trans[p];
+                    const T* q = geo + k * 7;
+                    if (!splat_alpha(q, px, py, alpha, raw, dx, dy)) return true;
+                    const T* c = col + k * D;
+                    T* g = g_tile + slot[k] * slots;
+                    const T w = alpha * tr;
                     const T inv_keep = T(1) / (T(1) - alpha);
                     // dL/dalpha: own colour seen through T, minus what it hides behind it (scaled
                     // by 1 / (1 - alpha)); the rendered alpha 1 - T_final grows by T_final / (1 - alpha).
@@ -352,10 +409,10 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
                     for (int64_t ch = 0; ch < D; ++ch) {
                         sum[ch] += c[ch] * w;
                         g[kGeoSlots + ch] += gc[ch] * w;
-                        g_alpha += gc[ch] * (c[ch] * trans[p] - (color[ch] - sum[ch]) * inv_keep);
+                        g_alpha += gc[ch] * (c[ch] * tr - (color[ch] - sum[ch]) * inv_keep);
                     }
-                    trans[p] *= T(1) - alpha;
-                    if (raw > Consts<T>::alpha_max) continue;  // alpha = 0.999 does not depend on o or sigma
+                    tr *= T(1) - alpha;
+                    if (raw > Consts<T>::alpha_max) return true;  // alpha = 0.999 does not depend on o or sigma
                     const T g_sigma = -g_alpha * alpha;
                     const T gu = g_sigma * (q[2] * dx + q[3] * dy);
                     const T gv = g_sigma * (q[3] * dx + q[4] * dy);
@@ -367,7 +424,9 @@ void backward(const Grid& grid, int64_t C, int64_t N, int64_t D, const T* means2
                     g[5] += g_alpha * alpha / q[5];
                     g[6] += std::abs(gu);
                     g[7] += std::abs(gv);
-                }
+                    return true;
+                });
+                trans[p] = tr;
             });
         }
     });
@@ -504,8 +563,9 @@ MVGS_BIN(double, f64)
                                const int32_t* ids, T* out_color, T* out_trans, int32_t* out_last,  \
                                int n_threads) {                                                    \
         const Grid grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile}; \
-        forward<T>(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,    \
-                   out_color, out_trans, out_last, n_threads);                                     \
+        auto run = D == 3 && kUnroll<T> ? &forward<T, 3> : &forward<T, 0>;                                       \
+        run(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,           \
+            out_color, out_trans, out_last, n_threads);                                            \
     }                                                                                              \
     void mvgs_backward_##SUFFIX(int64_t C, int64_t N, int64_t D, int64_t width, int64_t height,    \
                                 int64_t tile, const T* means2d, const T* conics,                    \
@@ -517,8 +577,9 @@ MVGS_BIN(double, f64)
                                 T* grad_opacities, T* grad_colors, T* absgrad_means2d,              \
                                 int n_threads) {                                                   \
         const Grid grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile}; \
-        backward<T>(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,   \
-                    out_color, out_trans, out_last, grad_color, grad_alpha, isect_grads, n_threads); \
+        auto run = D == 3 && kUnroll<T> ? &backward<T, 3> : &backward<T, 0>;                                     \
+        run(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,           \
+            out_color, out_trans, out_last, grad_color, grad_alpha, isect_grads, n_threads);       \
         reduce<T>(grid, C, N, D, offsets, ids, isect_grads, grad_means2d, grad_conics,              \
                   grad_opacities, grad_colors, absgrad_means2d, n_threads);                        \
     }
