@@ -593,13 +593,14 @@ CROWDED = {
     "16x16_rgb": dict(seed=80, n=3000, width=16, height=16),
     "20x12_sh3": dict(seed=81, n=3000, width=20, height=12, sh_degree=3),
     "13x7_rgb_tile8": dict(seed=82, n=2000, width=13, height=7),
+    "40x36_rgb_tile32": dict(seed=83, n=3000, width=40, height=36),  # 1024-pixel tiles, cut at the border
 }
 
 
 @pytest.mark.parametrize("name", list(CROWDED))
 def test_crowded_small_views_cpp_equals_torch_and_dense(name):
     scene = crowded_scene(**CROWDED[name])
-    tile = 8 if name.endswith("tile8") else 16
+    tile = 8 if name.endswith("tile8") else 32 if name.endswith("tile32") else 16
     img_c, acc_c, meta_c, g_c = render("cpp", scene, tile_size=tile)
     img_t, acc_t, meta_t, g_t = render("torch", scene, tile_size=tile)
     assert meta_c["flatten_ids"].numel() >= 1000 * scene["viewmats"].shape[0], "views must be crowded"
