@@ -27,7 +27,7 @@ import collections
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -81,25 +81,37 @@ def covered_per_pixel(info, width: int, height: int) -> float:
     return float((wx * wy)[seen].sum()) / (width * height)
 
 
-def contributors_per_pixel(info, width: int, height: int, chunk: int = 256):
+class Blending(NamedTuple):
+    """What the image formation blends at one view (contributors_per_pixel)."""
+    counts: torch.Tensor  # [H, W] Gaussians blended at each pixel
+    trans: torch.Tensor   # [H, W] transmittance left at each pixel
+    pairs: torch.Tensor   # [N] pixels each Gaussian is blended at (0 where not visible)
+    weight: torch.Tensor  # [N] its blend weight alpha * T summed over those pixels
+
+
+def contributors_per_pixel(info, width: int, height: int, chunk: int = 256) -> Blending:
     """Per pixel of a one-camera info: how many Gaussians the image formation blends (alpha >= 1/255,
-    before the transmittance would fall below 1e-4), and the transmittance left. Computed densely
-    here, in float64, tile by tile: every visible Gaussian whose 3-sigma radius reaches the tile
-    (the rules' tile lists, made here from the radii) against every pixel of it, in depth order;
-    not by the renderer's kernels, whose work per pixel is about this count (twice: forward and
-    backward). Returns (counts [H, W], transmittance [H, W])."""
+    before the transmittance would fall below 1e-4), and the transmittance left; per Gaussian: at
+    how many pixels it is blended and its summed blend weight (alpha x the transmittance in front
+    of it). Computed densely here, in float64, tile by tile: every visible Gaussian whose 3-sigma
+    radius reaches the tile (the rules' tile lists, made here from the radii) against every pixel
+    of it, in depth order; not by the renderer's kernels, whose work per pixel is about this count
+    (twice: forward and backward)."""
     seen = (info["radii"][0] > 0).all(-1)
-    order = torch.argsort(info["depths"][0][seen], stable=True)
-    m = info["means2d"].detach()[0][seen][order].double()
-    q = info["conics"].detach()[0][seen][order].double()
+    gid = torch.nonzero(seen)[:, 0][torch.argsort(info["depths"][0][seen], stable=True)]
+    m = info["means2d"].detach()[0][gid].double()
+    q = info["conics"].detach()[0][gid].double()
     o = info["opacities"].detach()
-    o = (o[0] if o.dim() == 2 else o)[seen][order].double()
+    o = (o[0] if o.dim() == 2 else o)[gid].double()
     tile = int(info["tile_size"])
-    r = info["radii"][0][seen][order][:, :1].double()
+    r = info["radii"][0][gid][:, :1].double()
     lo = torch.floor((m - r) / tile)  # the tile range of a radius (project.cpp's rects): [lo, hi)
     hi = torch.floor((m + r + tile - 1) / tile)
     counts = torch.zeros(height, width, dtype=torch.float64)
     trans = torch.ones(height, width, dtype=torch.float64)
+    n_all = info["means2d"].shape[1]
+    pairs = torch.zeros(n_all, dtype=torch.float64)
+    weight = torch.zeros(n_all, dtype=torch.float64)
     for ty in range(-(-height // tile)):
         for tx in range(-(-width // tile)):
             ys, xs = torch.meshgrid(torch.arange(ty * tile, min(height, (ty + 1) * tile), dtype=torch.float64) + 0.5,
@@ -117,17 +129,21 @@ def contributors_per_pixel(info, width: int, height: int, chunk: int = 256):
                 sigma = 0.5 * (q[g, 0, None] * dx * dx + q[g, 2, None] * dy * dy) + q[g, 1, None] * dx * dy
                 alpha = torch.clamp(o[g, None] * torch.exp(-sigma), max=0.999)
                 alpha = torch.where((sigma >= 0) & (alpha >= 1.0 / 255.0), alpha, torch.zeros_like(alpha))
-                after = t_pix * torch.cumprod(1.0 - alpha, dim=0)
+                keep = torch.cumprod(1.0 - alpha, dim=0)
+                after = t_pix * keep
+                before = t_pix * torch.cat([torch.ones_like(keep[:1]), keep[:-1]])
                 # the transmittance only falls: from the Gaussian that would take it below 1e-4 on,
                 # nothing is blended, so a blended Gaussian is one that leaves it at 1e-4 or above,
                 # in a pixel no earlier chunk stopped
                 blended = (alpha > 0) & (after >= 1e-4) & ~stopped
                 stopped = stopped | ((alpha > 0) & (after < 1e-4)).any(0)
                 n_pix += blended.sum(0)
+                pairs.index_add_(0, gid[g], blended.sum(1).double())
+                weight.index_add_(0, gid[g], torch.where(blended, alpha * before, torch.zeros_like(alpha)).sum(1))
                 t_pix = torch.where(blended, after, torch.full_like(after, 2.0)).amin(0).clamp(max=1.0).minimum(t_pix)
             counts[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = n_pix.reshape(xs.shape)
             trans[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = t_pix.reshape(xs.shape)
-    return counts, trans
+    return Blending(counts, trans, pairs, weight)
 
 
 def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:
@@ -165,7 +181,7 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
                     opt.zero_grad(set_to_none=True)
                 c4 = time.process_time()
                 if not timed:  # once per view, outside the timed passes
-                    blended[0] += float(contributors_per_pixel(info, w, h)[0].mean())
+                    blended[0] += float(contributors_per_pixel(info, w, h).counts.mean())
                     blended[1] += 1
                 if timed:
                     n += 1
@@ -199,20 +215,31 @@ def table(rows: List[Dict[str, float]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> str:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def checkpoint_arguments(doc: str, argv=None, more=None, check=None):
+    """The arguments of a script that measures checkpoints of the gsplat loop (this one and
+    probe_blend_weight.py): checkpoints, --data, --repeats (more(ap) adds its own, check(ap, args)
+    checks them), checked; one thread set. Returns (args, the scene's common.Parser)."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("checkpoints", type=Path, nargs="+", help="ckpt_<step>.pt files of the gsplat loop")
     ap.add_argument("--data", type=Path, default=ROOT / "examples" / "scenes" / "tabletop",
                     help="the scene they were trained on (default: the bundled tabletop)")
     ap.add_argument("--repeats", type=int, default=2, help="timed passes over the training views (default: 2)")
+    if more is not None:
+        more(ap)
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error(f"--repeats {args.repeats}: at least 1")
+    if check is not None:
+        check(ap, args)
     missing = [str(p) for p in args.checkpoints if not p.is_file()]
     if missing:
         ap.error(f"no such checkpoint: {', '.join(missing)}")
     torch.set_num_threads(1)
-    parser = common.Parser(args.data)
+    return args, common.Parser(args.data)
+
+
+def main(argv=None) -> str:
+    args, parser = checkpoint_arguments(__doc__, argv)
     rows = [measure(ckpt, parser, args.repeats) for ckpt in args.checkpoints]
     text = (f"Scene: {args.data}; CPU ms per full-resolution training view, one thread, {args.repeats} timed "
             "passes; project / bin / composite / project bwd are the reference renderer's compiled kernels.\n\n"

@@ -84,7 +84,7 @@ def test_blended_count_of_a_stack_is_where_the_transmittance_stops():
     # At pixel (6, 4), two pixels off, sigma = 0.5 * 4 * 0.5 = 1 (conic a = 0.5): alpha =
     # 0.5 e^-1 each, so k are blended while (1 - 0.5 e^-1)**k >= 1e-4.
     n = 20
-    counts, trans = bench_step_parts.contributors_per_pixel(
+    counts, trans, pairs, weight = bench_step_parts.contributors_per_pixel(
         _info([[4.5, 4.5]] * n, [[0.5, 0.0, 0.5]] * n, [0.5] * n, list(range(1, n + 1))), 9, 9, chunk=6)
     assert counts[4, 4] == 13
     assert float(trans[4, 4]) == pytest.approx(0.5 ** 13, rel=1e-9)
@@ -95,6 +95,14 @@ def test_blended_count_of_a_stack_is_where_the_transmittance_stops():
     assert float(trans[4, 6]) == pytest.approx((1.0 - a) ** expected, rel=1e-6)
     # a pixel corner far from the centre: sigma = 0.5 * 0.5 * (16 + 16) = 8, alpha = 0.5 e^-8 < 1/255
     assert counts[0, 0] == 0 and float(trans[0, 0]) == 1.0
+    # per Gaussian: the front one is blended wherever any is, and carries alpha there (T = 1 in
+    # front of it); the 14th is blended nowhere near the centre
+    front = torch.tensor([0.5 * math.exp(-0.5 * 0.5 * ((x + 0.5 - 4.5) ** 2 + (y + 0.5 - 4.5) ** 2))
+                          for y in range(9) for x in range(9)], dtype=torch.float64)
+    front = front[front >= 1.0 / 255.0]
+    assert int(pairs[0]) == len(front)
+    assert float(weight[0]) == pytest.approx(float(front.sum()), rel=1e-6)
+    assert pairs[13] < pairs[0]
 
 
 def test_blended_count_agrees_with_the_renderers_transmittance(checkpoint):
@@ -108,7 +116,7 @@ def test_blended_count_agrees_with_the_renderers_transmittance(checkpoint):
             means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
             opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
             viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h, sh_degree=degree)
-    counts, trans = bench_step_parts.contributors_per_pixel(info, w, h, chunk=37)
+    counts, trans, pairs, weight = bench_step_parts.contributors_per_pixel(info, w, h, chunk=37)
     rendered = 1.0 - alpha[0, ..., 0].double()
     # every blended Gaussian takes at least 1/255 of what is left: a count off by one would move
     # the transmittance by 0.4 % of itself (a count that ignores the tile lists is off by one in
@@ -116,3 +124,8 @@ def test_blended_count_agrees_with_the_renderers_transmittance(checkpoint):
     assert torch.allclose(trans, rendered, rtol=1e-3, atol=1e-6)
     assert counts.min() >= 0 and counts.max() <= int((info["radii"] > 0).all(-1).sum())
     assert counts.mean() > 1.0
+    # the per-Gaussian sums add up to the per-pixel ones: pairs to the counts, weights to the
+    # opacity each pixel reached (1 - T: what is not transmitted was blended)
+    assert float(pairs.sum()) == float(counts.sum())
+    assert float(weight.sum()) == pytest.approx(float((1.0 - trans).sum()), rel=1e-9)
+    assert bool((pairs[~(info["radii"][0] > 0).all(-1)] == 0).all())

@@ -1,0 +1,130 @@
+"""Which Gaussians of a trained model cost compositing work and give the image little: a probe.
+
+Per Gaussian, summed over the training views: the pixels it is blended at (alpha >= 1/255 before
+the pixel stops: the compositing kernels' work, forward and backward) and its blend weight there
+(alpha x the transmittance in front of it: its share of the pixels' colours). Ordered by weight
+per blended pixel, the Gaussians that carry the lowest `share` of all the weight are removed
+(those never blended first), and the model without them is measured as it is, not retrained:
+the pixels they took, the Gaussians blended per pixel, the test PSNR and a training view's CPU
+(benchmarks/bench_step_parts.py's clock: render, loss, backward, Adam at lr 0, one thread).
+
+    python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --threads 1 --save-steps 3000 --out out/a [...]
+    python benchmarks/probe_blend_weight.py out/a/ckpt_3000.pt [--data SCENE] [--shares 0.0025 0.005 0.01] [--repeats 2]
+
+Counted densely in float64 (bench_step_parts.contributors_per_pixel), so a 128 px scene of 48
+views takes about 10 s per model; the test PSNR is the mean over the test views of the clamped
+render against the image.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
+
+import bench_step_parts  # noqa: E402
+import common  # noqa: E402
+from mvgs_plugin.io import load_checked, save_checked  # noqa: E402
+
+
+def _render(splats, cfg, parser, d, degree):
+    h, w = d["image"].shape[:2]
+    with torch.no_grad():
+        return common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None], d["K"][None], w, h,
+                                       sh_degree=degree)
+
+
+def test_psnr(splats, cfg, parser, degree) -> float:
+    """Mean over the test views of the clamped render's PSNR against the image."""
+    views = common.Dataset(parser, "test")
+    total = 0.0
+    for i in range(len(views)):
+        d = views[i]
+        colors, _, _ = _render(splats, cfg, parser, d, degree)
+        mse = ((colors[0].clamp(0, 1) - d["image"] / 255.0) ** 2).mean().clamp_min(1e-20)
+        total += float(-10.0 * torch.log10(mse))
+    return total / len(views)
+
+
+def probe(ckpt: Path, parser, shares: List[float], repeats: int) -> List[Dict[str, float]]:
+    saved = load_checked(str(ckpt))
+    if not (isinstance(saved, dict) and "splats" in saved):
+        raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
+    raw = saved["splats"]
+    splats = {k: v.float() for k, v in raw.items()}
+    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
+    cfg = common.Config(sh_degree=degree)
+    cfg.make_strategy()
+    views = common.Dataset(parser, "train")
+    n = len(splats["means"])
+    pairs = torch.zeros(n, dtype=torch.float64)
+    weight = torch.zeros(n, dtype=torch.float64)
+    for i in range(len(views)):
+        d = views[i]
+        h, w = d["image"].shape[:2]
+        _, _, info = _render(splats, cfg, parser, d, degree)
+        b = bench_step_parts.contributors_per_pixel(info, w, h)
+        pairs += b.pairs
+        weight += b.weight
+    # least weight per blended pixel first; never blended (no pixels, no weight) before all
+    order = torch.argsort(weight / pairs.clamp_min(1.0), stable=True)
+    cum = torch.cumsum(weight[order], 0) / weight.sum()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for share in [0.0, *shares]:
+            k = int((cum <= share).sum()) if share > 0 else 0
+            keep = torch.ones(n, dtype=torch.bool)
+            keep[order[:k]] = False
+            kept = {name: v[keep] for name, v in splats.items()}
+            path = Path(tmp) / f"share_{share}.pt"
+            save_checked({"step": saved.get("step", 0), "splats": {name: v[keep].clone() for name, v in raw.items()}},
+                         str(path))
+            timed = bench_step_parts.measure(path, parser, repeats)
+            rows.append({"checkpoint": str(ckpt), "share": share, "removed": k, "gaussians": n - k,
+                         "removed_weight": float(weight[~keep].sum() / weight.sum()),
+                         "removed_pairs": float(pairs[~keep].sum() / pairs.sum()),
+                         "blended": timed["blended"], "psnr": test_psnr(kept, cfg, parser, degree),
+                         "view_ms": timed["total"]})
+    return rows
+
+
+def table(rows: List[Dict[str, float]]) -> str:
+    lines = ["| checkpoint | weight share removed (asked / removed) | Gaussians removed | kept | pixels they were blended at "
+             "| blended / pixel | test PSNR, not retrained | training view (ms) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['checkpoint']} | {r['share']:.2%} / {r['removed_weight']:.2%} | {r['removed']} | "
+                     f"{r['gaussians']} | {r['removed_pairs']:.1%} | {r['blended']:.1f} | {r['psnr']:.3f} | "
+                     f"{r['view_ms']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _shares(ap):
+    ap.add_argument("--shares", type=float, nargs="+", default=[0.0025, 0.005, 0.01],
+                    help="shares of the summed blend weight to remove (default: 0.0025 0.005 0.01)")
+
+
+def _check_shares(ap, args):
+    bad = [s for s in args.shares if not 0.0 < s < 1.0]
+    if bad:
+        ap.error(f"--shares {bad[0]}: each share must be in (0, 1)")
+
+
+def main(argv=None) -> str:
+    args, parser = bench_step_parts.checkpoint_arguments(__doc__, argv, _shares, _check_shares)
+    rows = [r for ckpt in args.checkpoints for r in probe(ckpt, parser, sorted(args.shares), args.repeats)]
+    text = (f"Scene: {args.data}; one thread; the removed Gaussians carry the least blend weight per blended pixel; "
+            "the models are not retrained.\n\n" + table(rows))
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()

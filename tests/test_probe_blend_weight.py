@@ -1,0 +1,67 @@
+"""benchmarks/probe_blend_weight.py: its rows against quantities computed here (the test PSNR of
+the whole model, the weight the removed Gaussians carry), bad input said by name."""
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+FORWARD = ROOT / "tests" / "data" / "forward64"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
+
+import common  # noqa: E402
+import probe_blend_weight  # noqa: E402
+from mvgs_plugin.io import load_checked  # noqa: E402
+from mvgs_plugin.reference_renderer import rasterization  # noqa: E402
+from test_bench_step_parts import checkpoint  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
+
+
+def _rows(text):
+    return [[c.strip() for c in line.split("|")[1:-1]] for line in text.strip().splitlines()[-3:]]
+
+
+def test_rows_against_a_psnr_and_weights_computed_here(checkpoint):
+    text = probe_blend_weight.main([str(checkpoint), "--data", str(FORWARD), "--shares", "0.01", "0.05",
+                                    "--repeats", "1"])
+    rows = _rows(text)
+    assert [r[1].split(" / ")[0] for r in rows] == ["0.00%", "1.00%", "5.00%"]
+    splats = load_checked(str(checkpoint))["splats"]
+    n = len(splats["means"])
+    # the whole model's test PSNR, rendered here through the renderer's own entry point
+    parser = common.Parser(FORWARD)
+    views = common.Dataset(parser, "test")
+    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
+    bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
+    psnrs = []
+    with torch.no_grad():
+        for i in range(len(views)):
+            d = views[i]
+            h, w = d["image"].shape[:2]
+            img, _, _ = rasterization(
+                means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
+                opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
+                viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
+                sh_degree=degree, backgrounds=bg)
+            psnrs.append(float(-10 * torch.log10(((img[0].clamp(0, 1) - d["image"] / 255.0) ** 2).mean())))
+    assert float(rows[0][6]) == pytest.approx(sum(psnrs) / len(psnrs), abs=2e-3)
+    assert rows[0][2] == "0" and int(rows[0][3]) == n and rows[0][4] == "0.0%"
+    removed = [int(r[2]) for r in rows]
+    assert removed[0] < removed[1] <= removed[2] and all(int(r[2]) + int(r[3]) == n for r in rows)
+    for r in rows[1:]:
+        asked, got = (float(x.rstrip("%")) for x in r[1].split(" / "))
+        assert got <= asked + 1e-6  # the removed Gaussians carry at most the share asked
+        assert float(r[4].rstrip("%")) > got  # and take a larger share of the pixels: least weight per pixel first
+    # fewer Gaussians blended per pixel once they are gone
+    assert float(rows[2][5]) < float(rows[0][5])
+
+
+def test_bad_input_is_named(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        probe_blend_weight.main([str(tmp_path / "none.pt")])
+    assert "no such checkpoint" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        probe_blend_weight.main([str(tmp_path / "none.pt"), "--shares", "1.5"])
+    assert "--shares 1.5: each share must be in (0, 1)" in capsys.readouterr().err
