@@ -10,6 +10,8 @@ the pixels they took, the Gaussians blended per pixel, the test PSNR and a train
 
     python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --threads 1 --save-steps 3000 --out out/a [...]
     python benchmarks/probe_blend_weight.py out/a/ckpt_3000.pt [--data SCENE] [--shares 0.0025 0.005 0.01] [--repeats 2]
+    python benchmarks/probe_blend_weight.py out/a/ckpt_2000.pt --shares 0.0025 --write-pruned out/p   # then:
+    python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --resume out/p/ckpt_2000_pruned_0.0025.pt [...]
 
 Counted densely in float64 (bench_step_parts.contributors_per_pixel), so a 128 px scene of 48
 views takes about 10 s per model; the test PSNR is the mean over the test views of the clamped
@@ -21,7 +23,7 @@ from __future__ import annotations
 import sys
 import tempfile
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import torch
 
@@ -53,7 +55,29 @@ def test_psnr(splats, cfg, parser, degree) -> float:
     return total / len(views)
 
 
-def probe(ckpt: Path, parser, shares: List[float], repeats: int) -> List[Dict[str, float]]:
+def pruned_checkpoint(saved: Dict, keep: torch.Tensor) -> Dict:
+    """The gsplat loop's checkpoint without the Gaussians where keep is False, still resumable:
+    the parameters, their Adam moments and the strategy's per-Gaussian statistics lose the same
+    rows, and the MVGS state's count follows."""
+    n = len(keep)
+    out = dict(saved)
+    out["splats"] = {k: v[keep].clone() for k, v in saved["splats"].items()}
+    optimizers = {}
+    for name, opt in saved["optimizers"].items():
+        state = {i: {k: (v[keep].clone() if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
+                     for k, v in st.items()} for i, st in opt["state"].items()}
+        optimizers[name] = {**opt, "state": state}
+    out["optimizers"] = optimizers
+    out["strategy_state"] = {k: (v[keep].clone() if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
+                             for k, v in saved["strategy_state"].items()}
+    mvgs = dict(saved["data"]["mvgs"])
+    mvgs["count"] = int(keep.sum())
+    out["data"] = {**saved["data"], "mvgs": mvgs}
+    return out
+
+
+def probe(ckpt: Path, parser, shares: List[float], repeats: int,
+          write_to: Optional[Path] = None) -> List[Dict[str, float]]:
     saved = load_checked(str(ckpt))
     if not (isinstance(saved, dict) and "splats" in saved):
         raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
@@ -86,6 +110,8 @@ def probe(ckpt: Path, parser, shares: List[float], repeats: int) -> List[Dict[st
             path = Path(tmp) / f"share_{share}.pt"
             save_checked({"step": saved.get("step", 0), "splats": {name: v[keep].clone() for name, v in raw.items()}},
                          str(path))
+            if write_to is not None and share > 0:
+                save_checked(pruned_checkpoint(saved, keep), str(write_to / f"{ckpt.stem}_pruned_{share}.pt"))
             timed = bench_step_parts.measure(path, parser, repeats)
             rows.append({"checkpoint": str(ckpt), "share": share, "removed": k, "gaussians": n - k,
                          "removed_weight": float(weight[~keep].sum() / weight.sum()),
@@ -109,17 +135,23 @@ def table(rows: List[Dict[str, float]]) -> str:
 def _shares(ap):
     ap.add_argument("--shares", type=float, nargs="+", default=[0.0025, 0.005, 0.01],
                     help="shares of the summed blend weight to remove (default: 0.0025 0.005 0.01)")
+    ap.add_argument("--write-pruned", type=Path, default=None, metavar="DIR",
+                    help="also write each pruned model as a checkpoint the loop resumes (--resume): "
+                         "DIR/<checkpoint>_pruned_<share>.pt (default: none)")
 
 
 def _check_shares(ap, args):
     bad = [s for s in args.shares if not 0.0 < s < 1.0]
     if bad:
         ap.error(f"--shares {bad[0]}: each share must be in (0, 1)")
+    if args.write_pruned is not None and not args.write_pruned.is_dir():
+        ap.error(f"--write-pruned {args.write_pruned}: no such directory")
 
 
 def main(argv=None) -> str:
     args, parser = bench_step_parts.checkpoint_arguments(__doc__, argv, _shares, _check_shares)
-    rows = [r for ckpt in args.checkpoints for r in probe(ckpt, parser, sorted(args.shares), args.repeats)]
+    rows = [r for ckpt in args.checkpoints
+            for r in probe(ckpt, parser, sorted(args.shares), args.repeats, args.write_pruned)]
     text = (f"Scene: {args.data}; one thread; the removed Gaussians carry the least blend weight per blended pixel; "
             "the models are not retrained.\n\n" + table(rows))
     print(text)
