@@ -179,6 +179,7 @@ inline bool splat_alpha(const T* q, T px, T py, T& alpha, T& raw, T& dx, T& dy) 
 constexpr int64_t kBlock = 1;
 constexpr int64_t kBatch = 256;
 constexpr int64_t kWords = kBatch / 64;
+static_assert(kBatch % 64 == 0, "a batch's masks are whole 64-bit words");
 
 // Calls fn(k) for every set bit k of a block's mask, in increasing order, until fn returns false.
 template <typename Fn>
@@ -264,11 +265,12 @@ Scratch<T>& thread_scratch() {
     return scratch;
 }
 
-// kD > 0: the colour channels as a compile-time constant (the channel loops unroll); 0: D.
-// Only float (the training path) unrolls: in double, the tests' reference precision, the
-// arithmetic stays the generic loop's, rounding and all.
+// Only float (the training path) unrolls its colour channels: in double, the tests' reference
+// precision, the arithmetic stays the generic loop's, rounding and all.
 template <typename T>
 constexpr bool kUnroll = std::is_same<T, float>::value;
+
+// kD > 0: the colour channels as a compile-time constant (the channel loops unroll); 0: D.
 template <typename T, int kD>
 void forward(const Grid& grid, int64_t C, int64_t N, int64_t D_, const T* means2d, const T* conics,
              const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
