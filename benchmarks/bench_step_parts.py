@@ -8,8 +8,8 @@ renderer's compiled parts are timed apart: projection, depth binning, compositin
 backward). Beside the times: the Gaussians, those visible per view, the tile-Gaussian pairs per
 view (the rasterizer's lists), the screen area the visible ones cover (their 3-sigma boxes
 clipped to the image, summed, per pixel), and the Gaussians the image formation blends per pixel
-(alpha >= 1/255 before the pixel stops; counted densely in float64 at each training view, in
-the warm-up pass: the compositing's work per pixel follows it).
+(alpha >= 1/255 before the pixel stops; composited again in float64 by the PyTorch backend at
+each training view, in the warm-up pass: the compositing's work per pixel follows it).
 
     python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --threads 1 --save-steps 3000 --out out/a [...]
     python benchmarks/bench_step_parts.py out/a/ckpt_3000.pt out/b/ckpt_3000.pt [--data SCENE] [--repeats 2]
@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
 import common  # noqa: E402
 from mvgs_plugin.io import load_checked  # noqa: E402
 from mvgs_plugin.losses import ssim  # noqa: E402
-from mvgs_plugin.reference_renderer import rendering  # noqa: E402
+from mvgs_plugin.reference_renderer import rasterize_torch, rendering  # noqa: E402
 
 KERNELS = ("project_forward", "bin_by_depth", "forward", "backward", "project_backward")
 
@@ -89,72 +89,62 @@ class Blending(NamedTuple):
     weight: torch.Tensor  # [N] its blend weight alpha * T summed over those pixels
 
 
-def contributors_per_pixel(info, width: int, height: int, chunk: int = 256) -> Blending:
+def contributors_per_pixel(info, width: int, height: int) -> Blending:
     """Per pixel of a one-camera info: how many Gaussians the image formation blends (alpha >= 1/255,
     before the transmittance would fall below 1e-4), and the transmittance left; per Gaussian: at
     how many pixels it is blended and its summed blend weight (alpha x the transmittance in front
-    of it). Computed densely here, in float64, tile by tile: every visible Gaussian whose 3-sigma
-    radius reaches the tile (the rules' tile lists, made here from the radii) against every pixel
-    of it, in depth order; not by the renderer's kernels, whose work per pixel is about this count
-    (twice: forward and backward)."""
-    seen = (info["radii"][0] > 0).all(-1)
-    gid = torch.nonzero(seen)[:, 0][torch.argsort(info["depths"][0][seen], stable=True)]
-    m = info["means2d"].detach()[0][gid].double()
-    q = info["conics"].detach()[0][gid].double()
-    o = info["opacities"].detach()
-    o = (o[0] if o.dim() == 2 else o)[gid].double()
+    of it). Composited again in float64 by the renderer's PyTorch backend (rasterize_torch, its
+    `stats`), over tile lists made here from the info's radii and depths (project.cpp's rule: a
+    3-sigma radius covers the tiles [floor((m - r) / T), floor((m + r + T - 1) / T))), not by the
+    compiled kernels, whose work per pixel is about this count (twice: forward and backward)."""
     tile = int(info["tile_size"])
-    r = info["radii"][0][gid][:, :1].double()
-    lo = torch.floor((m - r) / tile)  # the tile range of a radius (project.cpp's rects): [lo, hi)
-    hi = torch.floor((m + r + tile - 1) / tile)
-    counts = torch.zeros(height, width, dtype=torch.float64)
-    trans = torch.ones(height, width, dtype=torch.float64)
-    n_all = info["means2d"].shape[1]
-    pairs = torch.zeros(n_all, dtype=torch.float64)
-    weight = torch.zeros(n_all, dtype=torch.float64)
-    for ty in range(-(-height // tile)):
-        for tx in range(-(-width // tile)):
-            ys, xs = torch.meshgrid(torch.arange(ty * tile, min(height, (ty + 1) * tile), dtype=torch.float64) + 0.5,
-                                    torch.arange(tx * tile, min(width, (tx + 1) * tile), dtype=torch.float64) + 0.5,
-                                    indexing="ij")
-            px, py = xs.reshape(-1), ys.reshape(-1)
-            ids = torch.nonzero((lo[:, 0] <= tx) & (tx < hi[:, 0]) & (lo[:, 1] <= ty) & (ty < hi[:, 1]))[:, 0]
-            t_pix = torch.ones_like(px)
-            n_pix = torch.zeros_like(px)
-            stopped = torch.zeros_like(px, dtype=torch.bool)
-            for i in range(0, len(ids), chunk):
-                g = ids[i:i + chunk]
-                dx = m[g, 0, None] - px
-                dy = m[g, 1, None] - py
-                sigma = 0.5 * (q[g, 0, None] * dx * dx + q[g, 2, None] * dy * dy) + q[g, 1, None] * dx * dy
-                alpha = torch.clamp(o[g, None] * torch.exp(-sigma), max=0.999)
-                alpha = torch.where((sigma >= 0) & (alpha >= 1.0 / 255.0), alpha, torch.zeros_like(alpha))
-                keep = torch.cumprod(1.0 - alpha, dim=0)
-                after = t_pix * keep
-                before = t_pix * torch.cat([torch.ones_like(keep[:1]), keep[:-1]])
-                # the transmittance only falls: from the Gaussian that would take it below 1e-4 on,
-                # nothing is blended, so a blended Gaussian is one that leaves it at 1e-4 or above,
-                # in a pixel no earlier chunk stopped
-                blended = (alpha > 0) & (after >= 1e-4) & ~stopped
-                stopped = stopped | ((alpha > 0) & (after < 1e-4)).any(0)
-                n_pix += blended.sum(0)
-                pairs.index_add_(0, gid[g], blended.sum(1).double())
-                weight.index_add_(0, gid[g], torch.where(blended, alpha * before, torch.zeros_like(alpha)).sum(1))
-                t_pix = torch.where(blended, after, torch.full_like(after, 2.0)).amin(0).clamp(max=1.0).minimum(t_pix)
-            counts[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = n_pix.reshape(xs.shape)
-            trans[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile] = t_pix.reshape(xs.shape)
-    return Blending(counts, trans, pairs, weight)
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    m = info["means2d"].detach()[:1].double()
+    r = info["radii"][:1, :, :1].double()
+    seen = (info["radii"][:1] > 0).all(-1)
+    lo, hi = torch.floor((m - r) / tile), torch.floor((m + r + tile - 1) / tile)
+    limit = torch.tensor([tiles_x, tiles_y], dtype=torch.float64)
+    lo, hi = torch.minimum(lo.clamp_min(0), limit), torch.minimum(hi.clamp_min(0), limit)
+    rects = torch.stack([lo[..., 0], hi[..., 0], lo[..., 1], hi[..., 1]], -1).long()
+    rects = torch.where(seen[..., None], rects, torch.zeros_like(rects))  # an unseen Gaussian covers no tile
+    order = torch.argsort(info["depths"][:1], dim=-1, stable=True)
+    offsets, ids = rasterize_torch.bin_tiles(rects, order, tiles_x, tiles_y)
+    o = info["opacities"].detach()
+    o = (o[:1] if o.dim() == 2 else o[None]).double()
+    n = m.shape[1]
+    stats: Dict[str, torch.Tensor] = {}
+    with torch.no_grad():
+        _, alpha = rasterize_torch.composite(m, info["conics"].detach()[:1].double(), o,
+                                             torch.zeros(1, n, 1, dtype=torch.float64),
+                                             torch.zeros(1, 1, dtype=torch.float64), offsets, ids, width, height,
+                                             tile, stats=stats)
+    return Blending(stats["counts"][0], 1.0 - alpha[0, ..., 0], stats["pairs"][0], stats["weight"][0])
+
+
+def load_model(ckpt: Path):
+    """A gsplat-loop checkpoint (ValueError naming it if it is not one): (the saved dict, its splats
+    in float32, their SH degree, a loop Config for rendering them)."""
+    saved = load_checked(str(ckpt))
+    if not (isinstance(saved, dict) and "splats" in saved):
+        raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
+    splats = {k: v.float() for k, v in saved["splats"].items()}
+    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
+    cfg = common.Config(sh_degree=degree)
+    cfg.make_strategy()
+    return saved, splats, degree, cfg
+
+
+def render_view(splats, cfg, parser: "common.Parser", d, degree: int):
+    """The loop's render of one training or test item d at its full resolution."""
+    h, w = d["image"].shape[:2]
+    return common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None], d["K"][None], w, h,
+                                   sh_degree=degree)
 
 
 def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:
     """One checkpoint's row: counts and CPU ms per full-resolution training view."""
-    saved = load_checked(str(ckpt))
-    if not (isinstance(saved, dict) and "splats" in saved):
-        raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
-    splats = torch.nn.ParameterDict({k: torch.nn.Parameter(v.float()) for k, v in saved["splats"].items()})
-    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
-    cfg = common.Config(sh_degree=degree)
-    cfg.make_strategy()
+    _, loaded, degree, cfg = load_model(ckpt)
+    splats = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, v in loaded.items()})
     optimizers = {k: torch.optim.Adam([splats[k]], lr=0.0, eps=1e-15) for k in splats}
     views = common.Dataset(parser, "train")
     parts = collections.defaultdict(float)
@@ -169,8 +159,7 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
                 pixels = d["image"][None] / 255.0
                 h, w = pixels.shape[1:3]
                 c0 = time.process_time()
-                colors, _, info = common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None],
-                                                          d["K"][None], w, h, sh_degree=degree)
+                colors, _, info = render_view(splats, cfg, parser, d, degree)
                 c1 = time.process_time()
                 loss = 0.8 * F.l1_loss(colors, pixels) + 0.2 * (1.0 - ssim(colors, pixels, padding="valid"))
                 c2 = time.process_time()

@@ -13,9 +13,9 @@ the pixels they took, the Gaussians blended per pixel, the test PSNR and a train
     python benchmarks/probe_blend_weight.py out/a/ckpt_2000.pt --shares 0.0025 --write-pruned out/p   # then:
     python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --resume out/p/ckpt_2000_pruned_0.0025.pt [...]
 
-Counted densely in float64 (bench_step_parts.contributors_per_pixel), so a 128 px scene of 48
-views takes about 10 s per model; the test PSNR is the mean over the test views of the clamped
-render against the image.
+Counted by compositing again in float64 (bench_step_parts.contributors_per_pixel), so a 128 px
+scene of 48 views takes about a minute per model, and as much again per share; the test PSNR is
+the mean over the test views of the clamped render against the image.
 """
 
 from __future__ import annotations
@@ -33,14 +33,7 @@ sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
 
 import bench_step_parts  # noqa: E402
 import common  # noqa: E402
-from mvgs_plugin.io import load_checked, save_checked  # noqa: E402
-
-
-def _render(splats, cfg, parser, d, degree):
-    h, w = d["image"].shape[:2]
-    with torch.no_grad():
-        return common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None], d["K"][None], w, h,
-                                       sh_degree=degree)
+from mvgs_plugin.io import save_checked  # noqa: E402
 
 
 def test_psnr(splats, cfg, parser, degree) -> float:
@@ -49,43 +42,35 @@ def test_psnr(splats, cfg, parser, degree) -> float:
     total = 0.0
     for i in range(len(views)):
         d = views[i]
-        colors, _, _ = _render(splats, cfg, parser, d, degree)
+        with torch.no_grad():
+            colors, _, _ = bench_step_parts.render_view(splats, cfg, parser, d, degree)
         mse = ((colors[0].clamp(0, 1) - d["image"] / 255.0) ** 2).mean().clamp_min(1e-20)
         total += float(-10.0 * torch.log10(mse))
     return total / len(views)
+
+
+def _rows(v, keep: torch.Tensor):
+    """v without the rows keep drops, when v has a row per Gaussian; v itself otherwise."""
+    return v[keep].clone() if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == len(keep) else v
 
 
 def pruned_checkpoint(saved: Dict, keep: torch.Tensor) -> Dict:
     """The gsplat loop's checkpoint without the Gaussians where keep is False, still resumable:
     the parameters, their Adam moments and the strategy's per-Gaussian statistics lose the same
     rows, and the MVGS state's count follows."""
-    n = len(keep)
     out = dict(saved)
-    out["splats"] = {k: v[keep].clone() for k, v in saved["splats"].items()}
-    optimizers = {}
-    for name, opt in saved["optimizers"].items():
-        state = {i: {k: (v[keep].clone() if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
-                     for k, v in st.items()} for i, st in opt["state"].items()}
-        optimizers[name] = {**opt, "state": state}
-    out["optimizers"] = optimizers
-    out["strategy_state"] = {k: (v[keep].clone() if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
-                             for k, v in saved["strategy_state"].items()}
-    mvgs = dict(saved["data"]["mvgs"])
-    mvgs["count"] = int(keep.sum())
-    out["data"] = {**saved["data"], "mvgs": mvgs}
+    out["splats"] = {k: _rows(v, keep) for k, v in saved["splats"].items()}
+    out["optimizers"] = {name: {**opt, "state": {i: {k: _rows(v, keep) for k, v in st.items()}
+                                                 for i, st in opt["state"].items()}}
+                         for name, opt in saved["optimizers"].items()}
+    out["strategy_state"] = {k: _rows(v, keep) for k, v in saved["strategy_state"].items()}
+    out["data"] = {**saved["data"], "mvgs": {**saved["data"]["mvgs"], "count": int(keep.sum())}}
     return out
 
 
 def probe(ckpt: Path, parser, shares: List[float], repeats: int,
           write_to: Optional[Path] = None) -> List[Dict[str, float]]:
-    saved = load_checked(str(ckpt))
-    if not (isinstance(saved, dict) and "splats" in saved):
-        raise ValueError(f"{ckpt}: not a checkpoint of the gsplat loop (no 'splats')")
-    raw = saved["splats"]
-    splats = {k: v.float() for k, v in raw.items()}
-    degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
-    cfg = common.Config(sh_degree=degree)
-    cfg.make_strategy()
+    saved, splats, degree, cfg = bench_step_parts.load_model(ckpt)
     views = common.Dataset(parser, "train")
     n = len(splats["means"])
     pairs = torch.zeros(n, dtype=torch.float64)
@@ -93,7 +78,8 @@ def probe(ckpt: Path, parser, shares: List[float], repeats: int,
     for i in range(len(views)):
         d = views[i]
         h, w = d["image"].shape[:2]
-        _, _, info = _render(splats, cfg, parser, d, degree)
+        with torch.no_grad():
+            _, _, info = bench_step_parts.render_view(splats, cfg, parser, d, degree)
         b = bench_step_parts.contributors_per_pixel(info, w, h)
         pairs += b.pairs
         weight += b.weight
@@ -106,17 +92,16 @@ def probe(ckpt: Path, parser, shares: List[float], repeats: int,
             k = int((cum <= share).sum()) if share > 0 else 0
             keep = torch.ones(n, dtype=torch.bool)
             keep[order[:k]] = False
-            kept = {name: v[keep] for name, v in splats.items()}
-            path = Path(tmp) / f"share_{share}.pt"
-            save_checked({"step": saved.get("step", 0), "splats": {name: v[keep].clone() for name, v in raw.items()}},
-                         str(path))
-            if write_to is not None and share > 0:
-                save_checked(pruned_checkpoint(saved, keep), str(write_to / f"{ckpt.stem}_pruned_{share}.pt"))
+            # the cut model, resumable; bench_step_parts.measure reads its splats
+            folder = write_to if write_to is not None and share > 0 else Path(tmp)
+            path = folder / f"{ckpt.stem}_pruned_{share}.pt"
+            save_checked(pruned_checkpoint(saved, keep), str(path))
             timed = bench_step_parts.measure(path, parser, repeats)
             rows.append({"checkpoint": str(ckpt), "share": share, "removed": k, "gaussians": n - k,
                          "removed_weight": float(weight[~keep].sum() / weight.sum()),
                          "removed_pairs": float(pairs[~keep].sum() / pairs.sum()),
-                         "blended": timed["blended"], "psnr": test_psnr(kept, cfg, parser, degree),
+                         "blended": timed["blended"], "psnr": test_psnr({name: v[keep] for name, v in splats.items()},
+                                                                       cfg, parser, degree),
                          "view_ms": timed["total"]})
     return rows
 

@@ -8,6 +8,8 @@ is exactly "stop before the one that would take it below"). Runs on any device t
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch import Tensor
 
@@ -57,12 +59,16 @@ def composite(
     height: int,
     tile: int,
     max_pairs: int = 1 << 22,
+    stats: Optional[dict] = None,
 ):
     """Alpha-composites every (camera, tile) list.
 
     Args:
         means2d: [C,N,2]; conics: [C,N,3]; opacities: [C,N]; colors: [C,N,D]; backgrounds: [C,D];
-        offsets, ids: from bin_tiles; max_pairs: pixel-Gaussian pairs evaluated per chunk.
+        offsets, ids: from bin_tiles; max_pairs: pixel-Gaussian pairs evaluated per chunk;
+        stats: a dict to fill with what was blended (benchmarks/bench_step_parts.py): "counts"
+        [C,H,W] Gaussians blended per pixel, "pairs" [C,N] pixels each Gaussian is blended at,
+        "weight" [C,N] its blend weight alpha * T summed over them (not differentiable).
     Returns:
         colour [C,H,W,D] and alpha [C,H,W,1].
     """
@@ -81,7 +87,10 @@ def composite(
 
     flat_m, flat_q = means2d.reshape(C * N, 2), conics.reshape(C * N, 3)
     flat_o, flat_c = opacities.reshape(C * N), colors.reshape(C * N, D)
-    out_rows, out_col, out_trans = [], [], []
+    out_rows, out_col, out_trans, out_count = [], [], [], []
+    if stats is not None:
+        pairs = torch.zeros(C * N, device=device, dtype=dtype)
+        weight = torch.zeros(C * N, device=device, dtype=dtype)
     # Chunks of tiles whose padded pair count stays under max_pairs (counts ascend along busy).
     sorted_counts = counts[busy].tolist()
     chunks, start = [], 0
@@ -118,6 +127,11 @@ def composite(
         col = torch.einsum("bpk,bkd->bpd", weights, flat_c[g])
         out_col.append(col.reshape(-1, D))
         out_trans.append(trans_incl[..., -1].reshape(-1))
+        if stats is not None:
+            with torch.no_grad():
+                out_count.append(keep.sum(-1).reshape(-1).to(dtype))
+                pairs.index_add_(0, g.reshape(-1), keep.sum(1).reshape(-1).to(dtype))
+                weight.index_add_(0, g.reshape(-1), weights.sum(1).reshape(-1))
         # Flat index of each tile pixel in a [C, TY*T, TX*T] canvas.
         canvas_w = tiles_x * tile
         rows = (cam[:, None] * (tiles_y * tile) + origin[:, None, 1] + iy) * canvas_w
@@ -134,4 +148,10 @@ def composite(
     trans = torch.ones(canvas, device=device, dtype=dtype).index_copy(0, idx, torch.cat(out_trans))
     col = col.reshape(C, tiles_y * tile, tiles_x * tile, D)[:, :height, :width]
     trans = trans.reshape(C, tiles_y * tile, tiles_x * tile, 1)[:, :height, :width]
+    if stats is not None:
+        counts = torch.zeros(canvas, device=device, dtype=dtype)
+        if out_count:
+            counts = counts.index_copy(0, idx, torch.cat(out_count))
+        stats.update(counts=counts.reshape(C, tiles_y * tile, tiles_x * tile)[:, :height, :width],
+                     pairs=pairs.reshape(C, N), weight=weight.reshape(C, N))
     return col + trans * backgrounds[:, None, None, :], 1 - trans

@@ -85,7 +85,7 @@ def test_blended_count_of_a_stack_is_where_the_transmittance_stops():
     # 0.5 e^-1 each, so k are blended while (1 - 0.5 e^-1)**k >= 1e-4.
     n = 20
     counts, trans, pairs, weight = bench_step_parts.contributors_per_pixel(
-        _info([[4.5, 4.5]] * n, [[0.5, 0.0, 0.5]] * n, [0.5] * n, list(range(1, n + 1))), 9, 9, chunk=6)
+        _info([[4.5, 4.5]] * n, [[0.5, 0.0, 0.5]] * n, [0.5] * n, list(range(1, n + 1))), 9, 9)
     assert counts[4, 4] == 13
     assert float(trans[4, 4]) == pytest.approx(0.5 ** 13, rel=1e-9)
     a = 0.5 * math.exp(-1.0)
@@ -116,7 +116,7 @@ def test_blended_count_agrees_with_the_renderers_transmittance(checkpoint):
             means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
             opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
             viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h, sh_degree=degree)
-    counts, trans, pairs, weight = bench_step_parts.contributors_per_pixel(info, w, h, chunk=37)
+    counts, trans, pairs, weight = bench_step_parts.contributors_per_pixel(info, w, h)
     rendered = 1.0 - alpha[0, ..., 0].double()
     # every blended Gaussian takes at least 1/255 of what is left: a count off by one would move
     # the transmittance by 0.4 % of itself (a count that ignores the tile lists is off by one in
