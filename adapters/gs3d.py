@@ -50,9 +50,9 @@ SH_C0 = 0.28209479177387814  # the degree-0 real SH basis constant, 1 / (2 sqrt(
 PARAM_NAMES = ("means", "sh0", "shN", "scales", "quats", "opacities")
 # The densification statistics and how two ranks' values combine (see statistics()).
 STAT_NAMES = {"grad_accum": "sum", "denom": "sum", "max_radii2D": "max", "grad_sq_accum": "sum",
-              "coverage_accum": "sum"}
+              "coverage_accum": "sum", "blend_weight_accum": "sum", "blend_pixels_accum": "sum"}
 # Statistics a checkpoint of an earlier release may lack (they start from zero when it is loaded).
-_LATER_STATS = ("grad_sq_accum", "coverage_accum")
+_LATER_STATS = ("grad_sq_accum", "coverage_accum", "blend_weight_accum", "blend_pixels_accum")
 _STATE_FORMAT = "mvgs-gs3d/1"
 # Config fields tied to the running process (a function, backend options): never saved or loaded.
 _RUNTIME_FIELDS = ("rasterize", "rasterize_kwargs")
@@ -400,6 +400,25 @@ def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Tensor, center:
     return opacity * even_cut_order(positions, center).to(opacity)
 
 
+def faint_rows(weight: Tensor, pixels: Tensor, seen: Tensor, share: float) -> Tensor:
+    """[N] bool: the faintest Gaussians (GS3DConfig.prune_faint). weight [N]: blend weight
+    (alpha x T) summed over some views; pixels [N]: the pixels it was blended at there; seen [N]
+    bool: the rows those views judged (others are never chosen). Among the seen rows, in order of
+    weight per blended pixel (0 where never blended; ties by row), the longest prefix whose summed
+    weight is at most `share` of all the weight. Nothing when no weight was blended."""
+    out = torch.zeros(weight.shape, dtype=torch.bool, device=weight.device)
+    w = weight.detach().to(torch.float64)
+    total = float(w.sum())
+    if share <= 0 or not total > 0:
+        return out
+    rows = seen.nonzero().squeeze(1)
+    per_pixel = torch.where(pixels[rows] > 0, w[rows] / pixels[rows].to(w).clamp_min(1), torch.zeros_like(w[rows]))
+    order = rows[torch.sort(per_pixel, stable=True).indices]
+    count = int(torch.searchsorted(torch.cumsum(w[order], 0), share * total, right=True))
+    out[order[:count]] = True
+    return out
+
+
 def _check_center(center) -> Optional[Tensor]:
     """A scene centre as a [3] float64 tensor (None stays None), or ValueError naming it."""
     if center is None:
@@ -451,6 +470,8 @@ class GS3DAdapter:
         # True while every scale is from_scene's spacing rule (no optimizer step yet): a cut then
         # re-sizes the kept Gaussians by the spacing of the kept points (see densify)
         self.sized_by_spacing = False
+        # whether render asks the rasterizer for blend statistics (collect_blend_stats)
+        self.blend_stats = False
         self.active_sh_degree = check_int("active_sh_degree", active_sh_degree, 0,
                                            self.config.sh_degree)
         self._build(raw)
@@ -696,6 +717,9 @@ class GS3DAdapter:
         colors = torch.cat([p["sh0"], p["shN"]], dim=1)  # [N, K, 3]
         scales, opacities = torch.exp(p["scales"]), torch.sigmoid(p["opacities"])
         drawn = None
+        kwargs = dict(self.config.rasterize_kwargs)
+        if self.blend_stats:
+            kwargs["blend_stats"] = True
         if self.config.beside_cull > 0:
             drawn = ~beside_camera(p["means"].detach(), scales.detach(), viewmats, Ks, width, height,
                                    self.config.beside_cull)
@@ -703,7 +727,7 @@ class GS3DAdapter:
         images, alphas, meta = self.config.rasterize(
             p["means"], p["quats"], scales, opacities, colors,
             viewmats, Ks, width, height, sh_degree=self.active_sh_degree, packed=False,
-            backgrounds=bg, **self.config.rasterize_kwargs,
+            backgrounds=bg, **kwargs,
         )
         if drawn is not None:  # not drawn: not visited either (accumulate_stats reads radii)
             radii = meta["radii"]
@@ -726,7 +750,9 @@ class GS3DAdapter:
         max_radii2D = max(max_radii2D, radius in pixels);
         grad_sq_accum += the same NDC norm squared (for the consistency of densify_scores);
         coverage_accum += pi radius^2 / (W H), the share of the view its footprint covers (for
-        keep_scores).
+        keep_scores);
+        blend_weight_accum, blend_pixels_accum += the blend weight and blended pixels the renderer
+        reported (meta "blend_weight", "blend_pixels"; after collect_blend_stats(), for faint_rows).
 
         gsplat's DefaultStrategy additionally multiplies the gradient by the number of cameras
         of the render call, because its loss averages over them; here the controller's loss is
@@ -757,8 +783,22 @@ class GS3DAdapter:
         self.denom += vis.sum(dim=0)
         area = math.pi * radius.to(self.grad_accum.dtype).square() / float(meta["width"] * meta["height"])
         self.coverage_accum += (area * vis).sum(dim=0)
+        if "blend_weight" in meta:
+            self.blend_weight_accum += meta["blend_weight"].detach().to(self.grad_accum).sum(dim=0)
+            self.blend_pixels_accum += meta["blend_pixels"].detach().to(self.grad_accum).sum(dim=0)
+        elif self.blend_stats:
+            raise ValueError("collect_blend_stats() asked for the blend weights of every view (MVGSConfig.prune_faint), "
+                             "but config.rasterize returned no meta['blend_weight'] (the reference renderer reports "
+                             "them with blend_stats=True)")
         radius = torch.where(visible, radius.to(self.max_radii2D.dtype), torch.zeros_like(self.max_radii2D))
         self.max_radii2D = torch.maximum(self.max_radii2D, radius.max(dim=0).values)
+
+    def collect_blend_stats(self) -> None:
+        """From now on, ask the rasterizer for each view's blend statistics (its ``blend_stats``
+        keyword) and fold them into blend_weight_accum / blend_pixels_accum, for the cut of the
+        faintest Gaussians (DensifyContext.faint_share; the controller calls this when
+        MVGSConfig.prune_faint is set). Off by default: it costs a few percent of the forward pass."""
+        self.blend_stats = True
 
     # ---- distributed training (mvgs_plugin.protocol.DistributedAdapter) -------------------
     def gradient_parameters(self) -> Dict[str, Tensor]:
@@ -766,8 +806,8 @@ class GS3DAdapter:
         return dict(self.params)
 
     def statistics(self) -> Dict[str, Tuple[Tensor, str]]:
-        """grad_accum, grad_sq_accum, coverage_accum and denom [N] add up over disjoint sets of
-        views; max_radii2D [N] is a maximum."""
+        """grad_accum, grad_sq_accum, coverage_accum, blend_weight_accum, blend_pixels_accum and
+        denom [N] add up over disjoint sets of views; max_radii2D [N] is a maximum."""
         return {name: (self.stats[name], STAT_NAMES[name]) for name in STAT_NAMES}
 
     def load_statistics(self, stats: Dict[str, Tensor]) -> None:
@@ -836,7 +876,10 @@ class GS3DAdapter:
           4. prune (all rows, new ones included): opacity < min_opacity and, with
              ctx.prune_large, max scale > max_world_size * E (config.world_size_rule "distance":
              max_world_size * max(E, distance from ctx.scene_center)) or (when
-             config.max_screen_size is set) max screen radius > max_screen_size.
+             config.max_screen_size is set) max screen radius > max_screen_size;
+          5. with ctx.faint_share S: faint_rows over the window's blend statistics (the rows
+             some view saw with the least blend weight per blended pixel, carrying at most S of
+             all the weight; they are not grown from either), counted in extra["faint"].
         With a cap (the lower of config.max_gaussians and ctx.max_primitives) the count after the
         call never exceeds it: the rows step 4 prunes are not grown from; when the survivors
         alone exceed the cap, the ones with the lowest keep_scores() are removed down to it (and
@@ -874,15 +917,21 @@ class GS3DAdapter:
         max_scale = self.get_scales().detach().max(dim=1).values
         small = max_scale <= self.config.percent_dense * extent
         box_sel, dropped_box_cap = self.box_selection(ctx, g)
-        clone_sel = (g >= beta) & small
-        split_sel = (g >= beta) & ~small
+        # the faintest rows (ctx.faint_share) go and are not grown from
+        faint = faint_rows(self.blend_weight_accum, self.blend_pixels_accum, self.denom > 0, float(ctx.faint_share))
+        if ctx.faint_share > 0 and not float(self.blend_weight_accum.sum()) > 0:
+            raise ValueError(f"ctx.faint_share={ctx.faint_share} needs blend statistics, and none were folded in since "
+                             "the last call: call collect_blend_stats() before the views are rendered")
+        box_sel = box_sel & ~faint
+        clone_sel = (g >= beta) & small & ~faint
+        split_sel = (g >= beta) & ~small & ~faint
         cap = growth_cap(self.config.max_gaussians, ctx.max_primitives)
         shed = torch.zeros(n0, dtype=torch.bool, device=g.device)
         swapped = torch.zeros_like(shed)
         dropped_cap = 0
         if cap is not None:
             gone = self.prune_mask({k: v.detach() for k, v in self.params.items()}, self.max_radii2D, extent,
-                                   ctx.prune_large, ctx.scene_center)
+                                   ctx.prune_large, ctx.scene_center) | faint
             excess = n0 - int(gone.sum()) - cap
             if excess > 0:  # shrink to the cap: the lowest keep scores go
                 keep_score = torch.where(gone, torch.full_like(g, math.inf), self.keep_scores().to(g))
@@ -899,7 +948,8 @@ class GS3DAdapter:
         n_new = new_rows["means"].shape[0]
         all_rows = {k: torch.cat([self.params[k].detach(), new_rows[k]]) for k in PARAM_NAMES}
         radii = torch.cat([self.max_radii2D, self.max_radii2D.new_zeros(n_new)])
-        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large, ctx.scene_center) | torch.cat([shed, shed.new_zeros(n_new)])
+        prune = self.prune_mask(all_rows, radii, extent, ctx.prune_large, ctx.scene_center) | torch.cat(
+            [shed | faint, shed.new_zeros(n_new)])
         parents = torch.cat([split_sel, split_sel.new_zeros(n_new)])
         keep = ~(prune | parents)
         if cap is not None and int(keep.sum()) > cap:  # a subclass's prune rule kept more: the newest rows go
@@ -922,7 +972,8 @@ class GS3DAdapter:
             from_boxes=int(box_sel.sum()),
             extra={"grad_threshold": beta, "split_children": int(split_sel.sum()) * self.config.split_samples,
                    "dropped_by_box_cap": dropped_box_cap, "dropped_by_max_gaussians": dropped_cap,
-                   "shed_to_cap": int((shed & ~swapped).sum()), "swapped": int(swapped.sum()), "cap": cap},
+                   "shed_to_cap": int((shed & ~swapped).sum()), "swapped": int(swapped.sum()), "cap": cap,
+                   "faint": int(faint.sum())},
         )
 
     # ---- densification hooks: what a subclass may override (GS4DAdapter tests the boxes at the

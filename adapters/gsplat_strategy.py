@@ -105,7 +105,7 @@ from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, remove, reset_opa
 
 from mvgs_plugin.adapters.gs3d import (BUDGET_GROWTH_ORDERS, OPACITY_RESET_SCOPES, WORLD_SIZE_RULES, beyond_far_line,
-                                       consistency_of, farthest_distance, growth_that_fits, keep_scores_of,
+                                       consistency_of, faint_rows, farthest_distance, growth_that_fits, keep_scores_of,
                                        world_size_limit)
 from mvgs_plugin.adapters.knn import spacing_log_scale
 from mvgs_plugin.camera import Camera, scaled_size
@@ -277,10 +277,15 @@ class MVGSStrategy(DefaultStrategy):
             (the package trainer's default). The opacities' Adam moments are zeroed for every
             row either way (ops.reset_opa's).
         Both rules are off by default: a wrapped strategy prunes and resets as gsplat's.
+        prune_faint: None (the config's, 0 in every preset) or S in [0, 1): config.prune_faint, the
+            one cut of the faintest Gaussians after the refine window (MVGSConfig.prune_faint). The
+            loop's rasterizer must report blend statistics: pass ``**strategy.rasterize_kwargs``
+            to the reference renderer's rasterization (``blend_stats=True``; gsplat's own
+            rasterizer has no such output). Off (0): nothing is asked or collected.
 
     Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, ``plan`` (the
     current step's StepPlan), ``budget_growth_order`` (resolved: "score" or "inside-first"),
-    ``far_distance`` (None until taken), ``world_size_rule``, ``opacity_reset_scope``,
+    ``far_distance`` (None until taken), ``world_size_rule``, ``rasterize_kwargs``, ``faint_removed``, ``opacity_reset_scope``,
     ``kept_by_distance`` (rows the extent rule would have pruned that the distance rule kept, over
     the run), ``spared_by_reset`` (rows a reset left alone, summed over the resets), ``most_held``
     (the largest count a step's render calls reported, over the run), and after each
@@ -290,7 +295,7 @@ class MVGSStrategy(DefaultStrategy):
 
     def __init__(self, strategy: DefaultStrategy, scene, config: Union[MVGSConfig, str] = "default",
                  steps: Optional[int] = None, clock: str = "strategy", budget_growth_order: str = "auto",
-                 world_size_rule: str = "extent", opacity_reset_scope: str = "all"):
+                 world_size_rule: str = "extent", opacity_reset_scope: str = "all", prune_faint: Optional[float] = None):
         if isinstance(strategy, MVGSStrategy):
             raise TypeError("strategy is already an MVGSStrategy: wrap the DefaultStrategy itself, once")
         if not isinstance(strategy, DefaultStrategy):
@@ -321,6 +326,8 @@ class MVGSStrategy(DefaultStrategy):
             config = MVGSConfig.from_preset(config)
         if not isinstance(config, MVGSConfig):
             raise TypeError(f"config must be an MVGSConfig or a preset name, got {type(config).__name__}")
+        if prune_faint is not None:
+            config = dataclasses.replace(config, prune_faint=prune_faint)
         if config.stage_growth is not None:
             raise ValueError(f"config.stage_growth={config.stage_growth!r}: gsplat's DefaultStrategy has no cap on "
                              "how far a refine may grow the count; use stage_growth=None")
@@ -354,6 +361,7 @@ class MVGSStrategy(DefaultStrategy):
         self.views = views
         self.schedule = ViewSchedule(views, config, load_images=not isinstance(views, CameraViews))
         self.last_refine: Optional[Dict[str, Any]] = None
+        self.faint_removed = 0  # rows the prune_faint cut removed
         self.plan: Optional[StepPlan] = None
         self._before: Optional[Dict[str, Any]] = None  # the schedule's state before the current plan
         self._queue: collections.deque = collections.deque()  # (plan, schedule state before it) drawn ahead
@@ -438,6 +446,12 @@ class MVGSStrategy(DefaultStrategy):
     def initialize_state(self, scene_scale: float = 1.0) -> Dict[str, Any]:
         return self.strategy.initialize_state(scene_scale=scene_scale)
 
+    @property
+    def rasterize_kwargs(self) -> Dict[str, Any]:
+        """Keyword arguments the loop's rasterizer call needs: {"blend_stats": True} with
+        config.prune_faint (the reference renderer's blend statistics, for the cut), else {}."""
+        return {"blend_stats": True} if self.config.prune_faint > 0 else {}
+
     def step_pre_backward(self, params, optimizers, state: Dict[str, Any], step: int, info: Dict[str, Any]) -> None:
         """As the wrapped strategy's (keeps the screen-space gradient of info["means2d"])."""
         self.strategy.step_pre_backward(params, optimizers, state, step, info)
@@ -476,6 +490,8 @@ class MVGSStrategy(DefaultStrategy):
             self._call_strategy(params, optimizers, state, full, packed, refine=None)
             if self.config.max_gaussians is not None:
                 self._score_statistics(state, full, packed, len(params["means"]))
+            if self.config.prune_faint > 0:
+                self._blend_statistics(state, info, len(params["means"]), step)
         if renders is not None and plan.wants_maps and self._targets is not None:
             targets = self._targets[self._reported:self._reported + c]
             if tuple(renders.shape[:3]) != tuple(targets.shape[:3]):
@@ -640,7 +656,8 @@ class MVGSStrategy(DefaultStrategy):
     # ---- what runs between steps -------------------------------------------------------------
     def _end_of_step(self, params, optimizers, state, step) -> None:
         plan, cfg = self.plan, self.config
-        densify = plan.densify and not (self._pause > 0 and plan.clock % cfg.opacity_reset_every < self._pause)
+        densify = plan.faint_cut or (plan.densify and not (self._pause > 0
+                                                           and plan.clock % cfg.opacity_reset_every < self._pause))
         nxt = plan.step + 1
         handoff = (cfg.opacity_reset_at_handoff and nxt <= self.total_steps
                    and self.schedule.plan.locate(nxt).first_in_stage)
@@ -696,6 +713,42 @@ class MVGSStrategy(DefaultStrategy):
                 state[key] = torch.zeros(n, device=grads.device)
         state["mvgs_grad2d_sq"].index_add_(0, ids, norms.square().to(state["mvgs_grad2d_sq"]))
         state["mvgs_coverage"].index_add_(0, ids, (math.pi * r.float().square() / float(w * h)).to(state["mvgs_coverage"]))
+
+    def _blend_statistics(self, state, info, n: int, step) -> None:
+        """config.prune_faint's statistics: the blend weight and blended pixels the rasterizer
+        reported (info "blend_weight", "blend_pixels" [C, N]) and the views that saw each row
+        (radius > 0), summed in state (mvgs_blend_weight, mvgs_blend_pixels, mvgs_blend_seen;
+        gsplat's ops carry them through grow and prune)."""
+        if "blend_weight" not in info or "blend_pixels" not in info:
+            raise ValueError(f"step {step}: config.prune_faint={self.config.prune_faint} needs the blend statistics of "
+                             "every render call: pass **strategy.rasterize_kwargs (blend_stats=True) to the reference "
+                             "renderer's rasterization")
+        weight, pixels = info["blend_weight"], info["blend_pixels"]
+        seen = (info["radii"] > 0).reshape(*info["radii"].shape[:2], -1).all(-1)
+        for key, value in (("mvgs_blend_weight", weight), ("mvgs_blend_pixels", pixels), ("mvgs_blend_seen", seen)):
+            if not isinstance(state.get(key), Tensor) or len(state[key]) != n:
+                state[key] = torch.zeros(n, device=weight.device)
+            state[key] += value.detach().to(state[key]).reshape(-1, n).sum(0)
+
+    def _faint_cut(self, params, optimizers, state, plan: StepPlan, step) -> None:
+        """The one cut of config.prune_faint (the plan's faint_cut): gs3d.faint_rows over the
+        blend statistics folded in since the refine window closed, removed with gsplat's
+        ops.remove (parameters, Adam moments and state together)."""
+        n = len(params["means"])
+        weight, pixels, seen = (state.get(k) for k in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"))
+        if not (isinstance(weight, Tensor) and len(weight) == n and float(weight.sum()) > 0):
+            raise ValueError(f"step {step}: config.prune_faint's cut found no blend statistics: the loop's rasterizer "
+                             "must report them (**strategy.rasterize_kwargs)")
+        faint = faint_rows(weight, pixels, seen > 0, self.config.prune_faint)
+        if bool(faint.any()):
+            remove(params, optimizers, state, faint.to(params["means"].device))
+        for key in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"):
+            state.pop(key, None)
+        self.faint_removed += int(faint.sum())
+        self.last_refine = {"step": plan.step, "loop_step": step, "clock": plan.clock, "before": n,
+                            "after": len(params["means"]), "faint": int(faint.sum())}
+        if self.verbose:
+            print(f"Step {step}: {int(faint.sum())} faintest GSs removed. Now having {len(params['means'])} GSs.")
 
     def _fate(self, params, state, threshold: float, prune_large: bool, scale2d: bool) -> Tuple[Tensor, Tensor, Tensor]:
         """What the wrapped strategy's refine does to each row, decided as gsplat 1.5.3's
@@ -801,6 +854,9 @@ class MVGSStrategy(DefaultStrategy):
         return len(dropped)
 
     def _refine(self, params, optimizers, state, plan: StepPlan, step) -> None:
+        if plan.faint_cut:
+            self._faint_cut(params, optimizers, state, plan, step)
+            return
         means = params["means"].detach()
         bounds = torch.stack([means.amin(0), means.amax(0)]).double().cpu() if len(means) else None
         ctx = self.schedule.densify_context(plan, None, len(means), bounds)

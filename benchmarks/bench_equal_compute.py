@@ -135,6 +135,10 @@ RUNS = {
     # round the scene, since 2026-11-28), and by score alone (the order before)
     "baseline-cap": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-score-cap": ["--preset", "baseline", "--threshold-width", "800", "--budget-growth-order", "score"],
+    # the baseline and the default with the faintest splats cut at every densification call, those with
+    # the least blend weight per blended pixel that carry 1 % of the weight (GS3DConfig.prune_faint)
+    "baseline-faint": ["--preset", "baseline", "--threshold-width", "800", "--prune-faint", "0.01"],
+    "default-faint": ["--preset", "default", "--prune-faint", "0.01"],
 }
 CAPPED = tuple(k for k in RUNS if k.endswith("-cap"))  # the kinds that take --max-gaussians
 
@@ -172,20 +176,23 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
         argv += ["--data", str(data)]
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", type=ex.scene_folder, default=ex.BUNDLED)
-    args = ex.common_args(parser, "out/bench").parse_args(argv)
+    args = ex.world_size_arg(ex.common_args(parser, "out/bench")).parse_args(argv)
     scene = ex.load_scene(args.data, background_points=args.background_points,  # the examples' init
                           background_radius=args.background_radius)
     ex.check_resolution(scene, args.resolution_scale)
     config = ex.config_from_args(args, scene)
-    adapter = GS3DAdapter.from_scene(scene, ex.model_config(config, seed))
+    adapter = GS3DAdapter.from_scene(scene, ex.model_config_from_args(config, args))
     trainer = MVGS(adapter, scene, config)
     marks = {round(trainer.total_steps * (i + 1) / points) for i in range(points)}
     cpu, wall, curve = 0.0, 0.0, []
+    faint, peak = 0, adapter.num_primitives()
     while trainer.step_count < trainer.total_steps:
         c0, w0 = time.process_time(), time.perf_counter()
-        trainer.step()
+        info = trainer.step()
         cpu += time.process_time() - c0
         wall += time.perf_counter() - w0
+        peak = max(peak, info.num_primitives)
+        faint += 0 if info.densify is None else int(info.densify.extra.get("faint", 0))
         if trainer.step_count in marks:
             curve.append({"cpu": cpu, "step": trainer.step_count, "work": trainer.schedule.work_done,
                           "psnr": trainer.evaluate(factor=scale).psnr})
@@ -194,6 +201,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     return {"kind": kind, "budget": budget, "clock": clock, "views": config.stages[-1].views,
             "max_gaussians": config.max_gaussians,
             "psnr": result.psnr, "ssim": result.ssim, "gaussians": adapter.num_primitives(),
+            "peak_gaussians": peak, "faint_removed": faint,
             "per_view_psnr": per_view, "psnr_median": statistics.median(per_view) if per_view else result.psnr,
             "steps": trainer.step_count, "work": trainer.schedule.work_done, "cpu": cpu, "wall": wall,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}

@@ -20,7 +20,10 @@ SH degree 3. Per N, medians over --repeats of:
              scores make way for more candidates), and with a cap below the count (the lowest
              keep scores are cut);
   optimizer  the adapter's optimizer step (Adam on every group) with GS3DConfig.means_lr_rule
-             "extent" (3DGS's), "distance" and "disparity" (a per-row factor on the means' step).
+             "extent" (3DGS's), "distance" and "disparity" (a per-row factor on the means' step);
+  faint      MVGSConfig.prune_faint: the step again with the blend statistics asked of the renderer
+             and folded in (collect_blend_stats), and the one cut of the faintest Gaussians that
+             carry 1 % of the blend weight of 20 folded-in views (no growth).
 Prints a markdown table; the "share of a step" column is the time of the call over one step's;
 a densification call runs once per densify_every steps (10-100), so its share of the run is
 that divided by densify_every.
@@ -147,6 +150,25 @@ def measure(n: int, repeats: int) -> dict:
         adapter.config = dataclasses.replace(kept, means_lr_rule=rule)
         rows[f"optimizer step, means_lr_rule={rule}"] = timed(adapter.optimizer_step, repeats)
     adapter.config = kept
+    # the cut of the faintest (MVGSConfig.prune_faint): the step with blend statistics, then the cut
+    adapter.load_state_dict(saved)
+    adapter.zero_grad()
+    adapter.collect_blend_stats()
+    trainer.step()
+    rows["step, collecting blend statistics"] = timed(trainer.step, repeats)
+    adapter._reset_stats()
+    for i in range(20):
+        adapter.accumulate_stats(rendered(i))
+        adapter.zero_grad()
+    faint_state = copy.deepcopy(adapter.state_dict())
+    cut = dict(base, grad_threshold=math.inf, faint_share=0.01)
+
+    def faint_cut():
+        adapter.load_state_dict(faint_state)
+        with torch.no_grad():
+            return adapter.densify(DensifyContext(**cut))
+    removed = faint_cut().extra["faint"]
+    rows[f"densify, faint cut 1 % ({removed} removed)"] = timed(faint_cut, repeats) - load
     return rows
 
 

@@ -31,7 +31,7 @@ import sys
 from mvgs_plugin.adapters.gs3d import GS3DAdapter
 from mvgs_plugin.config import MVGSConfig
 from mvgs_plugin.cli import (
-    BUNDLED, HelpFormatter, common_args, config_from_args, launch, metrics_record, model_config,
+    BUNDLED, HelpFormatter, common_args, config_from_args, launch, metrics_record, model_config_from_args,
     rasterize_function, scene_folder, train_and_evaluate, write_json, scene_from_args, world_size_arg,
 )
 
@@ -50,12 +50,7 @@ def main(argv=None) -> dict:
 def build_adapter(args, scene, config: MVGSConfig) -> GS3DAdapter:
     """The 3DGS model this command line trains on `scene` under `config` (its schedules
     compressed with the run; also what benchmarks/bench_view_cost.py times)."""
-    model = model_config(config, args.seed, rasterize=rasterize_function(args),
-                         world_size_rule=args.world_size_rule,
-                         means_lr_rule=args.means_lr_rule,
-                         opacity_reset_scope=args.opacity_reset_scope,
-                         budget_growth_order=args.budget_growth_order,
-                         beside_cull=args.beside_cull)
+    model = model_config_from_args(config, args, rasterize=rasterize_function(args))
     return GS3DAdapter.from_scene(scene, model, device=args.device)
 
 

@@ -33,7 +33,7 @@ from mvgs_plugin import MVGSConfig
 from mvgs_plugin.adapters.gs4d import GS4DAdapter, GS4DConfig
 from mvgs_plugin.cli import (
     MAX_INIT_POINTS, HelpFormatter, common_args, config_from_args, float_above, int_at_least, launch, listed_in,
-    metrics_record, model_config, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
+    metrics_record, model_config_from_args, rasterize_function, remove_stale_outputs, scene_folder, train_and_evaluate, write_json,
     scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
 from mvgs_plugin.data.load import scene_layout
@@ -73,12 +73,7 @@ def gs4d_config(config: MVGSConfig, args) -> GS4DConfig:
     fine split of the clock the adapter sees (the whole run; with restart_per_stage, as the paper
     preset, the clock restarts at every pyramid stage, so each stage begins with a coarse part)."""
     box = None if args.init_box is None else (tuple(args.init_box[:3]), tuple(args.init_box[3:]))
-    canonical = model_config(config, args.seed, rasterize=rasterize_function(args),
-                             world_size_rule=args.world_size_rule,
-                             means_lr_rule=args.means_lr_rule,
-                             opacity_reset_scope=args.opacity_reset_scope,
-                             budget_growth_order=args.budget_growth_order,
-                             beside_cull=args.beside_cull)
+    canonical = model_config_from_args(config, args, rasterize=rasterize_function(args))
     return GS4DConfig.for_run(config, args.coarse_fraction, canonical, init_random_points=args.init_random,
                               init_box=box)
 

@@ -200,6 +200,16 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=No
     return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
 
 
+MODEL_FLAGS = ("world_size_rule", "means_lr_rule", "opacity_reset_scope", "budget_growth_order", "beside_cull")
+
+
+def model_config_from_args(config: MVGSConfig, args, rasterize=None) -> GS3DConfig:
+    """model_config with the model flags of world_size_arg's parser (MODEL_FLAGS) as given on the
+    command line (the 3DGS and 4DGS examples, benchmarks/bench_equal_compute.py)."""
+    return model_config(config, args.seed, rasterize=rasterize,
+                        **{name: getattr(args, name, None) for name in MODEL_FLAGS})
+
+
 def write_json(path: Path, data: dict) -> None:
     """Atomic JSON write: a crash never leaves a half-written metrics file."""
     atomic_write_text(path, json.dumps(data, indent=2))
@@ -480,6 +490,10 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--budget-swap", type=float_above(0, inclusive=True, high=0.999999), default=None, metavar="S",
                     help="share of the budget a densification call may swap while it binds: the lowest keep scores "
                          "make way for the best growth candidates (MVGSConfig.budget_swap) (default: 0, off)")
+    ap.add_argument("--prune-faint", type=float_above(0, inclusive=True, high=0.99), default=None, metavar="S",
+                    help="0: off; S in (0, 1): once densification has ended, remove in one cut the Gaussians with the "
+                         "least blend weight (alpha x transmittance) per pixel they are blended at, as many as carry S "
+                         "of all the weight the training views blend (MVGSConfig.prune_faint) (default: 0)")
     ap.add_argument("--budget-initial-share", type=float_above(0, high=1.0), default=None, metavar="S",
                     help="with a budget, cut a larger initial model to this share of it before the first step, so "
                          "the rest is grown where the views ask (MVGSConfig.budget_initial_share) (default: 1)")
@@ -558,7 +572,7 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
         preset_overrides = {**preset_overrides, "budget_views": args.budget_views or None}
     for name in ("forward_rig", "views_scaling", "max_views_fraction", "stage_growth", "max_gaussians",
                  "pixels_per_gaussian", "budget_rigs", "densify_rank", "budget_swap", "budget_size_pruning",
-                 "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset", "lambda_dssim"):
+                 "prune_faint", "budget_initial_share", "coarse_opacity_reset", "min_densify_per_reset", "lambda_dssim"):
         if getattr(args, name, None) is not None:
             preset_overrides = {**preset_overrides, name: getattr(args, name)}
     if getattr(args, "background", "auto") != "auto":  # the colour the scene's images were composited on
@@ -756,14 +770,24 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
 
     written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)
 
+    # what densification did over the steps this process ran (metrics.json "densification")
+    totals = trainer.densify_totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0,
+                                       "peak_primitives": trainer.adapter.num_primitives()}
+
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
+        totals["peak_primitives"] = max(totals["peak_primitives"], info.num_primitives)
+        if info.densify is not None:
+            totals["calls"] += 1
+            for key in ("cloned", "split", "pruned"):
+                totals[key] += getattr(info.densify, key)
+            totals["faint"] += int(info.densify.extra.get("faint", 0))
         if every and trainer.step_count % every == 0 and trainer.step_count < trainer.total_steps:
             trainer.save_checkpoint(path)
             written.append(trainer.step_count)
 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        trainer.fit(callback=periodic if every else None, progress=not args.no_progress)
+        trainer.fit(callback=periodic, progress=not args.no_progress)
     except KeyboardInterrupt:
         if dist is not None:
             raise
@@ -810,6 +834,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "budget": config.budget,
         "work": trainer.schedule.work_done,
         "num_gaussians": trainer.adapter.num_primitives(),
+        "densification": getattr(trainer, "densify_totals", None),
         "init": getattr(trainer.scene, "points_origin", None),
         "masks": _masks_said(trainer.scene),
         "background": {"colour": list(trainer.schedule.background_value()),

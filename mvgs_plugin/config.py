@@ -330,6 +330,14 @@ class MVGSConfig:
         (docs/equal_compute.md): +0.72 dB on the forward rig, -3.69 on forward-clutter, -0.04 to
         -3.60 on the 360-degree scenes (those with size pruning on). GS3DAdapter, GS4DAdapter and
         MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
+    prune_faint: 0 (default, off) or a share S in (0, 1): once densification has ended, the
+        Gaussians with the least blend weight per blended pixel (alpha x transmittance, their share
+        of the pixels' colours, summed over the training views since the last densification call
+        and divided by the pixels they were blended at) that together carry at most S of all the
+        weight are removed, in one call, after twice the training views have been rendered since
+        the window closed (ViewSchedule: the statistics keep being collected until then). Needs
+        an adapter that reports blend weights (GS3DAdapter, GS4DAdapter with the reference
+        renderer). Measured in docs/equal_compute.md ("A cut of the faintest splats").
     budget_initial_share: the share of max_gaussians the initial model may hold: a model that
         starts above floor(share x N) is cut to it before the first step (lowest keep scores;
         before any view, gs3d.even_cut_order: the object's and the far background's shares,
@@ -409,6 +417,7 @@ class MVGSConfig:
     budget_views: Optional[int] = None
     densify_rank: str = "consistency"
     budget_swap: float = 0.0
+    prune_faint: float = 0.0
     budget_size_pruning: bool = False
     budget_initial_share: float = 1.0
     budget_rigs: str = "all"
@@ -456,6 +465,9 @@ class MVGSConfig:
         if isinstance(self.budget_swap, bool) or not isinstance(self.budget_swap, (int, float)) or not (
                 0.0 <= self.budget_swap < 1.0):
             raise ValueError(f"budget_swap must be a share of the cap in [0, 1), got {self.budget_swap!r}")
+        if isinstance(self.prune_faint, bool) or not isinstance(self.prune_faint, (int, float)) or not (
+                0.0 <= self.prune_faint < 1.0):
+            raise ValueError(f"prune_faint must be a share of the blend weight in [0, 1), got {self.prune_faint!r}")
         if isinstance(self.budget_initial_share, bool) or not isinstance(self.budget_initial_share, (int, float)) or not (
                 0.0 < self.budget_initial_share <= 1.0):
             raise ValueError(f"budget_initial_share must be a share of max_gaussians in (0, 1], "

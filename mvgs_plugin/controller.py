@@ -188,6 +188,12 @@ class MVGS:
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
+        if self.config.prune_faint > 0:
+            if not callable(getattr(adapter, "collect_blend_stats", None)):
+                raise ValueError(f"config.prune_faint={self.config.prune_faint} needs an adapter that collects blend "
+                                 f"statistics, collect_blend_stats() ({type(adapter).__name__} has none: GS3DAdapter "
+                                 "and GS4DAdapter do); use prune_faint=0")
+            adapter.collect_blend_stats()
         if distributed is not None:
             if not isinstance(distributed, Collective):
                 raise TypeError(f"distributed must be a mvgs_plugin.distributed.Collective or None, "

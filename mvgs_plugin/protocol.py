@@ -84,6 +84,9 @@ class DensifyContext:
     swap_share: while the cap binds (more growth candidates than room), the adapter may remove
         up to floor(swap_share x cap) of its lowest-ranked rows that are not candidates and grow
         that many more of the best candidates in their place (MVGSConfig.budget_swap; 0 = never).
+    faint_share: 0, or (the one call MVGSConfig.prune_faint schedules after densification, with
+        grad_threshold inf and no boxes) the share S of the blend weight whose faintest carriers
+        the call removes (GS3DAdapter: gs3d.faint_rows over its blend statistics).
     """
 
     step: int
@@ -97,6 +100,7 @@ class DensifyContext:
     rank_by: str = "consistency"
     swap_share: float = 0.0
     scene_center: Optional[Tensor] = None
+    faint_share: float = 0.0
 
 
 @dataclass

@@ -98,6 +98,8 @@ class StepPlan:
     per-view loss (1 for "sum", 1/M for "mean"); chunks: positions in `views` rendered and
     backpropagated together; stats: per chunk, whether its densification statistics are
     collected; densify / reset_opacity / handoff_reset: what runs after the backward passes.
+    faint_cut: this step's densify is MVGSConfig.prune_faint's one cut after the densification
+    window (densify_context gives it no growth and DensifyContext.faint_share).
     wants_maps: whether this step's densification needs per-view loss maps (it densifies and
     cross-ray densification is on); recorded: the maps a hand-written loop handed over with
     record() (optional: see ViewSchedule.densify_context). masks: when the scene has masks
@@ -120,6 +122,7 @@ class StepPlan:
     reset_opacity: bool
     handoff_reset: bool
     wants_maps: bool = False
+    faint_cut: bool = False
     recorded: List[Tensor] = field(default_factory=list)
     masks: Optional[List[Tensor]] = None
 
@@ -229,6 +232,10 @@ class ViewSchedule:
         self.initial_count: Optional[int] = None  # primitive_count when the first step began
         self._warned_no_maps = False
         self._warned_no_count = False
+        # MVGSConfig.prune_faint: views whose statistics were collected since the window closed, and
+        # whether the cut was made (it comes after 2 x the training views)
+        self.faint_views = 0
+        self.faint_done = False
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
@@ -267,8 +274,15 @@ class ViewSchedule:
         masks = ([self.scene.mask(self.scene.train_cameras[i], pos.stage.factor) for i in ids]
                  if self.load_images and getattr(self.scene, "has_masks", False) else None)
         chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
-        collect = pos.clock < cfg.densify_until
-        densify = collect and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)
+        window = pos.clock < cfg.densify_until
+        densify = window and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)
+        # after the window, prune_faint keeps collecting until its cut (2 x the training views later)
+        faint_cut, collect = False, window
+        if cfg.prune_faint > 0 and not window and not self.faint_done:
+            collect = True
+            self.faint_views += len(ids)
+            faint_cut = densify = self.faint_views >= 2 * len(self.scene.train_cameras)
+            self.faint_done = faint_cut
         stats = [collect and (cfg.stats_from == "all" or c[-1] == len(ids) - 1) for c in chunks]
         self.step_count = s
         return StepPlan(
@@ -276,10 +290,10 @@ class ViewSchedule:
             images=images, backgrounds=self._backgrounds(len(ids)),
             weight=1.0 if cfg.reduction == "sum" else 1.0 / len(ids), chunks=chunks, stats=stats,
             densify=densify,
-            reset_opacity=collect and pos.crosses(cfg.opacity_reset_every) and (
+            reset_opacity=window and pos.crosses(cfg.opacity_reset_every) and (
                 cfg.coarse_opacity_reset or pos.stage.factor == self.plan.finest_factor),
             handoff_reset=pos.first_in_stage and pos.index > 0 and cfg.opacity_reset_at_handoff,
-            wants_maps=densify and cfg.crd.enabled, masks=masks,
+            wants_maps=densify and cfg.crd.enabled and not faint_cut, masks=masks, faint_cut=faint_cut,
         )
 
     @property
@@ -319,6 +333,11 @@ class ViewSchedule:
         count the schedule was last told (self.primitive_count) is used, with a warning once when
         the cap needs it."""
         cfg = self.config
+        if plan.faint_cut:  # prune_faint's cut: no growth, no boxes
+            return DensifyContext(step=plan.clock, grad_threshold=math.inf, scene_extent=float(self.scene.extent),
+                                  scene_center=self.scene.center, prune_large=False, cameras=tuple(plan.cameras),
+                                  max_primitives=self._growth_cap(stage_start_count, plan.clock),
+                                  rank_by=cfg.densify_rank, faint_share=cfg.prune_faint)
         if adapter is not None:
             primitive_count = adapter.num_primitives() if primitive_count is None else primitive_count
             if bounds is None:
@@ -463,7 +482,7 @@ class ViewSchedule:
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
                 "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
-                "views": self._views, "plan": self._plan_key()}
+                "views": self._views, "plan": self._plan_key(), "faint": [self.faint_views, self.faint_done]}
 
     def _plan_key(self) -> Dict:
         """What a state's step count means: the stage plan and the densification clock."""
@@ -497,6 +516,7 @@ class ViewSchedule:
         self._bg_gen.set_state(state["background_rng"])
         self.stage_start_count = state.get("stage_start_count")  # absent in checkpoints before stage_growth
         self.initial_count = state.get("initial_count")  # absent in checkpoints before max_gaussians
+        self.faint_views, self.faint_done = state.get("faint", (0, False))  # absent before prune_faint
 
 
 def views_fingerprint(cameras: Sequence[Camera]) -> List[List]:

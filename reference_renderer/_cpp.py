@@ -81,7 +81,7 @@ def _build() -> ctypes.CDLL:
     signatures = {
         "mvgs_bin_depth_count": (_i64, [_i64] * 4 + [_ptr] * 3),
         "mvgs_bin_depth_fill": (None, [_i64] * 4 + [_ptr] * 5),
-        "mvgs_forward": (None, [_i64] * 6 + [_ptr] * 10),
+        "mvgs_forward": (None, [_i64] * 6 + [_ptr] * 13),
         "mvgs_backward": (None, [_i64] * 6 + [_ptr] * 18),
         "mvgs_project_forward": (None, [_ptr] * 16),
         "mvgs_project_backward": (None, [_ptr] * 17),
@@ -139,19 +139,26 @@ def bin_by_depth(rects: torch.Tensor, depths: torch.Tensor, valid: torch.Tensor,
     return offsets, ids
 
 
-def forward(means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile):
-    """Composite [C, N, ...] splats; returns colour [C,H,W,D], transmittance [C,H,W], last [C,H,W]."""
+def forward(means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile, blend=False):
+    """Composite [C, N, ...] splats; returns colour [C,H,W,D], transmittance [C,H,W], last [C,H,W],
+    and with blend=True also each Gaussian's blend weight (alpha x T summed over the pixels it is
+    blended at) and that pixel count, [C,N] each (else None, None)."""
     lib = load()
     C, N, D = colors.shape
     out_color = torch.empty(C, height, width, D, dtype=colors.dtype)
     out_trans = torch.empty(C, height, width, dtype=colors.dtype)
     out_last = torch.empty(C, height, width, dtype=torch.int32)
+    isect = weight = pixels = None
+    if blend:
+        isect = torch.empty(ids.numel(), 2, dtype=colors.dtype)
+        weight, pixels = torch.zeros(C, N, dtype=colors.dtype), torch.zeros(C, N, dtype=colors.dtype)
     getattr(lib, f"mvgs_forward_{_suffix(colors.dtype)}")(
         C, N, D, width, height, tile,
         _p(means2d), _p(conics), _p(opacities), _p(colors), _p(backgrounds), _p(offsets), _p(ids),
-        _p(out_color), _p(out_trans), _p(out_last), torch.get_num_threads(),
+        _p(out_color), _p(out_trans), _p(out_last), *(_p(t) if blend else None for t in (isect, weight, pixels)),
+        torch.get_num_threads(),
     )
-    return out_color, out_trans, out_last
+    return out_color, out_trans, out_last, weight, pixels
 
 
 def backward(means2d, conics, opacities, colors, backgrounds, offsets, ids, out_color, out_trans, out_last,

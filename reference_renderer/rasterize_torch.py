@@ -130,8 +130,10 @@ def composite(
         if stats is not None:
             with torch.no_grad():
                 out_count.append(keep.sum(-1).reshape(-1).to(dtype))
-                pairs.index_add_(0, g.reshape(-1), keep.sum(1).reshape(-1).to(dtype))
-                weight.index_add_(0, g.reshape(-1), weights.sum(1).reshape(-1))
+                # a tile's pixels past the image's right or bottom edge are not part of it
+                inside = ((xy[..., 0] < width) & (xy[..., 1] < height))[..., None]  # [B,P,1]
+                pairs.index_add_(0, g.reshape(-1), (keep & inside).sum(1).reshape(-1).to(dtype))
+                weight.index_add_(0, g.reshape(-1), (weights * inside).sum(1).reshape(-1))
         # Flat index of each tile pixel in a [C, TY*T, TX*T] canvas.
         canvas_w = tiles_x * tile
         rows = (cam[:, None] * (tiles_y * tile) + origin[:, None, 1] + iy) * canvas_w

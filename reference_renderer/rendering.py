@@ -99,9 +99,13 @@ class _CompositeCpp(torch.autograd.Function):
     """Compiled compositing with its hand-written backward (csrc/rasterize.cpp)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile, absgrad):
+    def forward(ctx, means2d, conics, opacities, colors, backgrounds, offsets, ids, width, height, tile, absgrad,
+                blend=None):
         args = [x.contiguous() for x in (means2d, conics, opacities, colors, backgrounds)]
-        color, trans, last = _cpp.forward(*args, offsets, ids, width, height, tile)
+        color, trans, last, weight, pixels = _cpp.forward(*args, offsets, ids, width, height, tile,
+                                                          blend=blend is not None)
+        if blend is not None:  # a dict to fill (not an output: nothing to differentiate)
+            blend.update(weight=weight, pairs=pixels)
         ctx.save_for_backward(*args, offsets, ids, color, trans, last)
         ctx.size = (width, height, tile)
         # gsplat's convention: the summed |gradient| lands on means2d.absgrad (AbsGS).
@@ -127,7 +131,7 @@ class _CompositeCpp(torch.autograd.Function):
                 raise FloatingPointError(f"non-finite gradient w.r.t. {name} in the compositing backward")
         if ctx.absgrad_target is not None:
             ctx.absgrad_target.absgrad = absgrad
-        return g_m, g_q, g_o, g_c, g_bg, None, None, None, None, None, None
+        return g_m, g_q, g_o, g_c, g_bg, None, None, None, None, None, None, None
 
 
 def _guard(t: Tensor, name: str) -> Tensor:
@@ -169,6 +173,7 @@ def rasterization(
     camera_model: str = "pinhole",
     backend: Optional[str] = None,
     *,
+    blend_stats: bool = False,
     sparse_grad: bool = False,
     channel_chunk: int = 32,
     distributed: bool = False,
@@ -209,6 +214,11 @@ def rasterization(
         rasterize_mode: "classic", or "antialiased" (opacity times the eps2d compensation).
         camera_model: only "pinhole".
         backend: "cpp", "torch", or None for the fastest available (see available_backends()).
+        blend_stats: (this renderer's own, not gsplat's) also return, per camera and Gaussian,
+            what the image formation blended: meta["blend_weight"] [C,N], its weight alpha x T
+            summed over the pixels (its share of their colours; the weights of a pixel add up to
+            its alpha), and meta["blend_pixels"] [C,N], how many pixels it was blended at (alpha
+            >= 1/255 before the pixel stopped). Not differentiable; both backends.
         sparse_grad, channel_chunk, distributed, segmented, covars, with_ut, with_eval3d,
         radial_coeffs, tangential_coeffs, thin_prism_coeffs, ftheta_coeffs, rolling_shutter,
         viewmats_rs: gsplat 1.5.3's other keywords, so a call written for gsplat runs unchanged.
@@ -269,12 +279,13 @@ def rasterization(
             order = torch.argsort(key, dim=-1, stable=True)
             offsets, ids = rasterize_torch.bin_tiles(proj.rects, order, tiles_x, tiles_y)
 
+    blend = {} if blend_stats else None
     if backend == "cpp":
         img, alpha = _CompositeCpp.apply(proj.means2d, proj.conics, opac, feats, bg, offsets, ids,
-                                         width, height, tile_size, absgrad)
+                                         width, height, tile_size, absgrad, blend)
     else:
         img, alpha = rasterize_torch.composite(proj.means2d, proj.conics, opac, feats, bg, offsets, ids,
-                                               width, height, tile_size)
+                                               width, height, tile_size, stats=blend)
     if render_mode in ("ED", "RGB+ED"):
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
     if not V.all_finite(img) or not V.all_finite(alpha):
@@ -298,6 +309,8 @@ def rasterization(
         "camera_ids": None,
         "backend": backend,
     }
+    if blend is not None:
+        meta.update(blend_weight=blend["weight"].detach(), blend_pixels=blend["pairs"].detach())
     return img, alpha, meta
 
 

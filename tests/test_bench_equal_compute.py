@@ -193,6 +193,21 @@ def test_the_baseline_cap_kinds_order_growth_as_named():
             bench.run_argv(kind, 3000, 4, 0, 1)
 
 
+def test_the_faint_kinds_ask_for_the_cut_and_keep_their_presets():
+    """baseline-faint / default-faint: the baseline and the default with MVGSConfig.prune_faint
+    0.01, parsed as the benchmark's own runs parse them (the examples' flags and model flags)."""
+    import argparse
+
+    from mvgs_plugin import cli
+
+    for kind, preset in (("baseline-faint", "baseline"), ("default-faint", "default"), ("baseline", "baseline")):
+        parser = argparse.ArgumentParser()
+        parser.add_argument("--data")
+        args = cli.world_size_arg(cli.common_args(parser, "out/bench")).parse_args(bench.run_argv(kind, 3000, 4, 0, 1))
+        config = cli.config_from_args(args)
+        assert config.preset == preset and config.prune_faint == (0.01 if kind.endswith("-faint") else 0.0)
+
+
 def test_the_tables_give_the_median_view_beside_the_mean(tmp_path):
     # a run whose mean falls on two bad views while its median view rises; a run saved before the
     # median was recorded gets an empty cell

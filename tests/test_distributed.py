@@ -21,9 +21,10 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig
+from mvgs_plugin.adapters.gs3d import STAT_NAMES, GS3DAdapter, GS3DConfig
 from mvgs_plugin import MVGS, MVGSConfig, Stage
 from mvgs_plugin.distributed import Collective, abort_on_error, backend_for, init_from_env, require_support, shard
+from mvgs_plugin.cli import model_config
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.io import load_checked
 from mvgs_plugin.testing import check_adapter, check_distributed_support, synthetic_scene
@@ -45,6 +46,7 @@ def make_trainer(config, dtype, distributed=None):
     # the order of a sum flips them by 2·lr. PyTorch's default 1e-8 keeps rounding noise at rounding
     # level, so parameters can be compared tightly; the gradients are compared as they are.
     adapter = GS3DAdapter.from_scene(scene, GS3DConfig(adam_eps=1e-8), dtype=dtype)
+    adapter.collect_blend_stats()  # so the blend statistics are summed over the ranks and checked too
     trainer = MVGS(adapter, scene, config, distributed=distributed)
     trainer.seen_gradients = []
     original = adapter.optimizer_step
@@ -398,7 +400,7 @@ def test_train_3dgs_under_torchrun(tmp_path):
     example = _load_example()
     scene = load_scene(example.BUNDLED)
     config = MVGSConfig.from_dict(state["config"])
-    trainer = MVGS(GS3DAdapter.from_scene(scene, example.model_config(config, 0)), scene, config)
+    trainer = MVGS(GS3DAdapter.from_scene(scene, model_config(config, 0)), scene, config)
     trainer.load_checkpoint(str(out / "checkpoint.pt"))
     assert trainer.step_count == 4 and trainer.adapter.num_primitives() == metrics["num_gaussians"]
 
@@ -442,9 +444,7 @@ def test_conformance_suite_checks_the_distributed_methods():
                                              r"that rendered every view .*must name every trainable tensor"):
         check_distributed_support(lambda s: OpacityUnnamed.from_scene(s, GS3DConfig()), scene)
     with pytest.raises(ValueError, match=r"statistics\['denom'\] must be \[80\], got \[3\]"):
-        make(scene).load_statistics({"grad_accum": torch.zeros(80), "denom": torch.zeros(3),
-                                     "max_radii2D": torch.zeros(80), "grad_sq_accum": torch.zeros(80),
-                                     "coverage_accum": torch.zeros(80)})
+        make(scene).load_statistics({**{name: torch.zeros(80) for name in STAT_NAMES}, "denom": torch.zeros(3)})
 
 
 def _torchrun(script: str, args: list, out: Path) -> dict:

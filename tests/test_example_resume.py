@@ -72,6 +72,8 @@ def record_steps(monkeypatch) -> list:
 @pytest.mark.parametrize("script, extra, views, steps, every", [
     # 3DGS's unscaled threshold: at 16 px the default's (meant for 800 px) grows nothing
     ("train_3dgs.py", ["--resolution-scale", "8", "--threshold-width", "0"], 2, STEPS, EVERY),
+    # with the faintest splats cut at every densification (their blend statistics are checkpointed)
+    ("train_3dgs.py", ["--resolution-scale", "8", "--threshold-width", "0", "--prune-faint", "0.02"], 2, STEPS, EVERY),
     ("train_scaffold.py", ["--resolution-scale", "8", "--voxel-size", "0.1", "--threshold-width", "0"], 2, STEPS, EVERY),
     # 4DGS's own default: one view per pyramid step, then 2-view steps at the end (--late-views);
     # its M-view steps at every level run through the same adapter in test_adapter_gs4d.py
@@ -102,6 +104,10 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     assert densified and resets, (densified, resets)
     grown = [i.step for i in infos if i.densify is not None and i.densify.after > i.densify.before]
     assert any(d > every for d in grown), ("the resumed part must grow the model too", grown)
+    if "--prune-faint" in extra:  # the cut removes Gaussians, in the resumed part too
+        cut = [i.step for i in infos if i.densify is not None and i.densify.extra["faint"] > 0]
+        assert any(d > every for d in cut), cut
+        assert whole["densification"]["faint"] == sum(i.densify.extra["faint"] for i in infos if i.densify)
 
     def crashing(self):
         if self.step_count == 2 * every - 20:  # after the checkpoint at `every`, before the next

@@ -853,6 +853,62 @@ def test_the_budget_holds_in_the_example_loop_through_every_phase_and_resume(tmp
         assert torch.equal(resumed.splats[k], runner.splats[k]), k
 
 
+def test_the_faint_cut_in_the_example_loop_through_every_phase_and_resume(tmp_path, forward):
+    """MVGSConfig.prune_faint through MVGSStrategy (--prune-faint): the loop's renders report blend
+    statistics (strategy.rasterize_kwargs), the strategy keeps collecting them after the refine
+    window, and at one step, twice the training views after it closed, removes the rows that a
+    ranking written here names (least weight per blended pixel first, among the rows seen, while
+    the removed weight stays within S); a resumed run makes the same cut."""
+    steps, share = 300, 0.05  # refines every 10 steps from 50 to 150, a reset at 100
+    cfg = example_config(tmp_path / "a", steps, "default", save_steps=[120], prune_faint=share)
+    torch.manual_seed(0)
+    runner = simple_trainer_mvgs.Runner(cfg)
+    strategy = runner.cfg.strategy
+    assert strategy.rasterize_kwargs == {"blend_stats": True} and strategy.config.prune_faint == share
+    cuts = []
+    original = strategy._faint_cut
+
+    def spy(params, optimizers, state, plan, step):
+        w, p, seen = (state[k].clone() for k in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"))
+        means = params["means"].detach().clone()
+        original(params, optimizers, state, plan, step)
+        cuts.append((plan.step, w, p, seen, means, params["means"].detach().clone()))
+
+    strategy._faint_cut = spy
+    runner.train()
+    n_train = len(runner.trainset)
+    assert [c[0] for c in cuts] == [150 + 2 * n_train - 1]  # one cut; the window's last collected step is 149
+    _, w, p, seen, before, after = cuts[0]
+    order = sorted((i for i in range(len(w)) if seen[i] > 0),
+                   key=lambda i: (float(w[i]) / float(p[i]) if p[i] > 0 else 0.0, i))
+    total, acc, removed = float(w.double().sum()), 0.0, set()
+    for i in order:
+        acc += float(w[i])
+        if acc > share * total:
+            break
+        removed.add(i)
+    assert 0 < len(removed) < len(before) // 2
+    kept = [i for i in range(len(before)) if i not in removed]
+    assert torch.equal(after, before[kept]) and strategy.faint_removed == len(removed)
+    resumed_cfg = example_config(tmp_path / "b", steps, "default", resume=tmp_path / "a" / "ckpt_120.pt",
+                                 prune_faint=share)
+    torch.manual_seed(123)
+    resumed = simple_trainer_mvgs.Runner(resumed_cfg)
+    resumed.train()
+    assert resumed.cfg.strategy.faint_removed == len(removed)
+    for k in runner.splats.keys():
+        assert torch.equal(resumed.splats[k], runner.splats[k]), k
+
+
+def test_a_loop_that_does_not_ask_for_blend_statistics_is_told_at_its_first_step(tmp_path, monkeypatch):
+    cfg = example_config(tmp_path / "a", 300, "default", prune_faint=0.01)
+    runner = simple_trainer_mvgs.Runner(cfg)
+    monkeypatch.setattr(MVGSStrategy, "rasterize_kwargs", property(lambda self: {}))  # a loop that passes nothing
+    with pytest.raises(ValueError, match=r"step 0: config.prune_faint=0.01 needs the blend statistics of every render "
+                                         r"call: pass \*\*strategy.rasterize_kwargs \(blend_stats=True\)"):
+        runner.train()
+
+
 def test_keep_scores_and_the_cut_at_check_sanity(forward):
     cfg, splats, optimizers = fresh_model(forward)
     n = len(splats["means"])

@@ -67,6 +67,7 @@ class Config:
     background_points: int = 0  # our port: a shell of N more initial points for the far background (Parser)
     world_size_rule: str = "extent"  # MVGSStrategy's size prune: gsplat's ("extent") or "distance"
     opacity_reset_scope: str = "all"  # MVGSStrategy's resets: gsplat's ("all") or "inside" (the far background spared)
+    prune_faint: Optional[float] = None  # MVGSStrategy's cut of the faintest Gaussians (MVGSConfig.prune_faint)
     max_steps: int = 30_000
     save_steps: List[int] = field(default_factory=list)
     resume: Optional[Path] = None
@@ -98,8 +99,9 @@ class Config:
 
     @property
     def mvgs_rules(self) -> Dict[str, str]:
-        """The size-prune and reset rules MVGSStrategy is built with (its keyword arguments)."""
-        return {"world_size_rule": self.world_size_rule, "opacity_reset_scope": self.opacity_reset_scope}
+        """The size-prune, reset and faint-cut rules MVGSStrategy is built with (its keyword arguments)."""
+        return {"world_size_rule": self.world_size_rule, "opacity_reset_scope": self.opacity_reset_scope,
+                "prune_faint": self.prune_faint}
 
     def adjust_steps(self, steps: int) -> None:
         """A run of `steps` steps: every step-valued field scaled by steps / max_steps, with the
@@ -231,6 +233,7 @@ def rasterize_splats(splats, cfg: Config, background, camtoworlds: Tensor, Ks: T
         kwargs["backgrounds"] = torch.tensor(background, dtype=torch.float32,
                                              device=camtoworlds.device).expand(len(camtoworlds), 3)
     absgrad = cfg.strategy.absgrad if isinstance(cfg.strategy, DefaultStrategy) else False
+    kwargs.update(getattr(cfg.strategy, "rasterize_kwargs", {}))  # MVGSStrategy's blend statistics, when it cuts
     return rasterization(
         means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
         opacities=torch.sigmoid(splats["opacities"]), colors=colors, viewmats=torch.linalg.inv(camtoworlds),
@@ -418,6 +421,10 @@ def parse_config(argv=None, doc: str = "") -> Config:
                     help="which opacities MVGSStrategy's resets cap (MVGS loops): all is gsplat's; inside is "
                          "train_3dgs.py's, the far background (beyond 3/4 of the initial points' farthest distance from "
                          "the rig's centre) kept as it is (default: all)")
+    ap.add_argument("--prune-faint", type=float_above(0, inclusive=True, high=0.99), default=None, metavar="S",
+                    help="MVGSStrategy's cut of the faintest Gaussians (MVGS loops, the reference renderer): once the "
+                         "refine window has closed, remove those with the least blend weight per blended pixel that "
+                         "carry S of all the weight (MVGSConfig.prune_faint) (default: 0, off)")
     ap.add_argument("--threads", type=int_at_least(1), default=None, help="torch threads (default: torch's)")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default: %(default)s)")
     ap.add_argument("--rasterizer", choices=["reference", "gsplat"], default="reference",
@@ -441,7 +448,8 @@ def parse_config(argv=None, doc: str = "") -> Config:
                                            ("--budget-views", args.budget_views), ("--budget-rigs", args.budget_rigs),
                                            ("--chunk-size", args.chunk_size),
                                            ("--world-size-rule", args.world_size_rule),
-                                           ("--opacity-reset-scope", args.opacity_reset_scope)) if value is not None)
+                                           ("--opacity-reset-scope", args.opacity_reset_scope),
+                                           ("--prune-faint", args.prune_faint)) if value is not None)
     args.preset = args.preset or "default"
     budget = {k: v for k, v in (("max_gaussians", args.max_gaussians),
                                 ("pixels_per_gaussian", args.pixels_per_gaussian),
@@ -453,7 +461,8 @@ def parse_config(argv=None, doc: str = "") -> Config:
                  resume=args.resume, seed=args.seed, device=args.device, rasterizer=args.rasterizer,
                  grow_grad2d=args.grow_grad2d, num_workers=args.workers, chunk_size=args.chunk_size,
                  mvgs_flags=given, background_points=args.background_points,
-                 world_size_rule=args.world_size_rule or "extent", opacity_reset_scope=args.opacity_reset_scope or "all")
+                 world_size_rule=args.world_size_rule or "extent", opacity_reset_scope=args.opacity_reset_scope or "all",
+                 prune_faint=args.prune_faint)
     cfg.adjust_steps(args.steps)
     return cfg
 
@@ -493,7 +502,7 @@ def run(runner_class, cfg: Config) -> Dict:
         script = Path(sys.argv[0]).name
         print(f"{script}: error: {' '.join(unread)}: not read by this loop ({script}, "
               f"{type(runner.cfg.strategy).__name__}); --preset, --max-gaussians, --pixels-per-gaussian, "
-              "--budget-views, --budget-rigs, --world-size-rule and --opacity-reset-scope are read by "
+              "--budget-views, --budget-rigs, --world-size-rule, --opacity-reset-scope and --prune-faint are read by "
               "simple_trainer_mvgs.py and simple_trainer_chunked.py, "
               "--chunk-size by "
               "simple_trainer_chunked.py", file=sys.stderr)
@@ -521,7 +530,8 @@ def run(runner_class, cfg: Config) -> Dict:
     if mvgs:  # the strategy's size and reset rules, and what they did
         extra.update(world_size_rule=strategy.world_size_rule, opacity_reset_scope=strategy.opacity_reset_scope,
                      kept_by_distance=strategy.kept_by_distance, spared_by_reset=strategy.spared_by_reset,
-                     max_gaussians=mvgs.max_gaussians, most_held=strategy.most_held)
+                     max_gaussians=mvgs.max_gaussians, most_held=strategy.most_held,
+                     prune_faint=mvgs.prune_faint, faint_removed=strategy.faint_removed)
     result = evaluate(runner.splats, cfg, runner.parser)
     metrics = {"psnr": result["psnr"], "ssim": result["ssim"], "num_gaussians": len(runner.splats["means"]),
                "steps": cfg.max_steps, "seed": cfg.seed, "cpu_seconds": cpu, "train_seconds": wall,

@@ -270,16 +270,23 @@ Scratch<T>& thread_scratch() {
 template <typename T>
 constexpr bool kUnroll = std::is_same<T, float>::value;
 
+// Blend statistics per intersection (forward, when asked): summed weight, pixel count.
+constexpr int64_t kBlendSlots = 2;
+
 // kD > 0: the colour channels as a compile-time constant (the channel loops unroll); 0: D.
 template <typename T, int kD>
 void forward(const Grid& grid, int64_t C, int64_t N, int64_t D_, const T* means2d, const T* conics,
              const T* opacities, const T* colors, const T* backgrounds, const int64_t* offsets,
-             const int32_t* ids, T* out_color, T* out_trans, int32_t* out_last, int n_threads) {
+             const int32_t* ids, T* out_color, T* out_trans, int32_t* out_last, T* isect_blend, int n_threads) {
     const int64_t D = kD > 0 ? kD : D_;
     const int64_t n_tiles = grid.n_tiles();
     parallel_for(C * n_tiles, n_threads, [&](int64_t item, int) {
         const int64_t cam = item / n_tiles, t = item % n_tiles;
         const int64_t begin = offsets[item], end = offsets[item + 1];
+        // What each (tile, Gaussian) pair blended: its weight alpha * T summed over the tile's
+        // pixels, then how many pixels (the tile's own slots, as the backward's gradients).
+        T* blend = isect_blend ? isect_blend + begin * kBlendSlots : nullptr;
+        if (blend) std::fill(blend, blend + (end - begin) * kBlendSlots, T(0));
         Scratch<T>& s = thread_scratch<T>();
         Blocks<T>& blocks = s.blocks;
         TileSplats<T>& splats = s.splats;
@@ -322,6 +329,10 @@ void forward(const Grid& grid, int64_t C, int64_t N, int64_t D_, const T* means2
                     const T w = alpha * tr;
                     const T* c = col + k * D;
                     for (int64_t ch = 0; ch < D; ++ch) a[ch] += w * c[ch];
+                    if (blend) {
+                        blend[slot[k] * kBlendSlots] += w;
+                        blend[slot[k] * kBlendSlots + 1] += T(1);
+                    }
                     tr = next;
                     lst = static_cast<int32_t>(slot[k] + 1);
                     return true;
@@ -459,11 +470,22 @@ void reduce(const Grid& grid, int64_t C, int64_t N, int64_t D, const int64_t* of
     });
 }
 
+// Sums the per-intersection blend statistics into per-(camera, Gaussian) weight and pixel
+// counts, in the same fixed order as reduce().
+template <typename T>
+void reduce_blend(const Grid& grid, int64_t C, int64_t N, const int64_t* offsets, const int32_t* ids,
+                  const T* isect_blend, T* blend_weight, T* blend_pixels, int n_threads) {
+    const int64_t n_tiles = grid.n_tiles();
+    parallel_for(C, n_threads, [&](int64_t cam, int) {
+        for (int64_t i = offsets[cam * n_tiles]; i < offsets[(cam + 1) * n_tiles]; ++i) {
+            const int64_t g = cam * N + ids[i];
+            blend_weight[g] += isect_blend[i * kBlendSlots];
+            blend_pixels[g] += isect_blend[i * kBlendSlots + 1];
+        }
+    });
+}
+
 }  // namespace
-
-extern "C" {
-
-}  // extern "C"
 
 namespace {
 
@@ -563,11 +585,14 @@ MVGS_BIN(double, f64)
                                int64_t tile, const T* means2d, const T* conics, const T* opacities, \
                                const T* colors, const T* backgrounds, const int64_t* offsets,      \
                                const int32_t* ids, T* out_color, T* out_trans, int32_t* out_last,  \
-                               int n_threads) {                                                    \
+                               T* isect_blend, T* blend_weight, T* blend_pixels, int n_threads) {  \
         const Grid grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile}; \
         auto run = D == 3 && kUnroll<T> ? &forward<T, 3> : &forward<T, 0>;                                       \
         run(grid, C, N, D, means2d, conics, opacities, colors, backgrounds, offsets, ids,           \
-            out_color, out_trans, out_last, n_threads);                                            \
+            out_color, out_trans, out_last, isect_blend, n_threads);                               \
+        if (isect_blend)                                                                           \
+            reduce_blend<T>(grid, C, N, offsets, ids, isect_blend, blend_weight, blend_pixels,      \
+                            n_threads);                                                            \
     }                                                                                              \
     void mvgs_backward_##SUFFIX(int64_t C, int64_t N, int64_t D, int64_t width, int64_t height,    \
                                 int64_t tile, const T* means2d, const T* conics,                    \
