@@ -1511,12 +1511,18 @@ def test_the_loops_far_background_flags_reach_the_model_and_the_strategy(tmp_pat
     argv = ["--data", str(TABLETOP), "--steps", "300", "--threads", "1", "--background-points", "2000",
             "--world-size-rule", "distance", "--opacity-reset-scope", "inside", "--out", str(tmp_path / "a")]
     cfg = common.parse_config(argv)
-    assert (cfg.background_points, cfg.mvgs_rules) == (2000, {"world_size_rule": "distance", "opacity_reset_scope": "inside"})
+    assert (cfg.background_points, cfg.mvgs_rules) == (2000, {"world_size_rule": "distance", "opacity_reset_scope": "inside",
+                                                              "prune_faint": None})
+    faint = common.parse_config(argv[:-1] + [str(tmp_path / "f"), "--prune-faint", "0.01"])
+    assert faint.mvgs_rules["prune_faint"] == 0.01  # and MVGSStrategy's config takes it (below: the default, 0)
     runner = simple_trainer_mvgs.Runner(cfg)
     assert len(shell.points.xyz) > len(tabletop.points.xyz)
     assert torch.equal(runner.splats["means"].detach(), shell.points.xyz.float())
     s = runner.cfg.strategy
     assert (s.world_size_rule, s.opacity_reset_scope) == ("distance", "inside")
+    assert s.config.prune_faint == 0.0 and s.rasterize_kwargs == {}
+    faint.make_strategy(DefaultStrategy)
+    assert MVGSStrategy(faint.strategy, tabletop, "default", steps=300, **faint.mvgs_rules).config.prune_faint == 0.01
     assert s.far_distance == pytest.approx(float((shell.points.xyz.double() - torch.as_tensor(tabletop.center)).norm(dim=1).max()))
     assert s.far_distance > 1.5 * float((tabletop.points.xyz.double() - torch.as_tensor(tabletop.center)).norm(dim=1).max())
     plain = simple_trainer.Runner(common.parse_config(argv[:6] + ["--background-points", "2000", "--out", str(tmp_path / "b")]))
