@@ -718,7 +718,9 @@ class MVGSStrategy(DefaultStrategy):
         """config.prune_faint's statistics: the blend weight and blended pixels the rasterizer
         reported (info "blend_weight", "blend_pixels" [C, N]) and the views that saw each row
         (radius > 0), summed in state (mvgs_blend_weight, mvgs_blend_pixels, mvgs_blend_seen;
-        gsplat's ops carry them through grow and prune)."""
+        gsplat's ops carry them through grow and prune) since the last refine (each refine
+        restarts them, as the package adapters' densification restarts theirs), so the cut
+        judges the views after the window's last refine."""
         if "blend_weight" not in info or "blend_pixels" not in info:
             raise ValueError(f"step {step}: config.prune_faint={self.config.prune_faint} needs the blend statistics of "
                              "every render call: pass **strategy.rasterize_kwargs (blend_stats=True) to the reference "
@@ -892,6 +894,8 @@ class MVGSStrategy(DefaultStrategy):
         by_distance = 0
         if ctx.prune_large and self.world_size_rule == "distance":
             by_distance = self._prune_by_distance(params, optimizers, state)
+        for key in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"):  # prune_faint's window restarts too
+            state.pop(key, None)
         if cap is not None:
             shed = int(self._shed(params, optimizers, state, cap).sum())  # the boxes' clones may have taken room
             for key in ("mvgs_grad2d_sq", "mvgs_coverage"):  # the window restarts, as gsplat's grad2d

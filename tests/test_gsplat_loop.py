@@ -879,6 +879,10 @@ def test_the_faint_cut_in_the_example_loop_through_every_phase_and_resume(tmp_pa
     n_train = len(runner.trainset)
     assert [c[0] for c in cuts] == [150 + 2 * n_train - 1]  # one cut; the window's last collected step is 149
     _, w, p, seen, before, after = cuts[0]
+    # the statistics are those of the views since the window's last refine (step 140 or later): a
+    # pixel's weights add up to its alpha <= 1, so at most one view's pixels per step since then
+    h, w_px = runner.trainset[0]["image"].shape[:2]
+    assert 0 < float(w.double().sum()) <= (cuts[0][0] - 140) * h * w_px
     order = sorted((i for i in range(len(w)) if seen[i] > 0),
                    key=lambda i: (float(w[i]) / float(p[i]) if p[i] > 0 else 0.0, i))
     total, acc, removed = float(w.double().sum()), 0.0, set()
