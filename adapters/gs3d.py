@@ -401,11 +401,12 @@ def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Tensor, center:
 
 
 def faint_rows(weight: Tensor, pixels: Tensor, seen: Tensor, share: float) -> Tensor:
-    """[N] bool: the faintest Gaussians (GS3DConfig.prune_faint). weight [N]: blend weight
-    (alpha x T) summed over some views; pixels [N]: the pixels it was blended at there; seen [N]
-    bool: the rows those views judged (others are never chosen). Among the seen rows, in order of
-    weight per blended pixel (0 where never blended; ties by row), the longest prefix whose summed
-    weight is at most `share` of all the weight. Nothing when no weight was blended."""
+    """[N] bool: the faintest Gaussians (MVGSConfig.prune_faint, DensifyContext.faint_share).
+    weight [N]: blend weight (alpha x T) summed over some views; pixels [N]: the pixels it was
+    blended at there; seen [N] bool: the rows those views judged (others are never chosen).
+    Among the seen rows, in order of weight per blended pixel (0 where never blended; ties by
+    row), the longest prefix whose summed weight is at most `share` of all the weight. Nothing
+    when no weight was blended."""
     out = torch.zeros(weight.shape, dtype=torch.bool, device=weight.device)
     w = weight.detach().to(torch.float64)
     total = float(w.sum())

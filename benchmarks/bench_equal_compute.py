@@ -135,8 +135,8 @@ RUNS = {
     # round the scene, since 2026-11-28), and by score alone (the order before)
     "baseline-cap": ["--preset", "baseline", "--threshold-width", "800"],
     "baseline-score-cap": ["--preset", "baseline", "--threshold-width", "800", "--budget-growth-order", "score"],
-    # the baseline and the default with the faintest splats cut at every densification call, those with
-    # the least blend weight per blended pixel that carry 1 % of the weight (GS3DConfig.prune_faint)
+    # the baseline and the default with the faintest splats cut once after densification, those with
+    # the least blend weight per blended pixel that carry 1 % of the weight (MVGSConfig.prune_faint)
     "baseline-faint": ["--preset", "baseline", "--threshold-width", "800", "--prune-faint", "0.01"],
     "default-faint": ["--preset", "default", "--prune-faint", "0.01"],
 }
