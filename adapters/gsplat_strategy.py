@@ -234,6 +234,9 @@ def adopt_strategy_clock(config: MVGSConfig, strategy: DefaultStrategy, steps: i
         grad_threshold=float(strategy.grow_grad2d))
 
 
+# config.prune_faint's statistics in the strategy state: blend weight, blended pixels, views that saw the row
+BLEND_KEYS = ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen")
+
 class MVGSStrategy(DefaultStrategy):
     """A gsplat DefaultStrategy driven by an MVGS ViewSchedule (see the module docstring).
 
@@ -727,7 +730,7 @@ class MVGSStrategy(DefaultStrategy):
                              "renderer's rasterization")
         weight, pixels = info["blend_weight"], info["blend_pixels"]
         seen = (info["radii"] > 0).reshape(*info["radii"].shape[:2], -1).all(-1)
-        for key, value in (("mvgs_blend_weight", weight), ("mvgs_blend_pixels", pixels), ("mvgs_blend_seen", seen)):
+        for key, value in zip(BLEND_KEYS, (weight, pixels, seen)):
             if not isinstance(state.get(key), Tensor) or len(state[key]) != n:
                 state[key] = torch.zeros(n, device=weight.device)
             state[key] += value.detach().to(state[key]).reshape(-1, n).sum(0)
@@ -737,14 +740,14 @@ class MVGSStrategy(DefaultStrategy):
         blend statistics folded in since the refine window closed, removed with gsplat's
         ops.remove (parameters, Adam moments and state together)."""
         n = len(params["means"])
-        weight, pixels, seen = (state.get(k) for k in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"))
+        weight, pixels, seen = (state.get(k) for k in BLEND_KEYS)
         if not (isinstance(weight, Tensor) and len(weight) == n and float(weight.sum()) > 0):
             raise ValueError(f"step {step}: config.prune_faint's cut found no blend statistics: the loop's rasterizer "
                              "must report them (**strategy.rasterize_kwargs)")
         faint = faint_rows(weight, pixels, seen > 0, self.config.prune_faint)
         if bool(faint.any()):
             remove(params, optimizers, state, faint.to(params["means"].device))
-        for key in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"):
+        for key in BLEND_KEYS:
             state.pop(key, None)
         self.faint_removed += int(faint.sum())
         self.last_refine = {"step": plan.step, "loop_step": step, "clock": plan.clock, "before": n,
@@ -894,7 +897,7 @@ class MVGSStrategy(DefaultStrategy):
         by_distance = 0
         if ctx.prune_large and self.world_size_rule == "distance":
             by_distance = self._prune_by_distance(params, optimizers, state)
-        for key in ("mvgs_blend_weight", "mvgs_blend_pixels", "mvgs_blend_seen"):  # prune_faint's window restarts too
+        for key in BLEND_KEYS:  # prune_faint's window restarts too
             state.pop(key, None)
         if cap is not None:
             shed = int(self._shed(params, optimizers, state, cap).sum())  # the boxes' clones may have taken room

@@ -185,14 +185,13 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     trainer = MVGS(adapter, scene, config)
     marks = {round(trainer.total_steps * (i + 1) / points) for i in range(points)}
     cpu, wall, curve = 0.0, 0.0, []
-    faint, peak = 0, adapter.num_primitives()
+    tally = ex.DensifyTally(adapter.num_primitives())
     while trainer.step_count < trainer.total_steps:
         c0, w0 = time.process_time(), time.perf_counter()
         info = trainer.step()
         cpu += time.process_time() - c0
         wall += time.perf_counter() - w0
-        peak = max(peak, info.num_primitives)
-        faint += 0 if info.densify is None else int(info.densify.extra.get("faint", 0))
+        tally.add(info)
         if trainer.step_count in marks:
             curve.append({"cpu": cpu, "step": trainer.step_count, "work": trainer.schedule.work_done,
                           "psnr": trainer.evaluate(factor=scale).psnr})
@@ -201,7 +200,7 @@ def train(data, kind: str, budget: float, views: int, points: int, seed: int, sc
     return {"kind": kind, "budget": budget, "clock": clock, "views": config.stages[-1].views,
             "max_gaussians": config.max_gaussians,
             "psnr": result.psnr, "ssim": result.ssim, "gaussians": adapter.num_primitives(),
-            "peak_gaussians": peak, "faint_removed": faint,
+            "peak_gaussians": tally.totals["peak_primitives"], "faint_removed": tally.totals["faint"],
             "per_view_psnr": per_view, "psnr_median": statistics.median(per_view) if per_view else result.psnr,
             "steps": trainer.step_count, "work": trainer.schedule.work_done, "cpu": cpu, "wall": wall,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "curve": curve}

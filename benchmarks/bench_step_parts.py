@@ -134,11 +134,12 @@ def load_model(ckpt: Path):
     return saved, splats, degree, cfg
 
 
-def render_view(splats, cfg, parser: "common.Parser", d, degree: int):
-    """The loop's render of one training or test item d at its full resolution."""
+def render_view(splats, cfg, parser: "common.Parser", d, degree: int, **kwargs):
+    """The loop's render of one training or test item d at its full resolution (kwargs: the
+    rasterizer's, e.g. blend_stats=True)."""
     h, w = d["image"].shape[:2]
     return common.rasterize_splats(splats, cfg, parser.background, d["camtoworld"][None], d["K"][None], w, h,
-                                   sh_degree=degree)
+                                   sh_degree=degree, **kwargs)
 
 
 def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:

@@ -13,9 +13,12 @@ the pixels they took, the Gaussians blended per pixel, the test PSNR and a train
     python benchmarks/probe_blend_weight.py out/a/ckpt_2000.pt --shares 0.0025 --write-pruned out/p   # then:
     python examples/gsplat_loop/simple_trainer_mvgs.py --steps 3000 --resume out/p/ckpt_2000_pruned_0.0025.pt [...]
 
-Counted by compositing again in float64 (bench_step_parts.contributors_per_pixel), so a 128 px
-scene of 48 views takes about a minute per model, and as much again per share; the test PSNR is
-the mean over the test views of the clamped render against the image.
+The blend weights are the renderer's own (rasterization(..., blend_stats=True), summed over the
+training views in float64) and the Gaussians removed are those the package's rule names
+(adapters.gs3d.faint_rows, MVGSConfig.prune_faint's, every Gaussian judged); the blended-per-pixel
+column and the view time are bench_step_parts.measure's, about a minute per model and share on a
+128 px scene of 48 views; the test PSNR is the mean over the test views of the clamped render
+against the image.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
 
 import bench_step_parts  # noqa: E402
 import common  # noqa: E402
+from mvgs_plugin.adapters.gs3d import faint_rows  # noqa: E402
 from mvgs_plugin.io import save_checked  # noqa: E402
 
 
@@ -76,22 +80,16 @@ def probe(ckpt: Path, parser, shares: List[float], repeats: int,
     pairs = torch.zeros(n, dtype=torch.float64)
     weight = torch.zeros(n, dtype=torch.float64)
     for i in range(len(views)):
-        d = views[i]
-        h, w = d["image"].shape[:2]
         with torch.no_grad():
-            _, _, info = bench_step_parts.render_view(splats, cfg, parser, d, degree)
-        b = bench_step_parts.contributors_per_pixel(info, w, h)
-        pairs += b.pairs
-        weight += b.weight
-    # least weight per blended pixel first; never blended (no pixels, no weight) before all
-    order = torch.argsort(weight / pairs.clamp_min(1.0), stable=True)
-    cum = torch.cumsum(weight[order], 0) / weight.sum()
+            _, _, info = bench_step_parts.render_view(splats, cfg, parser, views[i], degree, blend_stats=True)
+        pairs += info["blend_pixels"][0].double()
+        weight += info["blend_weight"][0].double()
+    every = torch.ones(n, dtype=torch.bool)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for share in [0.0, *shares]:
-            k = int((cum <= share).sum()) if share > 0 else 0
-            keep = torch.ones(n, dtype=torch.bool)
-            keep[order[:k]] = False
+            keep = ~faint_rows(weight, pairs, every, share)  # least weight per blended pixel first
+            k = n - int(keep.sum())
             # the cut model, resumable; bench_step_parts.measure reads its splats
             folder = write_to if write_to is not None and share > 0 else Path(tmp)
             path = folder / f"{ckpt.stem}_pruned_{share}.pt"

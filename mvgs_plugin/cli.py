@@ -200,6 +200,24 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=No
     return GS3DConfig.for_run(config, max_gaussians=max_gaussians, seed=seed, **extra)
 
 
+class DensifyTally:
+    """What densification did over a run's steps, from each StepInfo (metrics.json
+    "densification"; benchmarks/bench_equal_compute.py): calls, cloned, split, pruned, faint (the
+    prune_faint cut's rows) and the largest count a step ended with."""
+
+    def __init__(self, count: int):
+        self.totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0, "peak_primitives": count}
+
+    def add(self, info) -> None:
+        t = self.totals
+        t["peak_primitives"] = max(t["peak_primitives"], info.num_primitives)
+        if info.densify is not None:
+            t["calls"] += 1
+            for key in ("cloned", "split", "pruned"):
+                t[key] += getattr(info.densify, key)
+            t["faint"] += int(info.densify.extra.get("faint", 0))
+
+
 MODEL_FLAGS = ("world_size_rule", "means_lr_rule", "opacity_reset_scope", "budget_growth_order", "beside_cull")
 
 
@@ -770,17 +788,11 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
 
     written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)
 
-    # what densification did over the steps this process ran (metrics.json "densification")
-    totals = trainer.densify_totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0,
-                                       "peak_primitives": trainer.adapter.num_primitives()}
+    tally = DensifyTally(trainer.adapter.num_primitives())  # over the steps this process ran
+    trainer.densify_totals = tally.totals
 
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
-        totals["peak_primitives"] = max(totals["peak_primitives"], info.num_primitives)
-        if info.densify is not None:
-            totals["calls"] += 1
-            for key in ("cloned", "split", "pruned"):
-                totals[key] += getattr(info.densify, key)
-            totals["faint"] += int(info.densify.extra.get("faint", 0))
+        tally.add(info)
         if every and trainer.step_count % every == 0 and trainer.step_count < trainer.total_steps:
             trainer.save_checkpoint(path)
             written.append(trainer.step_count)
