@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import logging
 import math
 from dataclasses import dataclass, field
@@ -398,6 +399,16 @@ def keep_scores_of(opacity: Tensor, coverage: Tensor, positions: Tensor, center:
     if bool((coverage > 0).any()):
         return opacity * coverage.to(opacity)
     return opacity * even_cut_order(positions, center).to(opacity)
+
+
+def rasterizer_reports_blend(rasterize) -> bool:
+    """Whether a rasterizer with gsplat's call shape takes the reference renderer's
+    ``blend_stats`` keyword (meta "blend_weight" / "blend_pixels"): a parameter of that name in
+    its signature (a **kwargs catch-all does not count: gsplat's would pass it to nothing)."""
+    try:
+        return "blend_stats" in inspect.signature(rasterize).parameters
+    except (TypeError, ValueError):  # a builtin or C function without a signature
+        return False
 
 
 def faint_rows(weight: Tensor, pixels: Tensor, seen: Tensor, share: float) -> Tensor:
@@ -794,12 +805,18 @@ class GS3DAdapter:
         radius = torch.where(visible, radius.to(self.max_radii2D.dtype), torch.zeros_like(self.max_radii2D))
         self.max_radii2D = torch.maximum(self.max_radii2D, radius.max(dim=0).values)
 
-    def collect_blend_stats(self) -> None:
+    def collect_blend_stats(self) -> bool:
         """From now on, ask the rasterizer for each view's blend statistics (its ``blend_stats``
         keyword) and fold them into blend_weight_accum / blend_pixels_accum, for the cut of the
         faintest Gaussians (DensifyContext.faint_share; the controller calls this when
-        MVGSConfig.prune_faint is set). Off by default: it costs a few percent of the forward pass."""
+        MVGSConfig.prune_faint is set). Off by default: it costs a few percent of the forward pass.
+        Returns whether it will: False, and nothing changes, when config.rasterize takes no
+        ``blend_stats`` keyword (gsplat's own rasterization, for one: only the reference renderer
+        reports them)."""
+        if not rasterizer_reports_blend(self.config.rasterize):
+            return False
         self.blend_stats = True
+        return True
 
     # ---- distributed training (mvgs_plugin.protocol.DistributedAdapter) -------------------
     def gradient_parameters(self) -> Dict[str, Tensor]:
@@ -1208,6 +1225,7 @@ class GS3DAdapter:
             "far_distance": self.far_distance,
             "config": self.config.saved_values(),
             "generator": self._generator.get_state(),
+            "blend_stats": self.blend_stats,  # collect_blend_stats() was called: a resumed run goes on collecting
         }
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
@@ -1258,6 +1276,8 @@ class GS3DAdapter:
         for key in STAT_NAMES:
             self.stats[key] = stats[key].to(device=ref.device, dtype=ref.dtype).clone()
         self._generator.set_state(state["generator"])
+        if state.get("blend_stats", False):  # absent before the cut of the faintest Gaussians
+            self.collect_blend_stats()
 
     def export(self, path: str, camera: Optional[Camera] = None) -> None:
         """Write the standard 3DGS PLY (raw values; see adapters/ply.py), atomically. ``camera``

@@ -280,11 +280,12 @@ class MVGSStrategy(DefaultStrategy):
             (the package trainer's default). The opacities' Adam moments are zeroed for every
             row either way (ops.reset_opa's).
         Both rules are off by default: a wrapped strategy prunes and resets as gsplat's.
-        prune_faint: None (the config's, 0 in every preset) or S in [0, 1): config.prune_faint, the
-            one cut of the faintest Gaussians after the refine window (MVGSConfig.prune_faint). The
-            loop's rasterizer must report blend statistics: pass ``**strategy.rasterize_kwargs``
-            to the reference renderer's rasterization (``blend_stats=True``; gsplat's own
-            rasterizer has no such output). Off (0): nothing is asked or collected.
+        prune_faint: None or 0 (off, whatever the config says: the default preset's
+            MVGSConfig.prune_faint is not taken, since the cut needs a rasterizer output gsplat's
+            has not) or S in (0, 1): config.prune_faint, the one cut of the faintest Gaussians
+            after the refine window (MVGSConfig.prune_faint). The loop's rasterizer must report
+            blend statistics: pass ``**strategy.rasterize_kwargs`` to the reference renderer's
+            rasterization (``blend_stats=True``). Off: nothing is asked or collected.
 
     Attributes: ``schedule`` (the ViewSchedule), ``config``, ``total_steps``, ``plan`` (the
     current step's StepPlan), ``budget_growth_order`` (resolved: "score" or "inside-first"),
@@ -329,8 +330,7 @@ class MVGSStrategy(DefaultStrategy):
             config = MVGSConfig.from_preset(config)
         if not isinstance(config, MVGSConfig):
             raise TypeError(f"config must be an MVGSConfig or a preset name, got {type(config).__name__}")
-        if prune_faint is not None:
-            config = dataclasses.replace(config, prune_faint=prune_faint)
+        config = dataclasses.replace(config, prune_faint=prune_faint or 0.0)  # asked for here, not by a preset
         if config.stage_growth is not None:
             raise ValueError(f"config.stage_growth={config.stage_growth!r}: gsplat's DefaultStrategy has no cap on "
                              "how far a refine may grow the count; use stage_growth=None")

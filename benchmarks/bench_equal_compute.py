@@ -139,6 +139,9 @@ RUNS = {
     # the least blend weight per blended pixel that carry 1 % of the weight (MVGSConfig.prune_faint)
     "baseline-faint": ["--preset", "baseline", "--threshold-width", "800", "--prune-faint", "0.01"],
     "default-faint": ["--preset", "default", "--prune-faint", "0.01"],
+    # the default as it was before 2026-11-30, when the cut became its own (DEFAULT_PRUNE_FAINT)
+    "default-no-faint": ["--preset", "default", "--prune-faint", "0"],
+    "default-no-faint-cap": ["--preset", "default", "--prune-faint", "0"],
 }
 CAPPED = tuple(k for k in RUNS if k.endswith("-cap"))  # the kinds that take --max-gaussians
 

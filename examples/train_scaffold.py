@@ -43,6 +43,9 @@ def parse_args(argv=None):
     if args.budget_swap:  # the adapter would take it and do nothing
         ap.error(f"--budget-swap {args.budget_swap:g}: Scaffold-GS anchors do not swap (the swap acts on 3DGS and 4DGS "
                  "Gaussians and in the gsplat strategy); leave it out")
+    if args.prune_faint:  # the controller would warn and run without it
+        ap.error(f"--prune-faint {args.prune_faint:g}: Scaffold-GS decodes its Gaussians from anchors every view, so "
+                 "there are no blend weights of lasting Gaussians to cut by (the cut acts on 3DGS and 4DGS); leave it out")
     return args
 
 
@@ -67,7 +70,7 @@ def run(args, dist) -> dict:
     """Trains (on every rank under torchrun, each on its share of a step's views); rank 0
     evaluates and writes."""
     scene = scene_from_args(args)
-    config = config_from_args(args, scene)
+    config = config_from_args(args, scene, prune_faint=0.0)  # no cut of the faintest: anchors decode new ones every view
     adapter = build_adapter(args, scene, config)
     model_cfg = adapter.config
     trainer, train_seconds, result = train_and_evaluate(adapter, scene, config, args, dist)

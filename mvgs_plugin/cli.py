@@ -511,7 +511,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
     ap.add_argument("--prune-faint", type=float_above(0, inclusive=True, high=0.99), default=None, metavar="S",
                     help="0: off; S in (0, 1): once densification has ended, remove in one cut the Gaussians with the "
                          "least blend weight (alpha x transmittance) per pixel they are blended at, as many as carry S "
-                         "of all the weight the training views blend (MVGSConfig.prune_faint) (default: 0)")
+                         "of all the weight the training views blend (MVGSConfig.prune_faint) (default: the preset's: 0.01 with "
+                         "default, 0 with the others and in train_4dgs.py)")
     ap.add_argument("--budget-initial-share", type=float_above(0, high=1.0), default=None, metavar="S",
                     help="with a budget, cut a larger initial model to this share of it before the first step, so "
                          "the rest is grown where the views ask (MVGSConfig.budget_initial_share) (default: 1)")

@@ -64,6 +64,9 @@ DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((2, 1, 0.30), (1, 1, 0.70)
 # run (about the 30 % of a budget of 3000 its shares were chosen on; docs/equal_compute.md,
 # "A warm-up of fixed length").
 DEFAULT_WARMUP_WORK_CAP = 1000.0
+# default()'s cut of the faintest Gaussians after densification (prune_faint): the share of the
+# blend weight it may remove (docs/equal_compute.md, "The cut made the default's")
+DEFAULT_PRUNE_FAINT = 0.01
 
 # compact()'s data budget: training pixels per Gaussian. 0.6x the count of the baseline's data
 # budget (128, fixed from 3DGS's own 70-210 on its benchmarks), the Gaussians issue 27 allows a
@@ -330,7 +333,8 @@ class MVGSConfig:
         (docs/equal_compute.md): +0.72 dB on the forward rig, -3.69 on forward-clutter, -0.04 to
         -3.60 on the 360-degree scenes (those with size pruning on). GS3DAdapter, GS4DAdapter and
         MVGSStrategy swap; Scaffold-GS's anchors do not (they ignore it).
-    prune_faint: 0 (default, off) or a share S in (0, 1): once densification has ended, the
+    prune_faint: 0 (off; the field's default and every preset's but default()'s, which has
+        DEFAULT_PRUNE_FAINT) or a share S in (0, 1): once densification has ended, the
         Gaussians with the least blend weight per blended pixel (alpha x transmittance, their share
         of the pixels' colours, summed over the training views since the last densification call
         and divided by the pixels they were blended at) that together carry at most S of all the
@@ -600,11 +604,16 @@ class MVGSConfig:
         level does not pay"): a 1/4 level before the 1/2 one (10 % of the work, taken from the
         1/2 level's 30 %) did worse at equal work on average at 1k and 3k, and most where the
         scene has structure thinner than a pixel at 1/4. Its opacity resets run at full
-        resolution only (coarse_opacity_reset=False, measured there)."""
+        resolution only (coarse_opacity_reset=False, measured there). Once densification has ended
+        it cuts the faintest Gaussians, those that carry 1 % of the blend weight
+        (prune_faint=DEFAULT_PRUNE_FAINT, since 2026-11-30: 0.65-0.84x the Gaussians at -0.10 to
+        +0.10 dB on the generated scenes at 3k; docs/equal_compute.md). An adapter without blend
+        statistics (Scaffold-GS) runs it without the cut (the controller warns)."""
         view_cost = checked_view_cost(overrides.get("view_cost", cls.view_cost))  # shares of the work it counts
         return cls(**{"stages": stages_from_shares(DEFAULT_SHARES, view_cost=view_cost), "preset": "default",
                       "clock_unit": "work", "coarse_opacity_reset": False, "warmup_work_cap": DEFAULT_WARMUP_WORK_CAP,
-                      "grad_threshold_width": 800.0, "forward_rig": "finest", **overrides})
+                      "grad_threshold_width": 800.0, "forward_rig": "finest", "prune_faint": DEFAULT_PRUNE_FAINT,
+                      **overrides})
 
     @classmethod
     def compact(cls, **overrides) -> "MVGSConfig":
@@ -619,10 +628,11 @@ class MVGSConfig:
         not shrink with the views"). It keeps the default's shares at
         every budget (no warmup_work_cap): under its budget the cap is a trade between scenes, not
         a gain (at 10k +0.24 to +0.71 dB on three scenes, -0.63 / -0.94 on the clutter scene's
-        two seeds; docs/equal_compute.md, "The compact preset with today's rules")."""
+        two seeds; docs/equal_compute.md, "The compact preset with today's rules"). Nor the
+        default's cut of the faintest Gaussians (prune_faint=0): not measured under its budget."""
         return cls.default(**{"preset": "compact", "pixels_per_gaussian": COMPACT_PIXELS_PER_GAUSSIAN,
                               "budget_views": COMPACT_BUDGET_VIEWS, "budget_rigs": "round",
-                              "warmup_work_cap": None, **overrides})
+                              "warmup_work_cap": None, "prune_faint": 0.0, **overrides})
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "MVGSConfig":

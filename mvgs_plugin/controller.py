@@ -189,11 +189,8 @@ class MVGS:
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
         if self.config.prune_faint > 0:
-            if not callable(getattr(adapter, "collect_blend_stats", None)):
-                raise ValueError(f"config.prune_faint={self.config.prune_faint} needs an adapter that collects blend "
-                                 f"statistics, collect_blend_stats() ({type(adapter).__name__} has none: GS3DAdapter "
-                                 "and GS4DAdapter do); use prune_faint=0")
-            adapter.collect_blend_stats()
+            self.schedule.enable_faint_cut(adapter)
+            self.config = self.schedule.config  # prune_faint 0 when the adapter cannot report blend weights
         if distributed is not None:
             if not isinstance(distributed, Collective):
                 raise TypeError(f"distributed must be a mvgs_plugin.distributed.Collective or None, "

@@ -5,6 +5,7 @@ step."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -236,6 +237,7 @@ class ViewSchedule:
         # whether the cut was made (it comes after 2 x the training views)
         self.faint_views = 0
         self.faint_done = False
+        self._faint_adapter = None  # the adapter enable_faint_cut() asked for blend statistics
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
@@ -276,9 +278,10 @@ class ViewSchedule:
         chunks = self._chunks(len(ids), self.chunk_size(len(ids), cams[0].height, cams[0].width))
         window = pos.clock < cfg.densify_until
         densify = window and pos.clock > cfg.densify_from and pos.crosses(cfg.densify_every)
-        # after the window, prune_faint keeps collecting until its cut (2 x the training views later)
+        # after the window, prune_faint keeps collecting until its cut (2 x the training views later);
+        # a run whose window densified at no step (too short: NoDensificationWarning) makes no cut
         faint_cut, collect = False, window
-        if cfg.prune_faint > 0 and not window and not self.faint_done:
+        if cfg.prune_faint > 0 and not window and not self.faint_done and densifies_at_some_step(cfg):
             collect = True
             self.faint_views += len(ids)
             faint_cut = densify = self.faint_views >= 2 * len(self.scene.train_cameras)
@@ -316,6 +319,28 @@ class ViewSchedule:
         width = sum(c.width for c in plan.cameras) / len(plan.cameras)
         return resolution_threshold(cfg.grad_threshold, width, cfg.grad_threshold_width)
 
+    def enable_faint_cut(self, adapter) -> bool:
+        """Ask `adapter` for the blend statistics config.prune_faint's cut needs (its
+        collect_blend_stats()). An adapter that cannot report them (none of that method, as
+        Scaffold-GS's anchors, or a rasterizer without the keyword: it returns False) runs
+        without the cut: config.prune_faint becomes 0 and a warning says so. The controller calls
+        it when built; densify_context(adapter=...) at the first densification of a hand-written
+        loop (early enough: the cut uses the statistics after the window's last call). Returns
+        whether the cut stays on."""
+        if self.config.prune_faint <= 0:
+            return False
+        if self._faint_adapter is adapter:
+            return True
+        collect = getattr(adapter, "collect_blend_stats", None)
+        if callable(collect) and collect() is not False:
+            self._faint_adapter = adapter
+            return True
+        warnings.warn(f"config.prune_faint={self.config.prune_faint}: {type(adapter).__name__} reports no blend "
+                      "weights (collect_blend_stats(); GS3DAdapter and GS4DAdapter with the reference renderer do), "
+                      "so this run makes no cut of the faintest Gaussians (prune_faint=0)", stacklevel=3)
+        self.config = dataclasses.replace(self.config, prune_faint=0.0)
+        return False
+
     def densify_context(self, plan: StepPlan, loss_maps: Optional[Sequence[Tensor]] = None,
                         primitive_count: Optional[int] = None, bounds: Optional[Tensor] = None,
                         stage_start_count: Optional[int] = None, adapter=None) -> DensifyContext:
@@ -332,6 +357,8 @@ class ViewSchedule:
         num_primitives() and positions(), as a hand-written loop's model); without either, the
         count the schedule was last told (self.primitive_count) is used, with a warning once when
         the cap needs it."""
+        if adapter is not None and self.config.prune_faint > 0:
+            self.enable_faint_cut(adapter)
         cfg = self.config
         if plan.faint_cut:  # prune_faint's cut: no growth, no boxes
             return DensifyContext(step=plan.clock, grad_threshold=math.inf, scene_extent=float(self.scene.extent),

@@ -495,6 +495,7 @@ def test_train_4dgs_example_writes_metrics_renders_plys_and_field(tmp_path):
     assert saved == json.loads(json.dumps(m)) and saved["steps"] == 6
     assert saved["init"].endswith("; plus 30 --init-random points in the scene's own points' box widened to a cube")
     assert saved["config"]["time_spread"] == "stratified" and saved["model_config"]["coarse_steps"] == 1
+    assert saved["config"]["prune_faint"] == 0.0  # 4DGS's recipe: the default preset's cut only when asked
     size = (out / "point_cloud.ply").stat().st_size + (out / "deformation.pt").stat().st_size
     assert math.isclose(saved["model_mb"], size / 2**20)
     assert (out / "point_cloud_t0.250.ply").exists() and len(list((out / "test").glob("*.png"))) == 2

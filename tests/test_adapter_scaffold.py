@@ -438,3 +438,8 @@ def test_train_scaffold_example_outputs(tmp_path):
         ["rot_0", "rot_1", "rot_2", "rot_3"]
     state = torch.load(out / "anchors.pt", weights_only=False)
     assert state["anchors"].shape[0] == saved["num_anchors"]
+    # the default preset's cut of the faintest Gaussians: dropped here (anchors have no lasting Gaussians
+    # to cut), and refused when asked for
+    assert saved["config"]["prune_faint"] == 0.0
+    with pytest.raises(SystemExit):
+        example.parse_args(["--prune-faint", "0.01"])

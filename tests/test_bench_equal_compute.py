@@ -195,17 +195,20 @@ def test_the_baseline_cap_kinds_order_growth_as_named():
 
 def test_the_faint_kinds_ask_for_the_cut_and_keep_their_presets():
     """baseline-faint / default-faint: the baseline and the default with MVGSConfig.prune_faint
-    0.01, parsed as the benchmark's own runs parse them (the examples' flags and model flags)."""
+    0.01 (the default's own since 2026-11-30), default-no-faint the default without it, parsed as
+    the benchmark's own runs parse them (the examples' flags and model flags)."""
     import argparse
 
     from mvgs_plugin import cli
 
-    for kind, preset in (("baseline-faint", "baseline"), ("default-faint", "default"), ("baseline", "baseline")):
+    for kind, preset, share in (("baseline-faint", "baseline", 0.01), ("default-faint", "default", 0.01),
+                                ("baseline", "baseline", 0.0), ("default", "default", 0.01),
+                                ("default-no-faint", "default", 0.0)):
         parser = argparse.ArgumentParser()
         parser.add_argument("--data")
         args = cli.world_size_arg(cli.common_args(parser, "out/bench")).parse_args(bench.run_argv(kind, 3000, 4, 0, 1))
         config = cli.config_from_args(args)
-        assert config.preset == preset and config.prune_faint == (0.01 if kind.endswith("-faint") else 0.0)
+        assert (config.preset, config.prune_faint) == (preset, share), kind
 
 
 def test_the_tables_give_the_median_view_beside_the_mean(tmp_path):

@@ -38,7 +38,8 @@ def pixels(scene) -> int:
 def test_compact_is_the_default_with_a_data_budget(orbit):
     compact, default = MVGSConfig.compact(), MVGSConfig.default()
     differ = {f.name for f in dataclasses.fields(MVGSConfig) if getattr(compact, f.name) != getattr(default, f.name)}
-    assert differ == {"preset", "pixels_per_gaussian", "budget_views", "budget_rigs", "warmup_work_cap"}
+    assert differ == {"preset", "pixels_per_gaussian", "budget_views", "budget_rigs", "warmup_work_cap", "prune_faint"}
+    assert (compact.prune_faint, default.prune_faint) == (0.0, 0.01)  # the default's cut: not measured under a budget
     # compact keeps the default's 30 % at 1/2 at every budget (under a budget the cap is a trade
     # between scenes, docs/equal_compute.md); the default's warm-up is held to 1000 views' work
     # beyond a budget of 3333

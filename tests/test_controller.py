@@ -209,7 +209,8 @@ def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset,
     pyramid hand-offs (with paper's opacity reset at each), and the loop ends with the model the
     controller trains from the same start: same count, same positions. So it runs every phase as
     the controller does, cross-ray densification included (its clones counted here; no warning:
-    the loop records its loss maps and passes its model), and a budget's first cut."""
+    the loop records its loss maps and passes its model), a budget's first cut, and the default's
+    cut of the faintest Gaussians."""
     import warnings
 
     steps = 300
@@ -220,12 +221,13 @@ def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset,
         assert len({p.stage for p in plans}) >= 2  # a pyramid hand-off too
     if preset == "paper":
         assert sum(p.handoff_reset for p in plans) >= 1
-    boxes = []
+    boxes, faint = [], []
     real_densify = GS3DAdapter.densify
 
     def counting(self, ctx):
         report = real_densify(self, ctx)
         boxes.append(report.from_boxes)
+        faint.append(report.extra.get("faint", 0))
         return report
 
     with warnings.catch_warnings(record=True) as caught:
@@ -238,6 +240,10 @@ def test_three_line_wrap_is_the_controllers_run_with_every_preset(scene, preset,
     assert not [w for w in caught if "cross-ray" in str(w.message)], [str(w.message) for w in caught]
     if preset == "paper":
         assert sum(boxes) > 0  # cross-ray densification cloned
+    # the default's cut of the faintest Gaussians, once after the window: the loop never asked for
+    # blend statistics, densify_context(adapter=model) did
+    assert sum(p.faint_cut for p in plans) == (preset == "default")
+    assert (faint[-1] > 0) if preset == "default" else not any(faint), (preset, faint)
     run = GS3DConfig.for_run(cfg.for_scene(scene))  # the example's model: its schedules on the run's clock
     trainer = MVGS(make(scene, position_lr_max_steps=run.position_lr_max_steps,
                         sh_degree_interval=run.sh_degree_interval), scene, cfg)

@@ -132,13 +132,15 @@ def test_the_controller_and_view_schedule_run_the_forward_scene_as_the_baseline(
     scene = load_nerf_synthetic(FORWARD)
     assert is_forward_facing(scene.train_cameras)
     config = MVGSConfig.default().with_budget(200)
-    base = ViewSchedule(scene, MVGSConfig.baseline(grad_threshold_width=800.0).with_budget(200))
+    # the baseline with the default's cut of the faintest after densification
+    base = ViewSchedule(scene, MVGSConfig.baseline(grad_threshold_width=800.0, prune_faint=0.01).with_budget(200))
     own = ViewSchedule(scene, config)
     assert own.config.stages == base.config.stages
     for _ in range(base.total_steps):
         a, b = own.next(), base.next()
-        assert (a.views, a.factor, a.densify, a.reset_opacity, a.clock) == (b.views, b.factor, b.densify,
-                                                                           b.reset_opacity, b.clock)
+        assert (a.views, a.factor, a.densify, a.reset_opacity, a.clock, a.faint_cut) == (
+            b.views, b.factor, b.densify, b.reset_opacity, b.clock, b.faint_cut)
+    assert own.faint_done
     adapter = GS3DAdapter.from_scene(scene, GS3DConfig(position_lr_max_steps=200))
     trainer = MVGS(adapter, scene, config)
     assert trainer.config.stages == (Stage(1, 1, 200),) and trainer.total_steps == 200

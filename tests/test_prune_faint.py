@@ -244,16 +244,63 @@ def test_the_schedule_cuts_once_after_twice_the_views_and_keeps_collecting_until
     assert ctx.faint_share == 0.01 and ctx.grad_threshold == math.inf and ctx.boxes is None
 
 
-def test_the_controller_asks_the_adapter_for_its_statistics_and_refuses_one_without():
+def test_the_controller_asks_the_adapter_for_its_statistics_and_runs_one_without_them_without_the_cut():
     from mvgs_plugin.testing import synthetic_scene
 
     scene = synthetic_scene(n_train=6, n_test=1, size=16)
     cfg = dataclasses.replace(MVGSConfig.baseline().with_total_steps(400), prune_faint=0.01)
     adapter = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(cfg, sh_degree=0))
-    MVGS(adapter, scene, cfg)
+    assert MVGS(adapter, scene, cfg).config.prune_faint == 0.01
     assert adapter.blend_stats
-    with pytest.raises(ValueError, match="prune_faint=0.01 needs an adapter that collects blend statistics"):
-        MVGS(ScaffoldAdapter.from_scene(scene, ScaffoldConfig.for_run(cfg)), scene, cfg)
+    # Scaffold-GS's anchors have no blend statistics: the default preset's cut is dropped, said once
+    with pytest.warns(UserWarning, match=r"prune_faint=0.01: ScaffoldAdapter reports no blend weights"):
+        trainer = MVGS(ScaffoldAdapter.from_scene(scene, ScaffoldConfig.for_run(cfg)), scene, cfg)
+    assert trainer.config.prune_faint == 0.0 and trainer.schedule.config.prune_faint == 0.0
+    assert not any(p.faint_cut for p in trainer.schedule)
+    # a rasterizer without the blend_stats keyword (gsplat's call shape, as gsplat's own): the same
+
+    def gsplat_shaped(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **rest):
+        return rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **rest)
+
+    other = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(cfg, sh_degree=0, rasterize=gsplat_shaped))
+    assert other.collect_blend_stats() is False and not other.blend_stats
+    with pytest.warns(UserWarning, match="GS3DAdapter reports no blend weights"):
+        assert MVGS(other, scene, cfg).config.prune_faint == 0.0
+
+
+def test_a_hand_written_loop_gets_the_statistics_from_densify_context_and_keeps_them_over_a_resume():
+    """The three-line wrap's loop never calls collect_blend_stats(): the schedule asks the adapter
+    at the first densification (densify_context(adapter=...)), early enough for the cut, which
+    uses the statistics after the window's last call; an adapter restored from a checkpoint
+    made after that goes on collecting (its state_dict says so)."""
+    scene = synthetic_scene(n_train=6, n_test=1, size=16)
+    cfg = dataclasses.replace(MVGSConfig.baseline().with_total_steps(120), prune_faint=0.01, densify_from=10,
+                              densify_until=60, densify_every=10, opacity_reset_every=30)
+    sched = ViewSchedule(scene, cfg)
+    model = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(cfg, sh_degree=0))
+    cut, state = None, None
+    for plan in sched:
+        res = model.render(plan.cameras, plan.backgrounds)
+        ((res.images - torch.stack(plan.images)) ** 2).mean().backward()
+        if any(plan.stats):
+            model.accumulate_stats(res)
+        model.optimizer_step()
+        if plan.densify:
+            report = model.densify(sched.densify_context(plan, adapter=model))
+            assert model.blend_stats  # asked at the first call (step 20), before the window's last
+            if plan.faint_cut:
+                cut = (plan.step, report.extra["faint"], report.before, report.after)
+        if plan.step == 64:  # after the window, before the cut
+            state = model.state_dict()
+    assert cut is not None and cut[0] == 71 and cut[1] >= 1 and cut[3] == cut[2] - cut[1]
+    again = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(cfg, sh_degree=0))
+    assert not again.blend_stats
+    again.load_state_dict(state)
+    assert again.blend_stats and state["blend_stats"] is True
+    del state["blend_stats"]  # a checkpoint from before the cut existed: nothing asked
+    fresh = GS3DAdapter.from_scene(scene, GS3DConfig.for_run(cfg, sh_degree=0))
+    fresh.load_state_dict(state)
+    assert not fresh.blend_stats
 
 
 def test_the_config_the_flag_and_the_conformance_suite():
@@ -261,8 +308,11 @@ def test_the_config_the_flag_and_the_conformance_suite():
         with pytest.raises(ValueError, match="prune_faint must be a share of the blend weight in"):
             dataclasses.replace(MVGSConfig.default(), prune_faint=bad)
     ap = common_args(argparse.ArgumentParser(), out="out")
-    assert config_from_args(ap.parse_args([])).prune_faint == 0.0
-    assert config_from_args(ap.parse_args(["--prune-faint", "0.01"])).prune_faint == 0.01
+    # the default preset cuts 1 %; the others, and --prune-faint 0, do not
+    assert MVGSConfig.default().prune_faint == 0.01 and config_from_args(ap.parse_args([])).prune_faint == 0.01
+    assert all(MVGSConfig.from_preset(p).prune_faint == 0.0 for p in ("baseline", "compact", "multiview", "paper"))
+    assert config_from_args(ap.parse_args(["--prune-faint", "0"])).prune_faint == 0.0
+    assert config_from_args(ap.parse_args(["--preset", "baseline", "--prune-faint", "0.02"])).prune_faint == 0.02
     for bad in ("-1", "1", "nan"):
         with pytest.raises(SystemExit):
             ap.parse_args(["--prune-faint", bad])

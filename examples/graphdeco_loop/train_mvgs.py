@@ -203,6 +203,8 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         raise ValueError(f"reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, got {reset_scope!r}")
     opacity_lr = check_float("opacity_lr", opacity_lr, positive=True)
     torch.manual_seed(seed)
+    # MVGS: densify_and_prune has no cut of the faintest Gaussians (the default preset's prune_faint)
+    overrides = {"prune_faint": 0.0, **overrides}
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
     xyz, rgb = scene.points.xyz, scene.points.rgb
