@@ -15,7 +15,8 @@ view's beside the mean, which the few views a far horizon crosses can move by a 
 
 Run kinds: "baseline" (plain 3DGS with the default's width-scaled gradient threshold, so that
 only MVGS differs), "baseline-fixed" (3DGS's fixed threshold), "default" (MVGSConfig.default(),
-the cost-aware recipe: coarse-to-fine, one view per step), "multiview" (MVGSConfig.multiview(),
+the cost-aware recipe: coarse-to-fine, one view per step, the faintest Gaussians cut once after
+densification since 2026-11-30; "default-no-faint" is it without the cut), "multiview" (MVGSConfig.multiview(),
 the former default, with --views M at full resolution), "multiview-rules-off" (the same without
 MVAD and CRD), and the candidates tried for the default (see RUNS and docs/equal_compute.md).
 --clock steps gives every run B steps instead (the equal-steps comparison).
