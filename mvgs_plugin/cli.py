@@ -863,7 +863,7 @@ def metrics_record(args, config: MVGSConfig, trainer: MVGS, result, train_second
         "device": getattr(args, "device", "cpu"),
         "rasterizer": getattr(args, "rasterizer", "reference"),
         "world_size": 1 if trainer.distributed is None else trainer.distributed.world_size,
-        "config": config.to_dict(),
+        "config": trainer.config.to_dict(),  # as run (prune_faint 0 where the model reports no blend weights)
         "model": json.loads(json.dumps(model_settings(trainer.adapter), default=str)),  # as resolved (means_lr_rule)
         "per_view": [{k: v for k, v in r.items() if k != "image"} for r in result.per_view],
     }
