@@ -13,6 +13,7 @@ import torch
 
 from mvgs_plugin import MVGS, MVGSConfig
 from mvgs_plugin.config import Stage
+from mvgs_plugin.cli import DensifyTally
 from mvgs_plugin.adapters.gs3d import GS3DAdapter, GS3DConfig, even_cut_order
 from mvgs_plugin.adapters.scaffold import ScaffoldAdapter, ScaffoldConfig
 from mvgs_plugin.protocol import DensifyReport
@@ -77,8 +78,11 @@ def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
     want = sorted(torch.argsort(scores, descending=True)[:budget].tolist())
     means0 = trainer.adapter.params["means"].detach().clone()
     counts = watch_renders(trainer)
-    trainer.step()
+    tally = DensifyTally(trainer.adapter.num_primitives())  # metrics.json's "densification"
+    assert tally.totals["peak_primitives"] > budget  # the points as loaded
+    tally.add(trainer.step())
     assert counts[0] == budget
+    assert tally.totals["peak_primitives"] == budget  # the most the run held: the loaded points are not counted
     kept = trainer.adapter.params["means"].detach()
     # the first step moved the means a little: match each kept row to its nearest initial one
     nearest = torch.cdist(kept.double(), means0.double()).argmin(1)
