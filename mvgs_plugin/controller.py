@@ -188,9 +188,8 @@ class MVGS:
         if self.config.views_scaling != "none" and not callable(getattr(adapter, "set_views_per_step", None)):
             raise ValueError(f"config.views_scaling={self.config.views_scaling!r} needs the adapter's "
                              f"set_views_per_step(views) ({type(adapter).__name__} has none); use views_scaling='none'")
-        if self.config.prune_faint > 0:
-            self.schedule.enable_faint_cut(adapter)
-            self.config = self.schedule.config  # prune_faint 0 when the adapter cannot report blend weights
+        self.schedule.enable_faint_cut(adapter)  # nothing without prune_faint
+        self.config = self.schedule.config  # prune_faint 0 when the adapter cannot report blend weights
         if distributed is not None:
             if not isinstance(distributed, Collective):
                 raise TypeError(f"distributed must be a mvgs_plugin.distributed.Collective or None, "

@@ -357,8 +357,8 @@ class ViewSchedule:
         num_primitives() and positions(), as a hand-written loop's model); without either, the
         count the schedule was last told (self.primitive_count) is used, with a warning once when
         the cap needs it."""
-        if adapter is not None and self.config.prune_faint > 0:
-            self.enable_faint_cut(adapter)
+        if adapter is not None:
+            self.enable_faint_cut(adapter)  # nothing without prune_faint; once per adapter
         cfg = self.config
         if plan.faint_cut:  # prune_faint's cut: no growth, no boxes
             return DensifyContext(step=plan.clock, grad_threshold=math.inf, scene_extent=float(self.scene.extent),

@@ -204,6 +204,13 @@ def test_limit_growth_grows_the_far_background_last(scene):
     assert len(inside) >= 200 and not any(far[i] for i in grows)  # every place went inside the far line
 
 
+def test_the_loop_refuses_a_cut_of_the_faintest_it_has_not(scene):
+    """The default preset's prune_faint is dropped (densify_and_prune has no such cut: its plan's
+    step would run as one more densification after the window); asked for by name, refused."""
+    with pytest.raises(ValueError, match=r"prune_faint=0.01: this loop's densify_and_prune has no cut"):
+        train_mvgs.training(scene, 200, preset="default", prune_faint=0.01)
+
+
 def test_without_a_budget_limit_growth_changes_nothing(scene):
     g = model(scene)
     n = g.get_xyz.shape[0]

@@ -203,8 +203,12 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         raise ValueError(f"reset_scope must be one of {', '.join(map(repr, OPACITY_RESET_SCOPES))}, got {reset_scope!r}")
     opacity_lr = check_float("opacity_lr", opacity_lr, positive=True)
     torch.manual_seed(seed)
-    # MVGS: densify_and_prune has no cut of the faintest Gaussians (the default preset's prune_faint)
-    overrides = {"prune_faint": 0.0, **overrides}
+    # MVGS: densify_and_prune has no cut of the faintest Gaussians (the default preset's prune_faint):
+    # its plan's step would run as one more densification after the window
+    if overrides.get("prune_faint"):
+        raise ValueError(f"prune_faint={overrides['prune_faint']!r}: this loop's densify_and_prune has no cut of the "
+                         "faintest Gaussians (MVGSConfig.prune_faint); leave it out")
+    overrides = {**overrides, "prune_faint": 0.0}
     config = MVGSConfig.from_preset(preset, seed=seed, **overrides).with_total_steps(iterations)  # MVGS
     schedule = ViewSchedule(scene, config if views is None else config.with_views(views))  # MVGS
     xyz, rgb = scene.points.xyz, scene.points.rgb
