@@ -27,7 +27,10 @@ prints one table over scenes and budgets from earlier runs (each run kind agains
 of the same file and budget, else of another file of the same scene and seed), with a column
 against the baseline's best so far: the best evaluation point of any of its runs of that scene
 within the row's CPU seconds (an oracle early stop on the test views; it cannot fall with more
-compute). --reference KIND compares with another run kind instead (e.g. baseline-budget).
+compute), and one at equal CPU: the baseline's final PSNR linear between its two runs (of any
+budget) whose CPU brackets the row's ("at 0.69x" where the row used less CPU than its cheapest
+run); then a table over the seeds the files hold (mean, min to max).
+--reference KIND compares with another run kind instead (e.g. baseline-budget).
 Issue 27's kinds: "baseline-budget" (the baseline with a Gaussian budget of the training
 pixels / 128), "default-budget", "coarse-mv-budget" (4 views per step at 1/4 resolution, 2 at
 1/2) and "coarse-mv-sqrt-budget" (with Grendel-GS's sqrt(M) rule), all at pixels / 213;
@@ -278,17 +281,10 @@ def summary(paths, reference: str = "baseline") -> str:
     run kind's difference to it; and the difference to the reference's best so far (best_so_far:
     the best evaluation point of any of its runs of that scene and seed within the run's CPU)."""
     lines = [f"| scene | seed | clock | B | {reference} PSNR / SSIM / Gaussians / CPU s | run | PSNR | Δ PSNR | Δ SSIM "
-             f"| Δ PSNR vs its best so far | Gaussians vs {reference} | CPU vs {reference} | steps | Δ median view |",
-             "|---|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    files = []
-    for path in paths:
-        saved = json.loads(Path(path).read_text())
-        data = saved["args"].get("data", "None")
-        scene = "tabletop (bundled)" if data == "None" else Path(data).name
-        files.append(((scene, saved["args"].get("seed", "0")), saved["runs"]))
-    pooled: dict = {}
-    for key, rows in files:
-        pooled.setdefault(key, []).extend(rows)
+             f"| Δ PSNR vs its best so far | Gaussians vs {reference} | CPU vs {reference} | steps | Δ median view "
+             f"| Δ PSNR at equal CPU |",
+             "|---|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    files, pooled = read_runs(paths)
     for (scene, seed), rows in files:  # the reference of the same file first, else of another file
         for r in rows:
             base = baseline_of(rows, r, reference) or baseline_of(pooled[(scene, seed)], r, reference)
@@ -299,7 +295,84 @@ def summary(paths, reference: str = "baseline") -> str:
             lines.append(f"| {scene} | {seed} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
                          f"{base['ssim']:.3f} / {base['gaussians']:,} / {base['cpu']:.0f} | {r['kind']} | {r['psnr']:.2f} | {r['psnr'] - base['psnr']:+.2f} "
                          f"| {r['ssim'] - base['ssim']:+.3f} | {d_best} | {r['gaussians'] / base['gaussians']:.2f}x "
-                         f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} | {median_delta(r, base)} |")
+                         f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} | {median_delta(r, base)} "
+                         f"| {equal_cpu_delta(pooled[(scene, seed)], reference, r)} |")
+    return "\n".join(lines) + "\n"
+
+
+def read_runs(paths):
+    """The runs of each runs.json file keyed by (scene, seed), in file order, and pooled by key."""
+    files = []
+    for path in paths:
+        saved = json.loads(Path(path).read_text())
+        data = saved["args"].get("data", "None")
+        scene = "tabletop (bundled)" if data == "None" else Path(data).name
+        files.append(((scene, saved["args"].get("seed", "0")), saved["runs"]))
+    pooled: dict = {}
+    for key, rows in files:
+        pooled.setdefault(key, []).extend(rows)
+    return files, pooled
+
+
+def equal_cpu_psnr(rows: list, reference: str, cpu: float):
+    """The `reference` runs' final PSNR at `cpu` CPU seconds, linear between the two runs (of any
+    budget; budget clock) whose CPU brackets it, or None outside their range (fewer than two runs,
+    or a run cheaper than the cheapest reference run or dearer than the dearest)."""
+    points = sorted((b["cpu"], b["psnr"]) for b in rows
+                    if b["kind"] == reference and b.get("clock", "budget") == "budget")
+    if len(points) < 2 or not points[0][0] <= cpu <= points[-1][0]:
+        return None
+    for (c0, p0), (c1, p1) in zip(points, points[1:]):
+        if c0 <= cpu <= c1:
+            return p0 if c1 == c0 else p0 + (p1 - p0) * (cpu - c0) / (c1 - c0)
+
+
+def equal_cpu_delta(rows: list, reference: str, r: dict) -> str:
+    """r's PSNR minus the reference's at r's CPU (equal_cpu_psnr); "at 0.69x" where r used less
+    CPU than the cheapest reference run (the ratio to it), "" where there is nothing to compare."""
+    if r.get("clock", "budget") != "budget":
+        return ""
+    at = equal_cpu_psnr(rows, reference, r["cpu"])
+    if at is not None:
+        return f"{r['psnr'] - at:+.2f}"
+    cheapest = min((b["cpu"] for b in rows if b["kind"] == reference and b.get("clock", "budget") == "budget"),
+                   default=None)
+    return f"at {r['cpu'] / cheapest:.2f}x" if cheapest and r["cpu"] < cheapest else ""
+
+
+def seed_summary(paths, reference: str = "baseline") -> str:
+    """Per scene, clock, budget and run kind over the seeds the runs.json files hold: the mean
+    (min to max) of the difference to the reference at equal work and at equal CPU (the seeds
+    where the run's CPU is inside the reference's range), and the mean ratios of Gaussians and CPU."""
+    files, pooled = read_runs(paths)
+    groups: dict = {}
+    for (scene, seed), rows in files:
+        for r in rows:
+            base = baseline_of(rows, r, reference) or baseline_of(pooled[(scene, seed)], r, reference)
+            if base is None or r["kind"] == reference:
+                continue
+            at = equal_cpu_psnr(pooled[(scene, seed)], reference, r["cpu"]) if r.get("clock", "budget") == "budget" else None
+            g = groups.setdefault((scene, r.get("clock", "budget"), r["budget"], r["kind"]), {})
+            g[seed] = (r["psnr"] - base["psnr"], None if at is None else r["psnr"] - at,
+                       r["gaussians"] / base["gaussians"], r["cpu"] / base["cpu"])
+
+    def spread(values):
+        if not values:
+            return ""
+        mean = sum(values) / len(values)
+        return f"{mean:+.2f}" if len(values) == 1 else f"{mean:+.2f} ({min(values):+.2f} to {max(values):+.2f})"
+
+    lines = [f"Over seeds: Δ PSNR against {reference} as mean (min to max); at equal CPU only the seeds whose run "
+             f"falls inside {reference}'s CPU range.", "",
+             f"| scene | clock | B | run | seeds | Δ PSNR at equal work | Δ PSNR at equal CPU (seeds) "
+             f"| Gaussians vs {reference} | CPU vs {reference} |",
+             "|---|---|---:|---|---|---:|---:|---:|---:|"]
+    for (scene, clock, budget, kind), by_seed in groups.items():
+        vals = list(by_seed.values())
+        cpu_d = [v[1] for v in vals if v[1] is not None]
+        lines.append(f"| {scene} | {clock} | {budget:g} | {kind} | {' '.join(sorted(by_seed))} | {spread([v[0] for v in vals])} "
+                     f"| {spread(cpu_d)}{f' ({len(cpu_d)})' if cpu_d else ''} | {sum(v[2] for v in vals) / len(vals):.2f}x "
+                     f"| {sum(v[3] for v in vals) / len(vals):.2f}x |")
     return "\n".join(lines) + "\n"
 
 
@@ -327,7 +400,7 @@ def main(argv=None) -> list:
                     help="the run kind every other row is compared with (default: %(default)s)")
     args = ap.parse_args(argv)
     if args.summary:
-        text = summary(args.summary, args.reference)
+        text = summary(args.summary, args.reference) + "\n" + seed_summary(args.summary, args.reference)
         print(text)
         return text
     if args.max_gaussians is None and any(k in CAPPED for k in args.runs):

@@ -223,3 +223,27 @@ def test_the_tables_give_the_median_view_beside_the_mean(tmp_path):
     assert rows["compact"][12] == "" and rows["compact"][13] == ""
     summed = {r[5]: r for r in rows_of(bench.summary([write(tmp_path / "a.json", "scenes/tabletop", [base, cand, old])]))}
     assert summed["default"][7] == "-0.50" and summed["default"][13] == "+0.40" and summed["compact"][13] == ""
+
+
+def test_summary_at_equal_cpu_interpolates_the_reference_and_pools_seeds(tmp_path):
+    """The equal-CPU column: the reference's final PSNR, linear between the two runs whose CPU
+    brackets the row's (30 dB at 100 s, 32 at 200 s, 33 at 300 s: 31.5 dB at 175 s, worked out by
+    hand); a run cheaper than every reference run says by how much; the seed table averages."""
+    base = [run("baseline", 1000, 30.0, 100.0, [(100.0, 30.0)]), run("baseline", 2000, 32.0, 200.0, [(200.0, 32.0)]),
+            run("baseline", 3000, 33.0, 300.0, [(300.0, 33.0)])]
+    s0 = tmp_path / "s0.json"
+    s0.write_text(json.dumps({"args": {"data": "scenes/x", "seed": "0"}, "runs": base + [
+        run("default", 3000, 32.0, 175.0, [(175.0, 32.0)], gaussians=500),   # 31.5 at 175 s -> +0.50
+        run("default", 1000, 30.5, 80.0, [(80.0, 30.5)], gaussians=500)]}))  # below 100 s: at 0.80x
+    s1 = tmp_path / "s1.json"
+    s1.write_text(json.dumps({"args": {"data": "scenes/x", "seed": "1"}, "runs": base + [
+        run("default", 3000, 32.2, 250.0, [(250.0, 32.2)], gaussians=250)]}))  # 32.5 at 250 s -> -0.30
+    rows = {(r[1], r[3]): r for r in rows_of(bench.summary([s0, s1]))}
+    assert rows[("0", "3000")][14] == "+0.50" and rows[("0", "3000")][7] == "-1.00"
+    assert rows[("0", "1000")][14] == "at 0.80x"
+    assert rows[("1", "3000")][14] == "-0.30" and rows[("1", "3000")][7] == "-0.80"
+    assert bench.equal_cpu_psnr(base, "baseline", 350.0) is None and bench.equal_cpu_psnr(base[:1], "baseline", 100.0) is None
+    pooled = {(r[2], r[3]): r for r in rows_of(bench.seed_summary([s0, s1]).split("\n", 2)[2])}
+    # 3000: equal work -1.00 and -0.80 (mean -0.90), equal CPU +0.50 and -0.30 (mean +0.10), Gaussians 0.50x and 0.25x
+    assert pooled[("3000", "default")][4:] == ["0 1", "-0.90 (-1.00 to -0.80)", "+0.10 (-0.30 to +0.50) (2)", "0.38x", "0.71x"]
+    assert pooled[("1000", "default")][4:7] == ["0", "+0.50", ""]
