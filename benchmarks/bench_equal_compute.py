@@ -266,12 +266,27 @@ def plot(rows: list, path: Path) -> None:
     plt.close(fig)
 
 
+def reference_runs(rows: list, reference: str) -> list:
+    """The `reference` runs of `rows` on the budget clock (the ones a CPU comparison may use)."""
+    return [b for b in rows if b["kind"] == reference and b.get("clock", "budget") == "budget"]
+
+
+def compared(files: list, pooled: dict, reference: str):
+    """(scene, seed, run, its reference run) for every run of `files` (read_runs) that is not the
+    reference kind and has one: the reference of its own file at its budget first, else of
+    another file of the same scene and seed."""
+    for (scene, seed), rows in files:
+        for r in rows:
+            base = baseline_of(rows, r, reference) or baseline_of(pooled[(scene, seed)], r, reference)
+            if base is not None and r["kind"] != reference:
+                yield scene, seed, r, base
+
+
 def best_so_far(rows: list, reference: str, cpu: float):
     """The best test PSNR any `reference` run of `rows` showed at an evaluation point reached within
     `cpu` CPU seconds (its curve; the runs of every budget), or None: the reference with an oracle
     early stop on the test views, which cannot fall with more compute."""
-    seen = [p["psnr"] for b in rows if b["kind"] == reference and b.get("clock", "budget") == "budget"
-            for p in b.get("curve", []) if p["cpu"] <= cpu]
+    seen = [p["psnr"] for b in reference_runs(rows, reference) for p in b.get("curve", []) if p["cpu"] <= cpu]
     return max(seen) if seen else None
 
 
@@ -285,18 +300,14 @@ def summary(paths, reference: str = "baseline") -> str:
              f"| Δ PSNR at equal CPU |",
              "|---|---:|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     files, pooled = read_runs(paths)
-    for (scene, seed), rows in files:  # the reference of the same file first, else of another file
-        for r in rows:
-            base = baseline_of(rows, r, reference) or baseline_of(pooled[(scene, seed)], r, reference)
-            if base is None or r["kind"] == reference:
-                continue
-            best = best_so_far(pooled[(scene, seed)], reference, r["cpu"]) if r.get("clock", "budget") == "budget" else None
-            d_best = "" if best is None else f"{r['psnr'] - best:+.2f}"
-            lines.append(f"| {scene} | {seed} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
-                         f"{base['ssim']:.3f} / {base['gaussians']:,} / {base['cpu']:.0f} | {r['kind']} | {r['psnr']:.2f} | {r['psnr'] - base['psnr']:+.2f} "
-                         f"| {r['ssim'] - base['ssim']:+.3f} | {d_best} | {r['gaussians'] / base['gaussians']:.2f}x "
-                         f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} | {median_delta(r, base)} "
-                         f"| {equal_cpu_delta(pooled[(scene, seed)], reference, r)} |")
+    for scene, seed, r, base in compared(files, pooled, reference):
+        best = best_so_far(pooled[(scene, seed)], reference, r["cpu"]) if r.get("clock", "budget") == "budget" else None
+        d_best = "" if best is None else f"{r['psnr'] - best:+.2f}"
+        lines.append(f"| {scene} | {seed} | {r.get('clock', 'budget')} | {r['budget']:g} | {base['psnr']:.2f} / "
+                     f"{base['ssim']:.3f} / {base['gaussians']:,} / {base['cpu']:.0f} | {r['kind']} | {r['psnr']:.2f} | {r['psnr'] - base['psnr']:+.2f} "
+                     f"| {r['ssim'] - base['ssim']:+.3f} | {d_best} | {r['gaussians'] / base['gaussians']:.2f}x "
+                     f"| {r['cpu'] / base['cpu']:.2f}x | {r['steps']} | {median_delta(r, base)} "
+                     f"| {equal_cpu_delta(pooled[(scene, seed)], reference, r)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -318,8 +329,7 @@ def equal_cpu_psnr(rows: list, reference: str, cpu: float):
     """The `reference` runs' final PSNR at `cpu` CPU seconds, linear between the two runs (of any
     budget; budget clock) whose CPU brackets it, or None outside their range (fewer than two runs,
     or a run cheaper than the cheapest reference run or dearer than the dearest)."""
-    points = sorted((b["cpu"], b["psnr"]) for b in rows
-                    if b["kind"] == reference and b.get("clock", "budget") == "budget")
+    points = sorted((b["cpu"], b["psnr"]) for b in reference_runs(rows, reference))
     if len(points) < 2 or not points[0][0] <= cpu <= points[-1][0]:
         return None
     for (c0, p0), (c1, p1) in zip(points, points[1:]):
@@ -335,8 +345,7 @@ def equal_cpu_delta(rows: list, reference: str, r: dict) -> str:
     at = equal_cpu_psnr(rows, reference, r["cpu"])
     if at is not None:
         return f"{r['psnr'] - at:+.2f}"
-    cheapest = min((b["cpu"] for b in rows if b["kind"] == reference and b.get("clock", "budget") == "budget"),
-                   default=None)
+    cheapest = min((b["cpu"] for b in reference_runs(rows, reference)), default=None)
     return f"at {r['cpu'] / cheapest:.2f}x" if cheapest and r["cpu"] < cheapest else ""
 
 
@@ -346,15 +355,11 @@ def seed_summary(paths, reference: str = "baseline") -> str:
     where the run's CPU is inside the reference's range), and the mean ratios of Gaussians and CPU."""
     files, pooled = read_runs(paths)
     groups: dict = {}
-    for (scene, seed), rows in files:
-        for r in rows:
-            base = baseline_of(rows, r, reference) or baseline_of(pooled[(scene, seed)], r, reference)
-            if base is None or r["kind"] == reference:
-                continue
-            at = equal_cpu_psnr(pooled[(scene, seed)], reference, r["cpu"]) if r.get("clock", "budget") == "budget" else None
-            g = groups.setdefault((scene, r.get("clock", "budget"), r["budget"], r["kind"]), {})
-            g[seed] = (r["psnr"] - base["psnr"], None if at is None else r["psnr"] - at,
-                       r["gaussians"] / base["gaussians"], r["cpu"] / base["cpu"])
+    for scene, seed, r, base in compared(files, pooled, reference):
+        at = equal_cpu_psnr(pooled[(scene, seed)], reference, r["cpu"]) if r.get("clock", "budget") == "budget" else None
+        g = groups.setdefault((scene, r.get("clock", "budget"), r["budget"], r["kind"]), {})
+        g[seed] = (r["psnr"] - base["psnr"], None if at is None else r["psnr"] - at,
+                   r["gaussians"] / base["gaussians"], r["cpu"] / base["cpu"])
 
     def spread(values):
         if not values:
