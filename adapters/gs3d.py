@@ -119,7 +119,7 @@ class GS3DConfig:
             (mvgs_plugin.data.init.is_forward_facing) and to "extent" elsewhere (on a 360-degree
             rig only the far background lies beyond the extent); without a scene it is
             "extent", as is every rule without a scene_center. Measured in
-            docs/equal_compute.md ("A step size for far content").
+            docs/equal_compute_log.md ("A step size for far content").
         lr_sh0, lr_shN, lr_opacities, lr_scales, lr_quats: constant.
     Densification (original constants):
         percent_dense: clone if max scale <= percent_dense * extent, else split.
@@ -133,7 +133,7 @@ class GS3DConfig:
             rig's radius, the far wall of a forward-facing capture) keeps the large Gaussians a
             camera sees as small. "extent" is 3DGS's rule (the same limit everywhere), which
             prunes them. Without ctx.scene_center "distance" is the extent rule. Measured in
-            docs/equal_compute.md ("A size rule for the far background").
+            docs/equal_compute_log.md ("A size rule for the far background").
         max_screen_size: with ctx.prune_large, prune max screen radius (pixels) above this.
             Default None: the released 3DGS code zeroes its radius statistic before testing it,
             so this rule never fires there (the authors kept it so to preserve their results,
@@ -148,7 +148,7 @@ class GS3DConfig:
             before the next: the test views that see it between the training views get holes.
             Without a scene_center (or an initial model) it is "all". Default "inside" since
             2026-11-28: with it the baseline no longer falls from 2k to 3k to 10k steps on any
-            generated scene. Measured in docs/equal_compute.md ("Resets that spare the far
+            generated scene. Measured in docs/equal_compute_log.md ("Resets that spare the far
             background", and "... made the default").
         budget_growth_order: the order in which growth candidates take the room a Gaussian
             budget leaves (config.max_gaussians or DensifyContext.max_primitives, when the
@@ -162,7 +162,7 @@ class GS3DConfig:
             "inside-first" on a rig that surrounds the scene and to "score" on a forward-facing
             one (is_forward_facing), where the far part is the scene's own back wall, seen in
             every view; an adapter built without from_scene keeps "auto", which orders by score.
-            Measured in docs/equal_compute.md ("A budget that grows the object first").
+            Measured in docs/equal_compute_log.md ("A budget that grows the object first").
         max_gaussians: cap on the number of Gaussians growth may reach (None = no cap).
     Rendering:
         rasterize: a function with gsplat's ``rasterization`` call shape.
@@ -875,7 +875,7 @@ class GS3DAdapter:
         (all coverage 0) no view says which Gaussian helps: opacity times
         even_cut_order(means, scene_center), so a cut keeps the object's and the far background's
         shares of the points, each spread over its extent (a seeded random subset kept the shares
-        but left holes where the draw thinned; docs/equal_compute.md, "A first cut spread over
+        but left holes where the draw thinned; docs/equal_compute_log.md, "A first cut spread over
         the model")."""
         return keep_scores_of(self.get_opacities().detach(), self.coverage_accum, self.params["means"], self.scene_center)
 

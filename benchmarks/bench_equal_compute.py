@@ -74,26 +74,26 @@ RUNS = {
     "default-pyramid": ["--preset", "default", "--forward-rig", "pyramid"],
     # the default with densification capped at twice the count each stage began with
     "default-growth2": ["--preset", "default", "--stage-growth", "2"],
-    # the default's two plans spelled out (docs/equal_compute.md, "The 1/4 level does not pay"):
+    # the default's two plans spelled out (docs/equal_compute_log.md, "The 1/4 level does not pay"):
     # today's, 30 % of the work at 1/2 and 70 % at full; the one before 2026-11-27, 10 % at 1/4,
     # 20 % at 1/2, 70 % at full
     "default-half": ["--preset", "default", "--stages", "2:1:16364,1:1:21000"],
     "default-quarter": ["--preset", "default", "--stages", "4:1:9231,2:1:10909,1:1:21000"],
     # the default with its periodic opacity resets at the 1/2 level too (before 2026-11-27, evening;
-    # docs/equal_compute.md, "No opacity reset at the coarse level")
+    # docs/equal_compute_log.md, "No opacity reset at the coarse level")
     "default-coarse-reset": ["--preset", "default", "--coarse-opacity-reset"],
-    # the default's pyramid with 10 % of the work at 1/2 at every budget (docs/equal_compute.md, "Opacity
+    # the default's pyramid with 10 % of the work at 1/2 at every budget (docs/equal_compute_log.md, "Opacity
     # resets that leave time to recover"; at a budget of 10k it is today's default, "A warm-up of fixed length")
     "default-coarse10": ["--preset", "default", "--stages", "2:1:5455,1:1:27000"],
     # the default before its warm-up was held to 1000 views' work (2026-11-28): 30 % at 1/2 at every budget
     "default-warmup-shares": ["--preset", "default", "--warmup-work-cap", "0"],
     # the baseline and the default with the floor on opacity resets before 2026-11-27 (night): no sooner
     # than 10 densification calls apart when the schedule is compressed (now 30, 3DGS's own ratio;
-    # docs/equal_compute.md, "Opacity resets that leave time to recover")
+    # docs/equal_compute_log.md, "Opacity resets that leave time to recover")
     "baseline-r10": ["--preset", "baseline", "--threshold-width", "800", "--min-densify-per-reset", "10"],
     "default-r10": ["--preset", "default", "--min-densify-per-reset", "10"],
     # the baseline and the default with resets that leave the far background alone
-    # (GS3DConfig.opacity_reset_scope "inside", every kind's since 2026-11-28; docs/equal_compute.md,
+    # (GS3DConfig.opacity_reset_scope "inside", every kind's since 2026-11-28; docs/equal_compute_log.md,
     # "Resets that spare the far background"), and with 3DGS's reset of every opacity (before it)
     "baseline-reset-inside": ["--preset", "baseline", "--threshold-width", "800", "--opacity-reset-scope", "inside"],
     "default-reset-inside": ["--preset", "default", "--opacity-reset-scope", "inside"],

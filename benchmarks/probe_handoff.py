@@ -1,4 +1,4 @@
-"""Probe the default's coarse-to-fine hand-off on one scene (docs/equal_compute.md,
+"""Probe the default's coarse-to-fine hand-off on one scene (docs/equal_compute_log.md,
 "Forward-facing rigs"): where the coarse model stands when it hands over, and two changes that
 were tried against the forward-facing loss and not kept.
 

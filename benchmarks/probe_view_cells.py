@@ -1,4 +1,4 @@
-"""Probe: multi-view steps at the pixels (and the cost) of one view (docs/equal_compute.md,
+"""Probe: multi-view steps at the pixels (and the cost) of one view (docs/equal_compute_log.md,
 "Four views at the pixels of one"). Runs examples/train_3dgs.py with every step's views cut to
 cells of their images before they render:
 

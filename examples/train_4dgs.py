@@ -41,7 +41,7 @@ from mvgs_plugin.data.nerf import is_dynamic
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
 # --late-views' default with the pyramid presets: the work the coarse steps save, spent as 2-view
-# steps (two times of the scene) at the end (docs/equal_compute.md, "4DGS: the views the pyramid saves")
+# steps (two times of the scene) at the end (docs/equal_compute_log.md, "4DGS: the views the pyramid saves")
 LATE_VIEWS = 2
 
 
@@ -125,7 +125,7 @@ def run(args, dist) -> dict:
               f"training views' times [{lo:g}, {hi:g}] (e.g. {beyond[0].name!r} at {beyond[0].time:g}): the deformation "
               "is extrapolated there, and their metrics measure that", file=sys.stderr)
     # 4DGS's recipe keeps no cut of the faintest Gaussians unless asked (--prune-faint S): on the moving scenes it
-    # takes 4-6 % of the model at -0.01 dB (docs/equal_compute.md, "The cut made the default's")
+    # takes 4-6 % of the model at -0.01 dB (docs/equal_compute_log.md, "The cut made the default's")
     config = config_from_args(args, scene, time_spread=args.time_spread, prune_faint=0.0)
     adapter = build_adapter(args, scene, config)
     if args.init_random:  # metrics.json's "init" says where every initial point came from

@@ -57,25 +57,25 @@ class Stage:
 
 # The default's stage plan: (pyramid factor, views per step, share of the work). Until 2026-11-27
 # it began with 10 % at 1/4 (then 20 % at 1/2): on seven generated scenes at 1k and 3k (two
-# seeds) and three at 10k (docs/equal_compute.md, "The 1/4 level does not pay") moving that work
+# seeds) and three at 10k (docs/equal_compute_log.md, "The 1/4 level does not pay") moving that work
 # to 1/2 was better at equal work in 21 of 29 pairs and on average at every budget.
 DEFAULT_SHARES: Tuple[Tuple[int, int, float], ...] = ((2, 1, 0.30), (1, 1, 0.70))
 # default()'s warmup_work_cap: the most full-resolution views' work its coarser stages get in any
-# run (about the 30 % of a budget of 3000 its shares were chosen on; docs/equal_compute.md,
+# run (about the 30 % of a budget of 3000 its shares were chosen on; docs/equal_compute_log.md,
 # "A warm-up of fixed length").
 DEFAULT_WARMUP_WORK_CAP = 1000.0
 # default()'s cut of the faintest Gaussians after densification (prune_faint): the share of the
-# blend weight it may remove (docs/equal_compute.md, "The cut made the default's")
+# blend weight it may remove (docs/equal_compute_log.md, "The cut made the default's")
 DEFAULT_PRUNE_FAINT = 0.01
 
 # compact()'s data budget: training pixels per Gaussian. 0.6x the count of the baseline's data
 # budget (128, fixed from 3DGS's own 70-210 on its benchmarks), the Gaussians issue 27 allows a
-# recipe that is to beat the baseline; not tuned (docs/equal_compute.md, "The compact preset").
+# recipe that is to beat the baseline; not tuned (docs/equal_compute_log.md, "The compact preset").
 COMPACT_PIXELS_PER_GAUSSIAN = 213.0
 # compact()'s budget_views: the views whose pixels make its data budget, whatever the rig has: the
 # 48 of the generated scenes the ratio above was fixed on, so their budget is unchanged (3692 at
 # 128 px). Counting every view gave the 10-view scene 769 Gaussians and cost it 5.7 dB at 10k; the
-# content a rig round the scene shows does not grow with its number of views (docs/equal_compute.md,
+# content a rig round the scene shows does not grow with its number of views (docs/equal_compute_log.md,
 # "A data budget that does not shrink with the views, and none on a rig that looks outward").
 COMPACT_BUDGET_VIEWS = 48
 
@@ -252,7 +252,7 @@ class MVGSConfig:
         that fitted its training views and not the test views (1k: test 25.23 dB with them,
         28.67 without, training views 34.7 and 35.1; 10k: 26.92 and 30.36), and at 1k they cost
         every generated 360-degree, inside-out and arc scene 0.25-3.7 dB; on a wire fence they
-        paid at 3k and 10k (docs/equal_compute.md, "No opacity reset at the coarse level").
+        paid at 3k and 10k (docs/equal_compute_log.md, "No opacity reset at the coarse level").
     min_densify_per_reset: K, the fewest densification calls between two opacity resets when a
         schedule is compressed (with_total_steps / with_budget): 30, 3DGS's own ratio (a reset
         every 3000 steps, a densification every 100), so the uncompressed recipe is untouched.
@@ -261,7 +261,7 @@ class MVGSConfig:
         learning rates are not compressed. With the earlier floor of 10 a 1k-step run reset every
         100 steps, before its Gaussians had recovered from the last reset; 30 puts resets 300
         steps (work) apart below 3k and changes nothing from 3k up. Measured for every preset
-        in docs/equal_compute.md, "Opacity resets that leave time to recover". Configs saved
+        in docs/equal_compute_log.md, "Opacity resets that leave time to recover". Configs saved
         before the field read 10, the floor they were compressed with.
     background: "auto" (the colour the scene's RGBA images were composited on, else black),
         "black", "white", "random" (per view and step) or an (r, g, b) tuple.
@@ -293,7 +293,7 @@ class MVGSConfig:
         given) or "finest" (default(): drop the coarser stages and give the finest stage their
         work on a budget, their steps without one). Applied by for_scene(), which MVGS and
         ViewSchedule call. Why: on a forward-facing rig the coarse warm-up did not pay on either
-        scene measured (docs/equal_compute.md, "Forward-facing rigs"): every view sees nearly the
+        scene measured (docs/equal_compute_log.md, "Forward-facing rigs"): every view sees nearly the
         whole scene from one side, so full-resolution steps fit it from the start, and a model
         fitted at 1/4 or 1/2 resolution transfers badly to full resolution (4-12 dB below a
         baseline given the same work at the hand-off).
@@ -323,7 +323,7 @@ class MVGSConfig:
         the finest stage's resolution) when max_gaussians is not given. 3DGS itself ends near 70
         (Mip-NeRF 360) to 210 (NeRF-synthetic) pixels per Gaussian on its benchmarks; a 128 px
         scene densified by the compressed schedule reaches 35 and overfits its views
-        (docs/equal_compute.md, "A baseline that does not fall").
+        (docs/equal_compute_log.md, "A baseline that does not fall").
     budget_swap: the share of the cap one densification call may swap while the cap binds (the
         growth candidates outnumber the room): that many of the lowest keep scores among the rows
         that are not candidates are removed and the best-ranked candidates take their place, so a
@@ -341,7 +341,7 @@ class MVGSConfig:
         weight are removed, in one call, after twice the training views have been rendered since
         the window closed (ViewSchedule: the statistics keep being collected until then). Needs
         an adapter that reports blend weights (GS3DAdapter, GS4DAdapter with the reference
-        renderer). Measured in docs/equal_compute.md ("A cut of the faintest splats").
+        renderer). Measured in docs/equal_compute_log.md ("A cut of the faintest splats").
     budget_initial_share: the share of max_gaussians the initial model may hold: a model that
         starts above floor(share x N) is cut to it before the first step (lowest keep scores;
         before any view, gs3d.even_cut_order: the object's and the far background's shares,
@@ -380,7 +380,7 @@ class MVGSConfig:
         its shares up to a budget of 3333 and a warm-up of 1000 views' work beyond it (10 % at
         10k, 3.3 % at 30k). Why: the warm-up pays at 1k and 3k, where it was chosen, but at 10k
         the default with 30 % at 1/2 ended below the baseline on every 360-degree scene measured;
-        measured in docs/equal_compute.md ("A warm-up of fixed length"). The examples set it to
+        measured in docs/equal_compute_log.md ("A warm-up of fixed length"). The examples set it to
         None when --stages gives the plan; with_late_views() drops it (train_4dgs.py's plan at
         --steps, whose late stage spends the warm-up's saving).
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
@@ -600,7 +600,7 @@ class MVGSConfig:
         (forward_rig="finest", see for_scene()). It was chosen against a baseline started from the
         scene's points alone and pruned by 3DGS's size rule. With the examples' background shell
         (mvgs_plugin.data.init) and the distance size rule (GS3DConfig.world_size_rule), both
-        given to the baseline too, its stage plan was re-chosen (docs/equal_compute.md, "The 1/4
+        given to the baseline too, its stage plan was re-chosen (docs/equal_compute_log.md, "The 1/4
         level does not pay"): a 1/4 level before the 1/2 one (10 % of the work, taken from the
         1/2 level's 30 %) did worse at equal work on average at 1k and 3k, and most where the
         scene has structure thinner than a pixel at 1/4. Its opacity resets run at full
@@ -624,11 +624,11 @@ class MVGSConfig:
         the scene (budget_rigs="round"): on a forward-facing rig, or one that looks outward, it is
         default() (on a forward-facing rig, the baseline). Measured on the generated 360-degree
         scenes against default() and the baseline at equal work, seeds and 10k steps in
-        docs/equal_compute.md ("The compact preset"; its budget rule: "A data budget that does
+        docs/equal_compute_log.md ("The compact preset"; its budget rule: "A data budget that does
         not shrink with the views"). It keeps the default's shares at
         every budget (no warmup_work_cap): under its budget the cap is a trade between scenes, not
         a gain (at 10k +0.24 to +0.71 dB on three scenes, -0.63 / -0.94 on the clutter scene's
-        two seeds; docs/equal_compute.md, "The compact preset with today's rules"). Nor the
+        two seeds; docs/equal_compute_log.md, "The compact preset with today's rules"). Nor the
         default's cut of the faintest Gaussians (prune_faint=0): not measured under its budget."""
         return cls.default(**{"preset": "compact", "pixels_per_gaussian": COMPACT_PIXELS_PER_GAUSSIAN,
                               "budget_views": COMPACT_BUDGET_VIEWS, "budget_rigs": "round",
@@ -838,7 +838,7 @@ class MVGSConfig:
         the clocks count work (clock_unit="work", as default()) they are stretched with the
         plan's work, so every schedule (densification window, resets, size pruning) keeps its
         share of the run. Measured on 4DGS, where it is train_4dgs.py's default at equal steps
-        (docs/equal_compute.md, "4DGS: the views the pyramid saves").
+        (docs/equal_compute_log.md, "4DGS: the views the pyramid saves").
 
         Needs a finest last stage of one view, one continuous clock (not restart_per_stage, no
         opacity reset at hand-offs: the split adds a stage) and no budget yet; a plan whose

@@ -1,5 +1,6 @@
 """The front door: the README fits one screen and starts with the two commands, and no link in
-the README or docs/ points at a file that does not exist or at a machine's absolute path."""
+the README or docs/ points at a file that does not exist, at a heading its page does not have, or
+at a machine's absolute path."""
 
 from __future__ import annotations
 
@@ -28,6 +29,44 @@ def test_every_relative_link_resolves():
                 continue
             path = (page.parent / target.split("#")[0]).resolve()
             if not path.exists():
+                missing.append(f"{page.relative_to(ROOT)} -> {target}")
+    assert not missing, missing
+
+
+def heading_anchors(page: Path) -> set:
+    """The anchors GitHub gives a page's headings: lower case, every character but letters,
+    digits, '_', '-' and spaces dropped, spaces made '-'; a repeated one gets -1, -2, ...
+    Lines inside fenced code are not headings."""
+    anchors, seen, fenced = set(), {}, False
+    for line in page.read_text().splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        heading = None if fenced else re.match(r"#{1,6} +(.*?)[ #]*$", line)
+        if heading:
+            slug = re.sub(r"[^\w\- ]", "", heading.group(1).strip().lower()).replace(" ", "-")
+            count = seen.get(slug, 0)
+            seen[slug] = count + 1
+            anchors.add(slug if count == 0 else f"{slug}-{count}")
+    return anchors
+
+
+def test_heading_anchors_follow_githubs_rule(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("# The 1/4 level does not pay (2026-11-27, later)\n## Notes\n```\n## not a heading\n```\n"
+                    "## Notes\n### `default` at 10k: −0.5 dB, 0.7x\n")
+    assert heading_anchors(page) == {"the-14-level-does-not-pay-2026-11-27-later", "notes", "notes-1",
+                                     "default-at-10k-05-db-07x"}
+
+
+def test_every_link_to_a_heading_finds_it():
+    missing = []
+    for page in PAGES:
+        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+            if re.match(r"[a-z]+://", target) or "#" not in target:
+                continue
+            path, anchor = target.split("#", 1)
+            dest = (page.parent / path).resolve() if path else page
+            if dest.suffix == ".md" and dest.exists() and anchor not in heading_anchors(dest):
                 missing.append(f"{page.relative_to(ROOT)} -> {target}")
     assert not missing, missing
 
