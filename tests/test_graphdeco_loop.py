@@ -429,3 +429,20 @@ def test_the_loops_loss_is_3dgs_with_its_zero_padded_ssim(scene, monkeypatch):
         valid = train_mvgs_ssim(img1.double(), img2.double(), padding="valid")
         assert abs(float(value) - float(expected)) < 1e-5
         assert abs(float(valid) - float(expected)) > 1e-3  # the border matters on these images
+
+
+
+@pytest.mark.parametrize("background", [(1.0, 1.0, 1.0), (0.0, 0.0, 0.0)])
+def test_a_white_background_resets_once_more_where_densification_starts(background):
+    """3DGS's train.py with -w resets opacities at iteration == densify_from_iter too: the loop on
+    a white scene does the same at the step its clock reaches densify_from, and on another
+    background resets only where the schedule does (every opacity_reset_every steps inside the
+    window: none in a 200-step run, whose window ends at 100)."""
+    scene = load_scene(FORWARD, background=background)
+    steps = 200
+    cfg = train_mvgs.MVGSConfig.from_preset("baseline").with_total_steps(steps)
+    scheduled = [s for s in range(1, cfg.densify_until) if s % cfg.opacity_reset_every == 0]
+    assert scheduled == [] and 0 < cfg.densify_from < cfg.densify_until
+    _, log = train_mvgs.training(scene, steps, "baseline")
+    assert log["reset"] == ([cfg.densify_from] if background == (1.0, 1.0, 1.0) else [])
+    assert log["densify"] and min(log["densify"]) > cfg.densify_from  # densification starts after it, as in 3DGS

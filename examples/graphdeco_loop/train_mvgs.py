@@ -12,7 +12,8 @@ yours: same attributes, same methods). Lines marked `# MVGS` are what changes in
   densification's loss maps;
 - every view's screen-space gradient goes to `add_densification_stats` (per view: each is one
   visit, so a Gaussian's statistic is its mean over the views that saw it);
-- densification and opacity resets run when the plan says, with the schedule's threshold (MVAD
+- densification and opacity resets run when the plan says (on a white background one more reset
+  where the clock reaches densify_from, as train.py's -w does), with the schedule's threshold (MVAD
   halves it for spread cameras) as `max_grad`, after the Gaussians inside cross-ray boxes are
   cloned through `densification_postfix` (largest mean gradient first, at most crd_max_new of
   the count);
@@ -231,6 +232,10 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         torch.set_rng_state(rng)
     log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": [],
            "spared_by_reset": 0, "kept_by_distance": 0}
+    # 3DGS's -w: on a white background one more reset where densification starts (iteration ==
+    # densify_from_iter in train.py), so the initial points' colours do not stand in for the background
+    white = overrides.get("background") != "random" and scene.background is not None and \
+        tuple(float(v) for v in scene.background) == (1.0, 1.0, 1.0)
     sh_interval = max(1, round(1000 * clock_length / 30_000))
 
     for plan in schedule:  # MVGS: instead of viewpoint_stack.pop(randint(...))
@@ -272,7 +277,9 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
                 log["kept_by_distance"] += densify_and_prune(gaussians, ctx, world_size_rule)  # MVGS: the model's
                 grad_sq = torch.zeros(gaussians.get_xyz.shape[0])  # MVGS: the window restarts with the model's sums
                 log["densify"].append(iteration)
-            if plan.reset_opacity:  # MVGS: the schedule's clock
+            at = schedule.plan.locate(iteration)  # MVGS: this step's clock interval (before, after]
+            white_reset = white and at.before < config.densify_from <= at.after  # MVGS: iteration == densify_from_iter
+            if plan.reset_opacity or white_reset:  # MVGS: the schedule's clock
                 log["spared_by_reset"] += reset_opacity(gaussians, reset_scope, scene.center, far_distance)  # MVGS
                 log["reset"].append(iteration)
             gaussians.optimizer.step()
