@@ -112,3 +112,13 @@ def test_a_venv_or_outputs_inside_the_checkout_are_not_the_projects_files(tmp_pa
             for folder in (venv.parent, venv.parent.parent):
                 if not any(folder.iterdir()):
                     folder.rmdir()
+
+
+def test_the_results_page_indexes_every_section_of_the_log():
+    """docs/equal_compute.md ends with an index of docs/equal_compute_log.md: a section added to the
+    log without a line there would be out of the reader's sight."""
+    log = ROOT / "docs" / "equal_compute_log.md"
+    title = re.sub(r"[^\w\- ]", "", log.read_text().splitlines()[0].lstrip("# ").strip().lower()).replace(" ", "-")
+    linked = set(re.findall(r"\(equal_compute_log\.md#([^)\s]+)\)", (ROOT / "docs" / "equal_compute.md").read_text()))
+    missing = heading_anchors(log) - {title} - linked
+    assert not missing, sorted(missing)
