@@ -21,11 +21,16 @@ def test_readme_is_one_screen_and_starts_with_the_two_commands():
     assert 'python -m pytest -q -m "not slow" -n 2 --dist loadfile' in ci and "python -m pytest -q -m slow" in ci
 
 
+def relative_links(page: Path) -> list:
+    """The targets of a page's markdown links that are not URLs."""
+    return [t for t in re.findall(r"\]\(([^)\s]+)\)", page.read_text()) if not re.match(r"[a-z]+://", t)]
+
+
 def test_every_relative_link_resolves():
     missing = []
     for page in PAGES:
-        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
-            if re.match(r"[a-z]+://", target) or target.startswith("#"):
+        for target in relative_links(page):
+            if target.startswith("#"):
                 continue
             path = (page.parent / target.split("#")[0]).resolve()
             if not path.exists():
@@ -33,9 +38,14 @@ def test_every_relative_link_resolves():
     assert not missing, missing
 
 
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading's text: lower case, every character but letters, digits,
+    '_', '-' and spaces dropped, spaces made '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
 def heading_anchors(page: Path) -> set:
-    """The anchors GitHub gives a page's headings: lower case, every character but letters,
-    digits, '_', '-' and spaces dropped, spaces made '-'; a repeated one gets -1, -2, ...
+    """The anchors GitHub gives a page's headings (slug; a repeated one gets -1, -2, ...).
     Lines inside fenced code are not headings."""
     anchors, seen, fenced = set(), {}, False
     for line in page.read_text().splitlines():
@@ -43,10 +53,10 @@ def heading_anchors(page: Path) -> set:
             fenced = not fenced
         heading = None if fenced else re.match(r"#{1,6} +(.*?)[ #]*$", line)
         if heading:
-            slug = re.sub(r"[^\w\- ]", "", heading.group(1).strip().lower()).replace(" ", "-")
-            count = seen.get(slug, 0)
-            seen[slug] = count + 1
-            anchors.add(slug if count == 0 else f"{slug}-{count}")
+            anchor = slug(heading.group(1))
+            count = seen.get(anchor, 0)
+            seen[anchor] = count + 1
+            anchors.add(anchor if count == 0 else f"{anchor}-{count}")
     return anchors
 
 
@@ -61,8 +71,8 @@ def test_heading_anchors_follow_githubs_rule(tmp_path):
 def test_every_link_to_a_heading_finds_it():
     missing = []
     for page in PAGES:
-        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
-            if re.match(r"[a-z]+://", target) or "#" not in target:
+        for target in relative_links(page):
+            if "#" not in target:
                 continue
             path, anchor = target.split("#", 1)
             dest = (page.parent / path).resolve() if path else page
@@ -118,7 +128,7 @@ def test_the_results_page_indexes_every_section_of_the_log():
     """docs/equal_compute.md ends with an index of docs/equal_compute_log.md: a section added to the
     log without a line there would be out of the reader's sight."""
     log = ROOT / "docs" / "equal_compute_log.md"
-    title = re.sub(r"[^\w\- ]", "", log.read_text().splitlines()[0].lstrip("# ").strip().lower()).replace(" ", "-")
+    title = slug(log.read_text().splitlines()[0].lstrip("# "))
     linked = set(re.findall(r"\(equal_compute_log\.md#([^)\s]+)\)", (ROOT / "docs" / "equal_compute.md").read_text()))
     missing = heading_anchors(log) - {title} - linked
     assert not missing, sorted(missing)

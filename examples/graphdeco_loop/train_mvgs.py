@@ -188,6 +188,13 @@ def clone_in_boxes(gaussians: GaussianModel, ctx, world_size_rule: str = "extent
     return n
 
 
+def crosses_densify_from(schedule: ViewSchedule, step: int) -> bool:
+    """Whether the step's clock interval (before, after] reaches the start of densification: the
+    step of train.py's `iteration == densify_from_iter` on a step clock, and on a budget clock too."""
+    at = schedule.plan.locate(step)
+    return at.before < schedule.config.densify_from <= at.after
+
+
 def training(scene, iterations: int, preset: str = "default", seed: int = 0, checkpoint_iterations=(),
              start_checkpoint=None, out: Path = Path("out/graphdeco_loop"), lambda_dssim: float = 0.2,
              views=None, world_size_rule: str = "extent", reset_scope: str = "all", opacity_lr: float = 2.5e-2,
@@ -277,9 +284,7 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
                 log["kept_by_distance"] += densify_and_prune(gaussians, ctx, world_size_rule)  # MVGS: the model's
                 grad_sq = torch.zeros(gaussians.get_xyz.shape[0])  # MVGS: the window restarts with the model's sums
                 log["densify"].append(iteration)
-            at = schedule.plan.locate(iteration)  # MVGS: this step's clock interval (before, after]
-            white_reset = white and at.before < config.densify_from <= at.after  # MVGS: iteration == densify_from_iter
-            if plan.reset_opacity or white_reset:  # MVGS: the schedule's clock
+            if plan.reset_opacity or (white and crosses_densify_from(schedule, iteration)):  # MVGS: the schedule's clock
                 log["spared_by_reset"] += reset_opacity(gaussians, reset_scope, scene.center, far_distance)  # MVGS
                 log["reset"].append(iteration)
             gaussians.optimizer.step()
