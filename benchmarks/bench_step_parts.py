@@ -207,7 +207,7 @@ def table(rows: List[Dict[str, float]]) -> str:
 
 def checkpoint_arguments(doc: str, argv=None, more=None, check=None):
     """The arguments of a script that measures checkpoints of the gsplat loop (this one and
-    probe_blend_weight.py): checkpoints, --data, --repeats (more(ap) adds its own, check(ap, args)
+    probe_blend_weight.py, probe_view_noise.py): checkpoints, --data, --repeats (more(ap) adds its own, check(ap, args)
     checks them), checked; one thread set. Returns (args, the scene's common.Parser)."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("checkpoints", type=Path, nargs="+", help="ckpt_<step>.pt files of the gsplat loop")

@@ -1,0 +1,176 @@
+"""benchmarks/probe_view_noise.py: its noise scale and per-step gains against an exact enumeration of
+every M-view step on quadratic losses, its per-view gradients against a plain render loop, bad
+input said by name."""
+
+import itertools
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+ROOT = Path(__file__).resolve().parents[1]
+FORWARD = ROOT / "tests" / "data" / "forward64"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
+
+import common  # noqa: E402
+import probe_view_noise  # noqa: E402
+from mvgs_plugin.io import load_checked  # noqa: E402
+from mvgs_plugin.losses import ssim  # noqa: E402
+from mvgs_plugin.reference_renderer import rasterization  # noqa: E402
+from test_bench_step_parts import checkpoint  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
+
+
+def _quadratic(n=7, seed=0, spread=1.0):
+    """n views' quadratic losses L_i = 1/2 (x - c_i)^T P^-1 (x - c_i) over two parameter groups, at x:
+    the views' gradients P^-1 (x - c_i), the metric P (the step is x - eps P g) and x - c_i."""
+    g = torch.Generator().manual_seed(seed)
+    x = {"a": torch.randn(4, generator=g, dtype=torch.float64), "b": torch.randn(3, generator=g, dtype=torch.float64)}
+    centre = {k: v + torch.randn(v.shape, generator=g, dtype=torch.float64) for k, v in x.items()}
+    c = [{k: centre[k] + spread * torch.randn(v.shape, generator=g, dtype=torch.float64) for k, v in x.items()}
+         for _ in range(n)]
+    p = {k: 0.1 + torch.rand(v.shape, generator=g, dtype=torch.float64) for k, v in x.items()}
+    grads = [{k: (x[k] - ci[k]) / p[k] for k in x} for ci in c]
+    return grads, p
+
+
+def _enumerated_gain(grads, p, m, weighted):
+    """The best expected loss decrease of a step x - eps P mean(g over S), S every m-subset of the
+    views (Euclidean: P = 1 and L_i = 1/2 |x - c_i|^2), as a share of the full-batch step's: the
+    loss is quadratic, so its decrease is eps G^T P g_S - eps^2 / 2 g_S^T P g_S exactly."""
+    n = len(grads)
+    metric = {k: (p[k] if weighted else torch.ones_like(p[k])) for k in p}
+    if not weighted:  # L_i = 1/2 |x - c_i|^2: gradients x - c_i
+        grads = [{k: g[k] * p[k] for k in g} for g in grads]
+    full = {k: sum(g[k] for g in grads) / n for k in metric}
+
+    def dot(u, v):
+        return float(sum((metric[k] * u[k] * v[k]).sum() for k in metric))
+    lin = quad = 0.0
+    subsets = list(itertools.combinations(range(n), m))
+    for s in subsets:
+        gs = {k: sum(grads[i][k] for i in s) / m for k in metric}
+        lin += dot(full, gs) / len(subsets)
+        quad += dot(gs, gs) / len(subsets)
+    best = 0.5 * lin * lin / quad  # max over eps of eps lin - eps^2 quad / 2
+    return best / (0.5 * dot(full, full))
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("spread", [0.3, 3.0])
+def test_gain_per_step_is_the_enumerated_best_step(weighted, spread):
+    grads, p = _quadratic(spread=spread)
+    n = len(grads)
+    s = probe_view_noise.Spread(p)
+    for g in (grads if weighted else [{k: v[k] * p[k] for k in v} for v in grads]):
+        s.add(g)
+    b = s.noise_scale(["a", "b"], weighted=weighted)
+    for m in range(1, n + 1):
+        assert probe_view_noise.gain_per_step(b, m, n) == pytest.approx(_enumerated_gain(grads, p, m, weighted), rel=1e-9)
+
+
+def test_per_group_noise_scale_is_a_plain_mean_and_variance():
+    grads, p = _quadratic(n=9, seed=3)
+    s = probe_view_noise.Spread()
+    for g in grads:
+        s.add(g)
+    stacked = torch.stack([g["a"] for g in grads])
+    expected = float(stacked.var(0, unbiased=True).sum() / (stacked.mean(0) ** 2).sum())
+    assert s.noise_scale(["a"]) == pytest.approx(expected, rel=1e-12)
+    # the agreement: the mean over pairs of views of their inner product, over the mean squared norm
+    flat = [torch.cat([g["a"], g["b"]]) for g in grads]
+    pairs = [float(flat[i] @ flat[j]) for i in range(9) for j in range(9) if i != j]
+    norms = [float(f @ f) for f in flat]
+    assert s.agreement(["a", "b"]) == pytest.approx((sum(pairs) / len(pairs)) / (sum(norms) / 9), rel=1e-12)
+    orthogonal = probe_view_noise.Spread()
+    for i in range(5):
+        orthogonal.add({"a": torch.eye(5)[i] * (i + 1)})
+    assert orthogonal.agreement(["a"]) == pytest.approx(0.0, abs=1e-12)
+    same = probe_view_noise.Spread()
+    for _ in range(3):
+        same.add({"a": torch.tensor([1.0, -2.0])})
+    assert same.agreement(["a"]) == pytest.approx(1.0) and same.noise_scale(["a"]) == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.2])
+def test_efficiency_is_one_at_the_break_even_noise_scale(share):
+    # scale the views' spread about their mean until B is the break-even value: the enumerated steps
+    # then gain as much per unit of CPU with 4 views as with one
+    n, m = 7, 4
+    grads, p = _quadratic(n=n, seed=1)
+    mean = {k: sum(g[k] for g in grads) / n for k in p}
+
+    def scaled(f):
+        return [{k: mean[k] + f * (g[k] - mean[k]) for k in g} for g in grads]
+
+    def b_of(gs):
+        s = probe_view_noise.Spread(p)
+        for g in gs:
+            s.add(g)
+        return s.noise_scale(["a", "b"], weighted=True)
+    target = probe_view_noise.break_even(m, n, share)
+    if share == 0.0:
+        assert target == pytest.approx(n)  # a clock linear in views: extra views pay only beyond B = n
+    gs = scaled(math.sqrt(target / b_of(grads)))
+    assert b_of(gs) == pytest.approx(target, rel=1e-9)
+    per_cpu = [_enumerated_gain(gs, p, k, True) / (k * (1 - share) + share) for k in (1, m)]
+    assert per_cpu[1] / per_cpu[0] == pytest.approx(1.0, rel=1e-9)
+    assert probe_view_noise.efficiency(target, m, n, share) == pytest.approx(1.0, rel=1e-9)
+    # below it the one-view steps gain more per unit of CPU
+    low = scaled(0.5 * math.sqrt(target / b_of(grads)))
+    assert _enumerated_gain(low, p, m, True) / (m * (1 - share) + share) < _enumerated_gain(low, p, 1, True)
+
+
+def test_bad_values_are_named():
+    with pytest.raises(ValueError, match="views per step 5: expected 1..4"):
+        probe_view_noise.gain_per_step(1.0, 5, 4)
+    with pytest.raises(ValueError, match="step_share 1.0"):
+        probe_view_noise.efficiency(1.0, 2, 4, 1.0)
+    s = probe_view_noise.Spread()
+    s.add({"a": torch.ones(2)})
+    with pytest.raises(ValueError, match="at least 2 views' gradients, got 1"):
+        s.noise_scale(["a"])
+
+
+def test_the_views_gradients_are_those_of_a_plain_render_loop(checkpoint):
+    saved = load_checked(str(checkpoint))
+    splats = {k: v.float() for k, v in saved["splats"].items()}
+    parser = common.Parser(FORWARD)
+    cfg = common.Config(sh_degree=3)
+    cfg.adjust_steps(60)
+    degree = min(int(saved["step"]) // cfg.sh_degree_interval, 3)
+    probed = list(probe_view_noise.view_gradients(splats, cfg, parser, degree))
+    views = common.Dataset(parser, "train")
+    assert len(probed) == len(views) >= 2
+    bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
+    for i in (0, len(views) - 1):
+        d = views[i]
+        h, w = d["image"].shape[:2]
+        params = {k: v.clone().requires_grad_(True) for k, v in splats.items()}
+        img, _, _ = rasterization(
+            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]), colors=torch.cat([params["sh0"], params["shN"]], 1),
+            viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
+            sh_degree=degree, backgrounds=bg)
+        target = d["image"][None] / 255.0
+        loss = 0.8 * F.l1_loss(img, target) + 0.2 * (1.0 - ssim(img, target, padding="valid"))
+        loss.backward()
+        for k, v in params.items():
+            assert torch.allclose(probed[i][k], v.grad, rtol=1e-4, atol=1e-9), k
+
+
+def test_the_row_reads_the_checkpoint_and_names_bad_input(checkpoint, capsys):
+    text = probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "60", "--repeats", "1"])
+    row = [c.strip() for c in text.strip().splitlines()[-1].split("|")[1:-1]]
+    saved = load_checked(str(checkpoint))
+    assert int(row[1]) == saved["step"] and int(row[2]) == len(saved["splats"]["means"])
+    b = float(row[6])
+    views = int(row[3])
+    assert -1.0 <= float(row[5]) <= 1.0
+    assert b > 0 and float(row[16]) == pytest.approx(probe_view_noise.efficiency(b, 4, views, 0.0), abs=0.006)
+    with pytest.raises(SystemExit):
+        probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "0"])
+    assert "--run-steps 0: expected the run's step count" in capsys.readouterr().err
