@@ -29,6 +29,18 @@ def checkpoint(tmp_path_factory):
     return out / "ckpt_60.pt"
 
 
+def plain_render(splats, parser, d, degree: int):
+    """One view d of the loop's model rendered through the renderer's own entry point, with none of
+    the loop's code: (image, alphas, info)."""
+    h, w = d["image"].shape[:2]
+    bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
+    return rasterization(
+        means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
+        opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
+        viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
+        sh_degree=degree, backgrounds=bg)
+
+
 def test_the_rows_counts_are_those_of_a_plain_render_loop(checkpoint):
     text = bench_step_parts.main([str(checkpoint), "--data", str(FORWARD), "--repeats", "1"])
     row = [c.strip() for c in text.strip().splitlines()[-1].split("|")[1:-1]]
@@ -39,14 +51,7 @@ def test_the_rows_counts_are_those_of_a_plain_render_loop(checkpoint):
     degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
     with torch.no_grad():
         for i in range(len(views)):
-            d = views[i]
-            h, w = d["image"].shape[:2]
-            bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
-            _, _, info = rasterization(
-                means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
-                opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
-                viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
-                sh_degree=degree, backgrounds=bg)
+            _, _, info = plain_render(splats, parser, views[i], degree)
             pairs += len(info["flatten_ids"])
             visible += int((info["radii"] > 0).all(-1).sum())
     assert int(row[1]) == len(splats["means"])

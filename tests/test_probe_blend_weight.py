@@ -16,8 +16,7 @@ import common  # noqa: E402
 import probe_blend_weight  # noqa: E402
 import simple_trainer_mvgs  # noqa: E402
 from mvgs_plugin.io import load_checked  # noqa: E402
-from mvgs_plugin.reference_renderer import rasterization  # noqa: E402
-from test_bench_step_parts import checkpoint  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
+from test_bench_step_parts import checkpoint, plain_render  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
 
 
 def _rows(text):
@@ -35,17 +34,11 @@ def test_rows_against_a_psnr_and_weights_computed_here(checkpoint):
     parser = common.Parser(FORWARD)
     views = common.Dataset(parser, "test")
     degree = int(round((splats["shN"].shape[1] + 1) ** 0.5)) - 1
-    bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
     psnrs = []
     with torch.no_grad():
         for i in range(len(views)):
             d = views[i]
-            h, w = d["image"].shape[:2]
-            img, _, _ = rasterization(
-                means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
-                opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
-                viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
-                sh_degree=degree, backgrounds=bg)
+            img, _, _ = plain_render(splats, parser, d, degree)
             psnrs.append(float(-10 * torch.log10(((img[0].clamp(0, 1) - d["image"] / 255.0) ** 2).mean())))
     assert float(rows[0][6]) == pytest.approx(sum(psnrs) / len(psnrs), abs=2e-3)
     assert rows[0][2] == "0" and int(rows[0][3]) == n and rows[0][4] == "0.0%"

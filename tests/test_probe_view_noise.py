@@ -20,8 +20,7 @@ import common  # noqa: E402
 import probe_view_noise  # noqa: E402
 from mvgs_plugin.io import load_checked  # noqa: E402
 from mvgs_plugin.losses import ssim  # noqa: E402
-from mvgs_plugin.reference_renderer import rasterization  # noqa: E402
-from test_bench_step_parts import checkpoint  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
+from test_bench_step_parts import checkpoint, plain_render  # noqa: E402,F401  (the 60-step gsplat-loop checkpoint fixture)
 
 
 def _quadratic(n=7, seed=0, spread=1.0):
@@ -124,6 +123,59 @@ def test_efficiency_is_one_at_the_break_even_noise_scale(share):
     assert _enumerated_gain(low, p, m, True) / (m * (1 - share) + share) < _enumerated_gain(low, p, 1, True)
 
 
+def _quadratic_loss(h, slope):
+    """loss_at(step, t) of L(x) = slope . x + 1/2 x^T diag(h) x at x = t * step (one group 'a')."""
+    def loss_at(step, t):
+        x = t * step["a"] if "a" in step else torch.zeros_like(h)
+        return float(slope @ x + 0.5 * (h * x * x).sum())
+    return loss_at
+
+
+def test_curvature_is_isotropic_where_the_hessian_is_the_metrics_inverse():
+    # H = 3 P^-1: along any step -P g the curvature per squared length g^T P g is 3, whatever the views
+    grads, _ = _quadratic(n=6, seed=5)
+    grads = [{"a": g["a"]} for g in grads]
+    p = {"a": 0.2 + torch.rand(4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)}
+    loss_at = _quadratic_loss(3.0 / p["a"], torch.randn(4, dtype=torch.float64))
+    one, four = probe_view_noise.curvatures(grads, p, loss_at, 4, 5, torch.Generator().manual_seed(0))
+    assert one == pytest.approx(3.0, rel=1e-9) and four == pytest.approx(3.0, rel=1e-9)
+
+
+def test_curvature_ratio_on_an_anisotropic_quadratic():
+    # four views e_i + c e_4 (coordinates 0-3 curved a, coordinate 4 curved b, P = 1): every single view
+    # has curvature (a + b c^2) / (1 + c^2) per squared length, the mean of all four (a / 4 + b c^2) / (1 / 4 + c^2)
+    a, b, c = 0.5, 4.0, 0.7
+    grads = [{"a": torch.eye(5, dtype=torch.float64)[i] + c * torch.eye(5, dtype=torch.float64)[4]} for i in range(4)]
+    h = torch.tensor([a, a, a, a, b], dtype=torch.float64)
+    loss_at = _quadratic_loss(h, torch.linspace(-1, 1, 5, dtype=torch.float64))
+    one, four = probe_view_noise.curvatures(grads, {"a": torch.ones(5, dtype=torch.float64)}, loss_at, 4, 3,
+                                            torch.Generator().manual_seed(0), delta=0.5)
+    assert one == pytest.approx((a + b * c * c) / (1 + c * c), rel=1e-9)
+    assert four == pytest.approx((a / 4 + b * c * c) / (0.25 + c * c), rel=1e-9)
+
+
+def test_adams_metric_is_the_next_steps_as_torch_takes_it():
+    # a checkpoint after one Adam step in which coordinate 4 got no gradient (v = 0 there, as for a
+    # Gaussian densification just made), then one view's gradient: the metric is lr / (sqrt(v_hat) + eps)
+    # with v_hat what torch's Adam holds after stepping with that gradient, finite on coordinate 4
+    p = torch.nn.Parameter(torch.zeros(5))
+    opt = torch.optim.Adam([p], lr=0.01, eps=1e-15)
+    p.grad = torch.tensor([0.3, -0.2, 0.1, 0.5, 0.0])
+    opt.step()
+    saved = {"optimizers": {"a": {k: v for k, v in opt.state_dict().items()}}}
+    saved["optimizers"]["a"]["state"] = {0: {k: v.clone() for k, v in opt.state_dict()["state"][0].items()}}
+    g = torch.tensor([0.1, 0.4, -0.3, 0.2, 0.7])
+    s = probe_view_noise.Spread()
+    s.add({"a": g})
+    metric = probe_view_noise.adam_metric(saved, s)["a"]
+    p.grad = g.clone()
+    opt.step()
+    state = opt.state[p]
+    v_hat = state["exp_avg_sq"].double() / (1.0 - 0.999 ** float(state["step"]))
+    assert torch.allclose(metric, 0.01 / (v_hat.sqrt() + 1e-15), rtol=1e-6)
+    assert float(metric[4]) < 1.0  # not lr / eps
+
+
 def test_bad_values_are_named():
     with pytest.raises(ValueError, match="views per step 5: expected 1..4"):
         probe_view_noise.gain_per_step(1.0, 5, 4)
@@ -135,26 +187,25 @@ def test_bad_values_are_named():
         s.noise_scale(["a"])
 
 
-def test_the_views_gradients_are_those_of_a_plain_render_loop(checkpoint):
+def _model(checkpoint):
+    """The 60-step checkpoint's splats (float32), the scene, a loop Config for 60 steps and the SH
+    degree the loop renders with after them."""
     saved = load_checked(str(checkpoint))
-    splats = {k: v.float() for k, v in saved["splats"].items()}
-    parser = common.Parser(FORWARD)
     cfg = common.Config(sh_degree=3)
     cfg.adjust_steps(60)
     degree = min(int(saved["step"]) // cfg.sh_degree_interval, 3)
+    return {k: v.float() for k, v in saved["splats"].items()}, common.Parser(FORWARD), cfg, degree
+
+
+def test_the_views_gradients_are_those_of_a_plain_render_loop(checkpoint):
+    splats, parser, cfg, degree = _model(checkpoint)
     probed = list(probe_view_noise.view_gradients(splats, cfg, parser, degree))
     views = common.Dataset(parser, "train")
     assert len(probed) == len(views) >= 2
-    bg = None if parser.background is None else torch.tensor([parser.background], dtype=torch.float32)
     for i in (0, len(views) - 1):
         d = views[i]
-        h, w = d["image"].shape[:2]
         params = {k: v.clone().requires_grad_(True) for k, v in splats.items()}
-        img, _, _ = rasterization(
-            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
-            opacities=torch.sigmoid(params["opacities"]), colors=torch.cat([params["sh0"], params["shN"]], 1),
-            viewmats=torch.linalg.inv(d["camtoworld"][None]), Ks=d["K"][None], width=w, height=h,
-            sh_degree=degree, backgrounds=bg)
+        img, _, _ = plain_render(params, parser, d, degree)
         target = d["image"][None] / 255.0
         loss = 0.8 * F.l1_loss(img, target) + 0.2 * (1.0 - ssim(img, target, padding="valid"))
         loss.backward()
@@ -171,6 +222,35 @@ def test_the_row_reads_the_checkpoint_and_names_bad_input(checkpoint, capsys):
     views = int(row[3])
     assert -1.0 <= float(row[5]) <= 1.0
     assert b > 0 and float(row[16]) == pytest.approx(probe_view_noise.efficiency(b, 4, views, 0.0), abs=0.006)
+    assert row[-2:] == ["- / -", "-"]  # no curvature asked for
     with pytest.raises(SystemExit):
         probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "0"])
     assert "--run-steps 0: expected the run's step count" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "60", "--curvature-samples", "-1"])
+    assert "--curvature-samples -1" in capsys.readouterr().err
+
+
+def test_the_curvature_check_reads_the_loss_over_every_view(checkpoint):
+    # the probe's full loss at t = 0 is the mean of the loop's loss over the training views, computed
+    # here through the renderer's own entry point; its curvature ratio is finite and positive
+    splats, parser, cfg, degree = _model(checkpoint)
+    loss_at = probe_view_noise.full_loss(splats, cfg, parser, degree)
+    views = common.Dataset(parser, "train")
+    losses = []
+    with torch.no_grad():
+        for i in range(len(views)):
+            d = views[i]
+            img, _, _ = plain_render(splats, parser, d, degree)
+            target = d["image"][None] / 255.0
+            losses.append(float(0.8 * F.l1_loss(img, target) + 0.2 * (1.0 - ssim(img, target, padding="valid"))))
+    assert loss_at({}, 0.0) == pytest.approx(sum(losses) / len(losses), rel=1e-5)
+    text = probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "60", "--repeats", "1",
+                                  "--curvature-samples", "2"])
+    row = [c.strip() for c in text.strip().splitlines()[-1].split("|")[1:-1]]
+    one, four = (float(x) for x in row[-2].split(" / "))
+    assert math.isfinite(one) and math.isfinite(four)
+    if one > 0 and four > 0:
+        assert float(row[-1]) == pytest.approx(float(row[16]) * one / four, abs=0.02)
+    else:
+        assert row[-1] == "-"
