@@ -251,8 +251,10 @@ def adam_cpu(splats: Dict[str, torch.Tensor], repeats: int) -> float:
     return sorted(times[1:])[len(times[1:]) // 2]
 
 
-def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: int = 0,
-          gradients: Callable = view_gradients) -> Dict[str, float]:
+def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: int = 0) -> Dict[str, float]:
+    """One checkpoint's row (see the module docstring): its views' agreement and noise scale, the
+    gains of multi-view steps that follow, Adam's share of a step, and with curvature_samples > 0
+    the loss's curvature along four-view and one-view steps."""
     saved, splats, degree, cfg = bench_step_parts.load_model(ckpt)
     cfg.adjust_steps(run_steps)
     step = int(saved["step"])  # the 0-based index of the step the loop takes next
@@ -260,7 +262,7 @@ def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: i
     spread = Spread()
     view_cpu = 0.0
     kept: List[Grads] = []
-    views = iter(gradients(splats, cfg, parser, in_use))
+    views = iter(view_gradients(splats, cfg, parser, in_use))
     while True:
         c0 = time.process_time()
         grads = next(views, None)
