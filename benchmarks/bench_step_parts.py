@@ -206,9 +206,10 @@ def table(rows: List[Dict[str, float]]) -> str:
 
 
 def checkpoint_arguments(doc: str, argv=None, more=None, check=None):
-    """The arguments of a script that measures checkpoints of the gsplat loop (this one and
-    probe_blend_weight.py, probe_view_noise.py): checkpoints, --data, --repeats (more(ap) adds its own, check(ap, args)
-    checks them), checked; one thread set. Returns (args, the scene's common.Parser)."""
+    """The arguments of a script that measures checkpoints of the gsplat loop (this one,
+    probe_blend_weight.py and probe_view_noise.py): checkpoints, --data, --repeats (more(ap) adds
+    its own, check(ap, args) checks them), checked; one thread set. Returns (args, the scene's
+    common.Parser)."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("checkpoints", type=Path, nargs="+", help="ckpt_<step>.pt files of the gsplat loop")
     ap.add_argument("--data", type=Path, default=ROOT / "examples" / "scenes" / "tabletop",

@@ -262,31 +262,28 @@ def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: i
     spread = Spread()
     view_cpu = 0.0
     kept: List[Grads] = []
-    views = iter(view_gradients(splats, cfg, parser, in_use))
-    while True:
-        c0 = time.process_time()
-        grads = next(views, None)
-        if grads is None:
-            break
+    c0 = time.process_time()
+    for grads in view_gradients(splats, cfg, parser, in_use):  # the CPU of a view's render, loss and backward
         view_cpu += time.process_time() - c0
         spread.add(grads)
         if curvature_samples:
             kept.append({k: g.detach().float().clone() for k, g in grads.items()})
+        c0 = time.process_time()
     groups = [k for k in splats if k in spread.sum and float(spread.sum[k].abs().sum()) > 0]
     spread.metric = adam_metric(saved, spread)
+    weighted = [k for k in groups if k in spread.metric]  # the groups Adam has stepped
     step_cpu = adam_cpu(splats, repeats)
     share = step_cpu / (step_cpu + view_cpu / spread.n)
     n = spread.n
-    b_adam = spread.noise_scale([k for k in groups if k in spread.metric], weighted=True)
-    rho = spread.agreement([k for k in groups if k in spread.metric], weighted=True)
+    b_adam = spread.noise_scale(weighted, weighted=True)
+    rho = spread.agreement(weighted, weighted=True)
     row = {"checkpoint": str(ckpt), "step": step, "gaussians": len(splats["means"]), "views": n,
            "degree": in_use, "step_share": share, "b_adam": b_adam, "agreement": rho,
            "e2": efficiency(b_adam, 2, n, share), "e4": efficiency(b_adam, 4, n, share),
            "e4_linear": efficiency(b_adam, 4, n, 0.0), "break_even4": break_even(4, n, share)}
     row.update({"b_" + k: spread.noise_scale([k]) for k in groups})
     if curvature_samples:
-        metric = {k: spread.metric[k] for k in groups if k in spread.metric}
-        one, four = curvatures(kept, metric, full_loss(splats, cfg, parser, in_use), 4, curvature_samples,
+        one, four = curvatures(kept, {k: spread.metric[k] for k in weighted}, full_loss(splats, cfg, parser, in_use), 4, curvature_samples,
                                torch.Generator().manual_seed(0))
         row["curvature1"], row["curvature4"] = one, four
         if one > 0 and four > 0:  # the optimal step's gain scales as 1 / curvature
