@@ -16,6 +16,11 @@ process user+sys time per step (about threads x step when every thread is busy).
     python benchmarks/bench_step.py --quick --threads 1    # 10k rows only, 3 steps
     python benchmarks/bench_step.py --chunk-size 8 --json step.json
     git worktree add ../before HEAD~3 && python benchmarks/bench_step.py --before ../before
+    python benchmarks/bench_step.py --views-sweep --threads 1 2   # what an M-view step costs in one-view steps
+
+--views-sweep prints only the cost of a step of M = 1, 2, 4, 8 full-resolution views in one-view
+steps (10k and 30k Gaussians, 128 px), wall and CPU: the number to set against the C(M) of
+benchmarks/probe_view_noise.py (an M-view step pays when it costs less than C(M) one-view steps).
 
 --before DIR also times every configuration with the packages of another checkout (imported
 from DIR first; its compiled kernels build from its own sources), interleaved with this tree's
@@ -41,6 +46,7 @@ PARTS = ("seconds", "render_seconds", "backward_seconds", "loss_seconds", "adapt
 ROWS = [("10k 128 px", 10_000, False, 1, 8), ("10k 16 px", 10_000, False, 8, 48),
         ("10k 32 px", 10_000, False, 4, 24), ("50k 256 px", 50_000, True, 1, 8)]
 FIXED = [(10_000, False, 128, 48), (10_000, False, 128, 1)]  # 1 x 1 px: the per-view fixed cost
+SWEEP_GAUSSIANS, SWEEP_VIEWS = (10_000, 30_000), (1, 2, 4, 8)  # --views-sweep
 
 
 def upscaled(scene):
@@ -170,6 +176,22 @@ def table(threads: int, rows, args, cache: dict) -> list:
     return [(threads, *c) for c in checks]
 
 
+def sweep_table(threads: int, args, cache: dict) -> None:
+    """--views-sweep: a step of M full-resolution views against a one-view step, wall and CPU."""
+    print(f"\n### threads={threads}: a step of M views in one-view steps (128 px)\n")
+    print("| Gaussians | views M | step (ms) | CPU (ms) | step / one-view step | CPU / one-view step's |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for n in SWEEP_GAUSSIANS:
+        one = measure((n, False, 1, 1), threads, args, cache)
+        for m in SWEEP_VIEWS:
+            r = measure((n, False, 1, m), threads, args, cache)
+            if r is None or one is None:
+                print(f"| {n} | {m} | | failed | | |")
+                continue
+            print(f"| {n} | {m} | {1e3 * r['seconds']:.1f} | {1e3 * r['cpu']:.1f} | {r['seconds'] / one['seconds']:.2f} "
+                  f"| {r['cpu'] / one['cpu']:.2f} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
@@ -177,6 +199,8 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--chunk-size", type=int, default=None, help="views per render call (default: the config's)")
     ap.add_argument("--quick", action="store_true", help="only the 10k rows, 3 steps")
+    ap.add_argument("--views-sweep", action="store_true",
+                    help="only the cost of an M-view step in one-view steps (M = 1, 2, 4, 8; 10k and 30k Gaussians)")
     ap.add_argument("--json", help="write every raw number here")
     ap.add_argument("--before", help="another checkout to time beside this one (see the module doc)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)  # internal: run one measurement, print JSON
@@ -189,11 +213,17 @@ def main() -> None:
         print(json.dumps(run_one(*job["spec"], job["threads"], job["warmup"], job["steps"], job["chunk"])))
         return
 
+    if args.views_sweep and (args.before or args.json or args.quick):
+        ap.error("--views-sweep prints its own table only: drop --before, --json and --quick")
     args.steps = args.steps or (3 if args.quick else 5)
     rows = [r for r in ROWS if not (args.quick and r[1] != 10_000)]
     print(f"scene={SCENE_DIR.name} steps={args.steps} warmup={args.warmup} chunk_size={args.chunk_size or 'default'} "
           f"torch={torch.__version__}")
     cache, checks = {}, []
+    if args.views_sweep:
+        for threads in args.threads:
+            sweep_table(threads, args, cache)
+        return
     for threads in args.threads:
         checks += table(threads, rows, args, cache)
     print("\n### targets\n\n| threads | target | measured | |\n|---:|---|---|---|")

@@ -31,7 +31,11 @@ one-view step,
 On a clock linear in views (a = 0) E(M) < 1 exactly when B < n, that is when the views'
 agreement is above 0: extra views pay only when the views' gradients pull against each other;
 a per-step share a > 0 lowers that threshold. The table prints B, E(2), E(4), E(4) with a = 0,
-and the B at which E(4) = 1.
+and the B at which E(4) = 1. It also prints what a four-view step may cost for any clock, a GPU's
+or several cores' (where M views in one launch can cost less than M one-view steps): four-view
+steps gain more per unit of that clock than one-view steps exactly when a four-view step costs
+less than C(4) = dL(4) / dL(1) = (1 + B (1 - 1/n)) / (1 + B (1/4 - 1/n)) one-view steps
+(4 E(4) on a linear clock; with the measured curvatures, scaled by their ratio too).
 
 With --curvature-samples K the probe also checks the formula's assumption on the loss itself: the
 second derivative of the loss over every training view along K random 4-view steps and K one-view
@@ -141,6 +145,12 @@ def efficiency(b: float, m: int, n: int, step_share: float = 0.0) -> float:
         raise ValueError(f"step_share {step_share}: expected a share in [0, 1)")
     r, a = 1.0 - step_share, step_share
     return gain_per_step(b, m, n) / gain_per_step(b, 1, n) * (r + a) / (m * r + a)
+
+
+def pays_below(b: float, m: int, n: int) -> float:
+    """C(m) = dL(m) / dL(1): m-view steps gain more per unit of any clock than one-view steps
+    exactly when an m-view step costs less than C(m) one-view steps on it."""
+    return gain_per_step(b, m, n) / gain_per_step(b, 1, n)
 
 
 def break_even(m: int, n: int, step_share: float) -> float:
@@ -280,7 +290,8 @@ def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: i
     row = {"checkpoint": str(ckpt), "step": step, "gaussians": len(splats["means"]), "views": n,
            "degree": in_use, "step_share": share, "b_adam": b_adam, "agreement": rho,
            "e2": efficiency(b_adam, 2, n, share), "e4": efficiency(b_adam, 4, n, share),
-           "e4_linear": efficiency(b_adam, 4, n, 0.0), "break_even4": break_even(4, n, share)}
+           "e4_linear": efficiency(b_adam, 4, n, 0.0), "break_even4": break_even(4, n, share),
+           "pays_below4": pays_below(b_adam, 4, n)}
     row.update({"b_" + k: spread.noise_scale([k]) for k in groups})
     if curvature_samples:
         one, four = curvatures(kept, {k: spread.metric[k] for k in weighted}, full_loss(splats, cfg, parser, in_use), 4, curvature_samples,
@@ -288,6 +299,7 @@ def probe(ckpt: Path, parser, run_steps: int, repeats: int, curvature_samples: i
         row["curvature1"], row["curvature4"] = one, four
         if one > 0 and four > 0:  # the optimal step's gain scales as 1 / curvature
             row["e4_linear_curved"] = row["e4_linear"] * one / four
+            row["pays_below4_curved"] = row["pays_below4"] * one / four
     return row
 
 
@@ -303,13 +315,15 @@ def table(rows: List[Dict[str, float]]) -> str:
     lines = ["| checkpoint | step | Gaussians | views | SH degree | views' agreement | B, Adam's metric | "
              + " | ".join(f"B {g}" for g in GROUPS)
              + " | per-step share of CPU | E(2) | E(4) | E(4), clock linear in views | B where E(4) = 1 "
-             "| curvature per squared length along 1-view / 4-view steps | E(4), linear clock, those curvatures |",
-             "|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|---:|---:|---:|---:|"]
+             "| curvature per squared length along 1-view / 4-view steps | E(4), linear clock, those curvatures "
+             "| a 4-view step pays below this many one-view steps' cost, C(4) | C(4), those curvatures |",
+             "|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(GROUPS) + "---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['checkpoint']} | {r['step']} | {r['gaussians']} | {r['views']} | {r['degree']} | "
                      f"{r['agreement']:.3f} | {f(r['b_adam'])} | " + " | ".join(f(r.get("b_" + g)) for g in GROUPS)
                      + f" | {r['step_share']:.1%} | {r['e2']:.2f} | {r['e4']:.2f} | {r['e4_linear']:.2f} | "
-                     f"{f(r['break_even4'])} | {c(r.get('curvature1'))} / {c(r.get('curvature4'))} | {f(r.get('e4_linear_curved'))} |")
+                     f"{f(r['break_even4'])} | {c(r.get('curvature1'))} / {c(r.get('curvature4'))} | {f(r.get('e4_linear_curved'))} | "
+                     f"{f(r['pays_below4'])} | {f(r.get('pays_below4_curved'))} |")
     return "\n".join(lines) + "\n"
 
 
@@ -334,7 +348,8 @@ def main(argv=None) -> str:
     text = (f"Scene: {args.data}; every training view's gradient of the loop's loss at each checkpoint; "
             "B = S^2 / |G|^2 (McCandlish et al. 2018's simple noise scale); E(M): progress per unit of CPU "
             "of M-view steps over one-view steps with an optimal step size (1 = as good; below 1 the extra "
-            "views cost more than the steps they replace).\n\n" + table(rows))
+            "views cost more than the steps they replace); C(4): the cost, in one-view steps, below which a "
+            "4-view step pays on any clock.\n\n" + table(rows))
     print(text)
     return text
 

@@ -123,6 +123,25 @@ def test_efficiency_is_one_at_the_break_even_noise_scale(share):
     assert _enumerated_gain(low, p, m, True) / (m * (1 - share) + share) < _enumerated_gain(low, p, 1, True)
 
 
+@pytest.mark.parametrize("seed", [0, 2])
+def test_four_view_steps_pay_exactly_below_the_printed_cost(seed):
+    # on any clock: a 4-view step costing C(4) one-view steps gains, by enumeration of every subset,
+    # exactly as much per unit of that clock as one-view steps; a little cheaper it gains more
+    n, m = 7, 4
+    grads, p = _quadratic(n=n, seed=seed)
+    s = probe_view_noise.Spread(p)
+    for g in grads:
+        s.add(g)
+    cost = probe_view_noise.pays_below(s.noise_scale(["a", "b"], weighted=True), m, n)
+    one, four = (_enumerated_gain(grads, p, k, True) for k in (1, m))
+    assert four / cost == pytest.approx(one, rel=1e-9)
+    assert four / (0.95 * cost) > one and four / (1.05 * cost) < one
+    assert 1.0 < cost < m  # more views never lose gain per step, and gain less than m times as much
+    # on a clock linear in views it is m E(m)
+    b = s.noise_scale(["a", "b"], weighted=True)
+    assert cost == pytest.approx(m * probe_view_noise.efficiency(b, m, n, 0.0), rel=1e-12)
+
+
 def _quadratic_loss(h, slope):
     """loss_at(step, t) of L(x) = slope . x + 1/2 x^T diag(h) x at x = t * step (one group 'a')."""
     def loss_at(step, t):
@@ -222,7 +241,8 @@ def test_the_row_reads_the_checkpoint_and_names_bad_input(checkpoint, capsys):
     views = int(row[3])
     assert -1.0 <= float(row[5]) <= 1.0
     assert b > 0 and float(row[16]) == pytest.approx(probe_view_noise.efficiency(b, 4, views, 0.0), abs=0.006)
-    assert row[-2:] == ["- / -", "-"]  # no curvature asked for
+    assert float(row[-2]) == pytest.approx(probe_view_noise.pays_below(b, 4, views), abs=0.006)
+    assert row[-4:-2] == ["- / -", "-"] and row[-1] == "-"  # no curvature asked for
     with pytest.raises(SystemExit):
         probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "0"])
     assert "--run-steps 0: expected the run's step count" in capsys.readouterr().err
@@ -248,9 +268,10 @@ def test_the_curvature_check_reads_the_loss_over_every_view(checkpoint):
     text = probe_view_noise.main([str(checkpoint), "--data", str(FORWARD), "--run-steps", "60", "--repeats", "1",
                                   "--curvature-samples", "2"])
     row = [c.strip() for c in text.strip().splitlines()[-1].split("|")[1:-1]]
-    one, four = (float(x) for x in row[-2].split(" / "))
+    one, four = (float(x) for x in row[-4].split(" / "))
     assert math.isfinite(one) and math.isfinite(four)
     if one > 0 and four > 0:
-        assert float(row[-1]) == pytest.approx(float(row[16]) * one / four, abs=0.02)
+        assert float(row[-3]) == pytest.approx(float(row[16]) * one / four, abs=0.02)
+        assert float(row[-1]) == pytest.approx(float(row[-2]) * one / four, abs=0.02)
     else:
-        assert row[-1] == "-"
+        assert row[-3] == row[-1] == "-"
