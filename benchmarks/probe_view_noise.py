@@ -144,7 +144,7 @@ def efficiency(b: float, m: int, n: int, step_share: float = 0.0) -> float:
     if not 0.0 <= step_share < 1.0:
         raise ValueError(f"step_share {step_share}: expected a share in [0, 1)")
     r, a = 1.0 - step_share, step_share
-    return gain_per_step(b, m, n) / gain_per_step(b, 1, n) * (r + a) / (m * r + a)
+    return pays_below(b, m, n) * (r + a) / (m * r + a)
 
 
 def pays_below(b: float, m: int, n: int) -> float:
