@@ -142,6 +142,17 @@ def render_view(splats, cfg, parser: "common.Parser", d, degree: int, **kwargs):
                                    sh_degree=degree, **kwargs)
 
 
+def loop_loss(colors: torch.Tensor, d, cfg) -> torch.Tensor:
+    """The loop's loss of a render `colors` [1, H, W, 3] of item d: (1 - ssim_lambda) L1 +
+    ssim_lambda (1 - SSIM), inside d's mask if it has one."""
+    pixels = d["image"][None] / 255.0
+    if "mask" in d:
+        pixels = pixels * d["mask"][None, ..., None]
+        colors = colors * d["mask"][None, ..., None]
+    return (1.0 - cfg.ssim_lambda) * F.l1_loss(colors, pixels) + cfg.ssim_lambda * (
+        1.0 - ssim(colors, pixels, padding="valid"))
+
+
 def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, float]:
     """One checkpoint's row: counts and CPU ms per full-resolution training view."""
     _, loaded, degree, cfg = load_model(ckpt)
@@ -157,12 +168,11 @@ def measure(ckpt: Path, parser: "common.Parser", repeats: int) -> Dict[str, floa
         with KernelClock() as clock:
             for i in range(len(views)):
                 d = views[i]
-                pixels = d["image"][None] / 255.0
-                h, w = pixels.shape[1:3]
+                h, w = d["image"].shape[:2]
                 c0 = time.process_time()
                 colors, _, info = render_view(splats, cfg, parser, d, degree)
                 c1 = time.process_time()
-                loss = 0.8 * F.l1_loss(colors, pixels) + 0.2 * (1.0 - ssim(colors, pixels, padding="valid"))
+                loss = loop_loss(colors, d, cfg)
                 c2 = time.process_time()
                 loss.backward()
                 c3 = time.process_time()

@@ -60,7 +60,6 @@ from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import torch
-import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -68,7 +67,6 @@ sys.path.insert(0, str(ROOT / "examples" / "gsplat_loop"))
 
 import bench_step_parts  # noqa: E402
 import common  # noqa: E402
-from mvgs_plugin.losses import ssim  # noqa: E402
 
 Grads = Dict[str, torch.Tensor]
 
@@ -95,15 +93,12 @@ class Spread:
                 self.sum[k], self.sumsq[k] = g.clone(), g * g
         self.n += 1
 
-    def _weights(self, k: str, weighted: bool):
-        return self.metric[k] if weighted else 1.0
-
     def _terms(self, keys: Iterable[str], weighted: bool):
         """(|G|^2, S^2, sum_i |g_i|^2) over the groups `keys`."""
         n = self.n
         mean_sq = spread = total = 0.0
         for k in keys:
-            w = self._weights(k, weighted)
+            w = self.metric[k] if weighted else 1.0
             mean = self.sum[k] / n
             m2 = float((w * mean * mean).sum())
             s2 = float((w * self.sumsq[k]).sum())
@@ -184,14 +179,9 @@ def adam_metric(saved: Dict, spread: Spread) -> Grads:
 
 
 def view_loss(params: Dict[str, torch.Tensor], cfg, parser, d, degree: int) -> torch.Tensor:
-    """The loop's loss on one training item d (inside its mask, if it has one)."""
-    pixels = d["image"][None] / 255.0
+    """The loop's loss on one training item d, rendered from params."""
     colors, _, _ = bench_step_parts.render_view(params, cfg, parser, d, degree)
-    if "mask" in d:
-        pixels = pixels * d["mask"][None, ..., None]
-        colors = colors * d["mask"][None, ..., None]
-    return (1.0 - cfg.ssim_lambda) * F.l1_loss(colors, pixels) + cfg.ssim_lambda * (
-        1.0 - ssim(colors, pixels, padding="valid"))
+    return bench_step_parts.loop_loss(colors, d, cfg)
 
 
 def view_gradients(splats: Dict[str, torch.Tensor], cfg, parser, degree: int) -> Iterable[Grads]:
