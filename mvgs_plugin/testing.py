@@ -117,8 +117,38 @@ def plane_scene(n_train: int = 24, n_test: int = 4, size: int = 64, n_points: in
                  points=PointCloud(xyz, plane_texture(xy[:, 0], xy[:, 1]).clamp(0, 1)))
 
 
+def _check_finite(images: torch.Tensor, cams: List[Camera], what: str = "") -> None:
+    """AssertionError naming the first non-finite value of a render of `cams` (its view, size,
+    pixel and channel; `what` says which render it was) and how many there are."""
+    bad = ~torch.isfinite(images)
+    if not bool(bad.any()):
+        return
+    first = [int(i) for i in bad.nonzero()[0]]
+    value = float(images[tuple(first)])
+    if len(first) == 4 and first[0] < len(cams):
+        cam = cams[first[0]]
+        where = (f"channel {first[3]} of pixel (x={first[2]}, y={first[1]}) of view {cam.name!r}, "
+                 f"{cam.width}x{cam.height} px")
+    else:
+        where = f"index {first} of images {list(images.shape)}"
+    which = f"render() of {what}" if what else "render()"
+    raise AssertionError(f"{which} gave {int(bad.sum())} non-finite value(s) among {images.numel()} (the first: "
+                         f"{value} at {where}); every pixel of a render must be finite")
+
+
+def _render(adapter: Adapter, cams: List[Camera], backgrounds: torch.Tensor) -> RenderResult:
+    """adapter.render, its images checked finite. Every render the checks make is checked: here,
+    or by _check_finite in check_render, or (the empty view, the hard cameras) with a message
+    that says what the view tests."""
+    result = adapter.render(cams, backgrounds)
+    images = getattr(result, "images", None)
+    if isinstance(images, torch.Tensor):
+        _check_finite(images.detach(), cams)
+    return result
+
+
 def _loss(adapter: Adapter, scene: Scene, cams: List[Camera]) -> torch.Tensor:
-    result = adapter.render(cams, torch.zeros(len(cams), 3))
+    result = _render(adapter, cams, torch.zeros(len(cams), 3))
     gts = [scene.image(c) for c in cams]
     return sum(photometric_loss(result.images[i], gts[i].to(result.images)) for i in range(len(cams))), result
 
@@ -146,13 +176,14 @@ def check_protocol_methods(make_adapter: MakeAdapter, scene: Scene) -> None:
 
 def check_make_adapter_is_deterministic(make_adapter: MakeAdapter, scene: Scene) -> None:
     """Two calls of make_adapter build the same model (the checks after this one compare
-    adapters built by separate calls, and a resume rebuilds the model before it loads)."""
+    adapters built by separate calls, and a resume rebuilds the model before it loads). A
+    non-finite render is reported as such, not as a difference between the two."""
     renders = []
     for _ in range(2):
         adapter = make_adapter(scene)
         adapter.set_step(1)
         with torch.no_grad():
-            renders.append(adapter.render(scene.train_cameras[:1], torch.zeros(1, 3)).images)
+            renders.append(_render(adapter, scene.train_cameras[:1], torch.zeros(1, 3)).images)
     assert torch.equal(renders[0], renders[1]), (
         f"two calls of make_adapter built models that render differently (by up to "
         f"{float((renders[0] - renders[1]).abs().max()):.3g}): make_adapter must build the same model every call "
@@ -160,7 +191,8 @@ def check_make_adapter_is_deterministic(make_adapter: MakeAdapter, scene: Scene)
 
 
 def check_render(make_adapter: MakeAdapter, scene: Scene) -> None:
-    """Render shapes, dtype and ranges; a chunk of views of one size renders as a batch."""
+    """Render shapes, dtype and ranges; a chunk of views of one size renders as a batch; every
+    pixel is finite, at full size and at a pyramid level's size (1/4)."""
     adapter = make_adapter(scene)
     adapter.set_step(1)
     cams = scene.train_cameras[:2]
@@ -168,26 +200,41 @@ def check_render(make_adapter: MakeAdapter, scene: Scene) -> None:
     assert isinstance(result, RenderResult), f"render must return RenderResult, got {type(result).__name__}"
     H, W = cams[0].height, cams[0].width
     assert tuple(result.images.shape) == (2, H, W, 3), f"images must be [2,{H},{W},3], got {list(result.images.shape)}"
-    assert torch.isfinite(result.images).all(), "render produced non-finite pixels"
+    _check_finite(result.images.detach(), cams)
     if result.alphas is not None:
         assert tuple(result.alphas.shape) == (2, H, W, 1), f"alphas must be [2,{H},{W},1], got {list(result.alphas.shape)}"
         assert result.alphas.min() >= 0 and result.alphas.max() <= 1, "alphas must be in [0, 1]"
     assert result.images.requires_grad, "render output must be differentiable w.r.t. the model"
     small = cams[0].scaled(4)
     img = adapter.render([small], torch.ones(1, 3)).images
-    assert tuple(img.shape) == (1, small.height, small.width, 3), "pyramid cameras must render at their own size"
+    assert tuple(img.shape) == (1, small.height, small.width, 3), (
+        f"a pyramid camera ({small.width}x{small.height} px, the view scaled by 1/4) must render at its own size, "
+        f"got images {list(img.shape)}")
+    _check_finite(img.detach(), [small], "the view scaled by 1/4 (a pyramid level's camera)")
 
 
 def check_gradients_reach_every_group(make_adapter: MakeAdapter, scene: Scene) -> None:
-    """After one backward, every trainable group named by named_gradients() has a finite,
-    non-zero gradient (late-activated parts are switched on by a large set_step first)."""
+    """After one backward (the views' loss plus regularization(step), as the controller's step),
+    every trainable group named by named_gradients() has a finite, non-zero gradient
+    (late-activated parts are switched on by a large set_step first), and named_gradients()
+    reports the gradient of every trainable tensor that backward reaches: the leaves of the
+    loss's autograd graph that two steps' losses share, found by walking the graphs, not by
+    asking the adapter (a leaf made anew at each render, as 3DGS's screen-space points, is no
+    parameter). The controller's NaN/Inf guard, and distributed training, see only the groups
+    named_gradients() names."""
     adapter = make_adapter(scene)
     adapter.set_step(100_000)
     # Two optimizer steps first: a fresh model can be symmetric (isotropic Gaussians have no
     # gradient w.r.t. their rotation) in ways training immediately breaks.
+    leaves: List[torch.Tensor] = []
     for i in range(3):
         adapter.zero_grad()
         loss, _ = _loss(adapter, scene, scene.train_cameras[:3])
+        reg = adapter.regularization(100_000)
+        if reg is not None:
+            loss = loss + reg
+        found = _graph_leaves(loss)
+        leaves = [t for t in found if any(t is u for u in leaves)] if i == 2 else found
         loss.backward()
         if i < 2:
             adapter.optimizer_step()
@@ -197,9 +244,64 @@ def check_gradients_reach_every_group(make_adapter: MakeAdapter, scene: Scene) -
         assert g is not None, f"group {name!r} received no gradient"
         assert torch.isfinite(g).all(), f"group {name!r} has non-finite gradients"
         assert g.abs().sum() > 0, f"group {name!r} has an all-zero gradient"
+    reported = [g for g in grads.values() if isinstance(g, torch.Tensor)]
+    for leaf in leaves:
+        g = leaf.grad
+        if g is None or any(r is g or (r.shape == g.shape and torch.equal(r, g)) for r in reported):
+            continue
+        raise AssertionError(
+            f"named_gradients() (it names {sorted(grads)}) has no gradient for {_tensor_name(adapter, leaf)}, a "
+            f"{list(leaf.shape)} tensor every step's loss reaches, whose .grad the backward filled: it must report "
+            "every trainable group (the controller's NaN/Inf guard checks only the groups it names)")
     adapter.zero_grad()
     for name, g in adapter.named_gradients().items():
         assert g is None or not bool(g.abs().sum() > 0), f"zero_grad() left a gradient in group {name!r}"
+
+
+def _graph_leaves(output: torch.Tensor) -> List[torch.Tensor]:
+    """The leaf tensors of output's autograd graph: those whose .grad a backward of it fills."""
+    leaves: Dict[int, torch.Tensor] = {}
+    seen, stack = set(), [output.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        leaf = getattr(node, "variable", None)  # an AccumulateGrad node holds the leaf it fills
+        if isinstance(leaf, torch.Tensor):
+            leaves[id(leaf)] = leaf
+        stack.extend(nxt for nxt, _ in node.next_functions)
+    return list(leaves.values())
+
+
+def _tensor_name(adapter: Adapter, tensor: torch.Tensor) -> str:
+    """How the adapter holds `tensor`, for messages: its attribute path (params['sh0'],
+    mlps.color.0.weight) and the name of the optimizer group that steps it, when found among the
+    adapter's attributes (modules, optimizers, and dicts, lists and tuples nested up to three
+    levels deep)."""
+    paths, groups = [], []
+
+    def visit(obj, path: str, depth: int) -> None:
+        if obj is tensor:
+            paths.append(path)
+        elif isinstance(obj, torch.optim.Optimizer):
+            for i, group in enumerate(obj.param_groups):
+                if any(p is tensor for p in group["params"]):
+                    groups.append(f"{path}'s group {group.get('name', i)!r}")
+        elif isinstance(obj, torch.nn.Module):
+            paths.extend(f"{path}.{n}" for n, p in obj.named_parameters() if p is tensor)
+        elif depth < 3 and isinstance(obj, dict):
+            for k, v in obj.items():
+                visit(v, f"{path}[{k!r}]", depth + 1)
+        elif depth < 3 and isinstance(obj, (list, tuple)):
+            for i, v in enumerate(obj):
+                visit(v, f"{path}[{i}]", depth + 1)
+
+    for attr, value in vars(adapter).items() if hasattr(adapter, "__dict__") else ():
+        visit(value, attr, 1)
+    if paths and groups:
+        return f"{paths[0]} ({groups[0]})"
+    return (paths + groups + ["a tensor not found among the adapter's attributes"])[0]
 
 
 def check_optimizer_descends(make_adapter: MakeAdapter, scene: Scene, steps: int = 10) -> None:
@@ -282,10 +384,47 @@ def check_stats_and_densify(make_adapter: MakeAdapter, scene: Scene) -> None:
                 "(e.g. Adam's exp_avg / exp_avg_sq) must be cut and extended with the parameters' rows") from err
         adapter.zero_grad()
         with torch.no_grad():
-            after = adapter.render(scene.train_cameras[:1], torch.zeros(1, 3)).images
+            after = _render(adapter, scene.train_cameras[:1], torch.zeros(1, 3)).images
         assert not torch.equal(after, result.images.detach()), (
             "after densify, an optimizer step with gradients changed nothing the view renders: the optimizer "
             "still holds the tensors from before densify (its state must follow the new parameters)")
+
+
+def check_densify_keeps_optimizer_state(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """A densify that changes no row leaves the optimizer's state (Adam's moments and step
+    counts) as it was: of two adapters built and trained alike (statistics of 3 views, one
+    optimizer step), one densifies with an infinite threshold; when that kept the count and every
+    position, one more step on the same view must move both to the same render, bit for bit (an
+    adapter that restarts its moments at every densify trains, worse). A densify that prunes or
+    moves rows here leaves nothing to compare, and the check says nothing."""
+    cams = scene.train_cameras[:3]
+    twins = []
+    for _ in range(2):
+        adapter = _with_stats(make_adapter, scene, cams)
+        adapter.optimizer_step()
+        adapter.zero_grad()
+        twins.append(adapter)
+    kept, densified = twins
+    n0 = densified.num_primitives()
+    with torch.no_grad():
+        densified.densify(DensifyContext(step=1, grad_threshold=math.inf, scene_extent=float(scene.extent),
+                                         cameras=tuple(cams)))
+    if densified.num_primitives() != n0 or not torch.equal(densified.positions(), kept.positions()):
+        return
+    images = []
+    for adapter in twins:
+        adapter.set_step(2)
+        loss, _ = _loss(adapter, scene, cams[:1])
+        loss.backward()
+        adapter.optimizer_step()
+        adapter.zero_grad()
+        with torch.no_grad():
+            images.append(_render(adapter, scene.train_cameras[-1:], torch.zeros(1, 3)).images)
+    assert torch.equal(images[0], images[1]), (
+        f"a densify with an infinite threshold kept all {n0} primitives where they were, yet the next optimizer step "
+        f"moved the model elsewhere than the same step without that densify (renders differ by up to "
+        f"{float((images[0] - images[1]).abs().max()):.3g}): densify must keep the optimizer's state (Adam's moments "
+        "and step counts) of the rows it keeps")
 
 
 def _check_optimizer_state_shapes(adapter: Adapter, n0: int, n1: int) -> None:
@@ -345,8 +484,69 @@ def check_background(make_adapter: MakeAdapter, scene: Scene) -> None:
 
 
 def check_state_dict_round_trip(make_adapter: MakeAdapter, scene: Scene) -> None:
-    """state_dict -> load_state_dict into a fresh adapter (even of another size) renders the same
-    and continues training identically."""
+    """state_dict -> load_state_dict into a fresh adapter (even of another size) restores it
+    exactly. A state taken between densifications (views rendered, their statistics folded in)
+    holds every parameter and every statistic, and densifies alike after loading. A state taken
+    after a densify and a step: the loaded adapter's state_dict() holds what the saved one holds
+    (the same entries, every tensor of the same shape, dtype and values), it renders the same,
+    and one more step and a densify leave both adapters with equal state_dicts. After the save,
+    each adapter goes on from the same global torch RNG state, as a resumed MVGS run does (its
+    checkpoints carry that state); the caller's RNG state is restored afterwards."""
+    with torch.random.fork_rng(devices=[]):  # the CPU generator: the one MVGS's checkpoints save
+        _round_trip_between_densifications(make_adapter, scene)
+        _round_trip_after_a_step(make_adapter, scene)
+
+
+def _round_trip_between_densifications(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """The statistics are part of "everything to resume". What the parameters and statistics are
+    is found without asking the adapter: the leaves every view's loss reaches, and the tensors
+    among its attributes that accumulate_stats() changes; the saved state must hold each."""
+    a = make_adapter(scene)
+    a.set_step(1)
+    leaves, stats = None, set()
+    for view in scene.train_cameras[:3]:
+        loss, result = _loss(a, scene, [view])
+        found = _graph_leaves(loss)  # the parameters: the leaves every view's loss reaches
+        leaves = found if leaves is None else [t for t in leaves if any(t is u for u in found)]
+        loss.backward()
+        before = {path: t.detach().clone() for path, t in _attribute_tensors(a)}
+        a.accumulate_stats(result)
+        stats.update(path for path, t in _attribute_tensors(a) if path not in before or not _same(before[path], t))
+    state = copy.deepcopy(a.state_dict())
+    for leaf in leaves:
+        assert _holds(state, leaf.detach()), (
+            f"state_dict() holds no tensor equal to {_tensor_name(a, leaf)}, a {list(leaf.shape)} tensor every "
+            "view's loss reaches (a trainable parameter): it must hold every parameter, or a loaded adapter keeps "
+            "its own")
+    now = dict(_attribute_tensors(a))
+    for path in sorted(stats):
+        if path in now:
+            assert _holds(state, now[path].detach()), (
+                f"state_dict() holds no tensor equal to the adapter's {path}, a {list(now[path].shape)} tensor "
+                "accumulate_stats() changes (a statistic): it must hold every statistic, or a resumed run "
+                "densifies or prunes from other values")
+    rng = torch.get_rng_state()
+    b = make_adapter(scene)
+    b.load_state_dict(copy.deepcopy(state))
+    differs = _state_difference(state, b.state_dict(), "the saved state_dict()", "the loaded adapter's state_dict()")
+    ctx = DensifyContext(step=1, grad_threshold=1e-12, scene_extent=float(scene.extent),
+                         cameras=tuple(scene.train_cameras[:3]))
+    reports = []
+    for m in (a, b):
+        torch.set_rng_state(rng)
+        with torch.no_grad():
+            reports.append(m.densify(ctx))
+    _check_densified_alike(a, b, *reports, "a densify right after load_state_dict", differs,
+                           "state_dict must carry the densification statistics gathered since the last densify "
+                           "(a resumed run would otherwise densify differently)")
+    assert differs is None, (
+        f"after load_state_dict of a state taken between densifications (the statistics of 3 views folded in), "
+        f"{differs}: load_state_dict() must restore exactly what state_dict() gave")
+
+
+def _round_trip_after_a_step(make_adapter: MakeAdapter, scene: Scene) -> None:
+    """A state taken after a densify and an optimizer step (Adam's moments filled) loads to an
+    equal state_dict, renders alike, and steps and densifies alike."""
     a = _with_stats(make_adapter, scene, scene.train_cameras[:2])
     with torch.no_grad():
         a.densify(DensifyContext(step=1, grad_threshold=0.0, scene_extent=float(scene.extent)))
@@ -355,34 +555,93 @@ def check_state_dict_round_trip(make_adapter: MakeAdapter, scene: Scene) -> None
     a.optimizer_step()
     a.zero_grad()
     state = copy.deepcopy(a.state_dict())
+    rng = torch.get_rng_state()
     b = make_adapter(scene)
-    b.load_state_dict(state)
-    assert b.num_primitives() == a.num_primitives()
+    b.load_state_dict(copy.deepcopy(state))
+    differs = _state_difference(state, b.state_dict(), "the saved state_dict()", "the loaded adapter's state_dict()")
+    assert differs is None, (
+        f"after load_state_dict into a fresh adapter, {differs}: state_dict() must hold everything to resume "
+        "(every parameter, the optimizer's state of every group, every statistic densify reads) and "
+        "load_state_dict() must restore exactly what it is given")
+    assert b.num_primitives() == a.num_primitives(), (
+        f"the loaded adapter has {b.num_primitives()} primitives, the saved one {a.num_primitives()}")
     cam = scene.train_cameras[-1:]
+    ctx = DensifyContext(step=2, grad_threshold=0.0, scene_extent=float(scene.extent), cameras=tuple(cam))
+    images, stepped, reports = [], [], []
     for m in (a, b):
+        torch.set_rng_state(rng)
         m.set_step(2)
-    ia = a.render(cam, torch.zeros(1, 3)).images
-    ib = b.render(cam, torch.zeros(1, 3)).images
-    assert torch.equal(ia, ib), "a loaded adapter must render exactly like the saved one"
-    for m in (a, b):
-        loss, _ = _loss(m, scene, cam)
+        loss, result = _loss(m, scene, cam)
+        images.append(result.images.detach())
         loss.backward()
+        m.accumulate_stats(result)
         m.optimizer_step()
         m.zero_grad()
-    assert torch.equal(a.positions(), b.positions()), "after one more step the two adapters must still agree"
-    # The statistics are part of "everything to resume": a state taken between densifications
-    # (views rendered, their statistics folded in) densifies in the loaded adapter as in the saved one.
-    a = _with_stats(make_adapter, scene, scene.train_cameras[:3])
-    b = make_adapter(scene)
-    b.load_state_dict(copy.deepcopy(a.state_dict()))
-    ctx = DensifyContext(step=1, grad_threshold=1e-12, scene_extent=float(scene.extent),
-                         cameras=tuple(scene.train_cameras[:3]))
-    with torch.no_grad():
-        ra, rb = a.densify(ctx), b.densify(ctx)
-    assert (ra.before, ra.after) == (rb.before, rb.after) and torch.equal(a.positions(), b.positions()), (
-        f"a densify right after load_state_dict went {rb.before} -> {rb.after} where the saved adapter went "
-        f"{ra.before} -> {ra.after}: state_dict must carry the densification statistics gathered since the last "
-        "densify (a resumed run would otherwise densify differently)")
+        stepped.append(copy.deepcopy(m.state_dict()))
+        with torch.no_grad():
+            reports.append(m.densify(ctx))
+    assert torch.equal(images[0], images[1]), (
+        f"a loaded adapter must render exactly like the saved one (they differ by up to "
+        f"{float((images[0] - images[1]).abs().max()):.3g})")
+    differs = _state_difference(stepped[0], stepped[1], "the saved adapter's", "the loaded adapter's")
+    assert differs is None, (
+        f"after one more step (render, backward, statistics, optimizer step) of both, {differs}: state_dict() "
+        "must carry everything the step reads (e.g. the optimizer's moments and step counts of every group)")
+    _check_densified_alike(a, b, *reports, "after one more step, a densify of the loaded adapter", None,
+                           "state_dict() must carry everything densify reads")
+
+
+def _attribute_tensors(adapter: Adapter):
+    """(path, tensor) for the tensors that do not require grad among the adapter's attributes,
+    in dicts, lists and tuples nested up to three levels deep (stats['denom'], max_radii):
+    where adapters keep their statistics."""
+    def visit(obj, path: str, depth: int):
+        if isinstance(obj, torch.Tensor):
+            if not obj.requires_grad:
+                yield path, obj
+        elif depth < 3 and isinstance(obj, dict):
+            for k, v in obj.items():
+                yield from visit(v, f"{path}[{k!r}]", depth + 1)
+        elif depth < 3 and isinstance(obj, (list, tuple)):
+            for i, v in enumerate(obj):
+                yield from visit(v, f"{path}[{i}]", depth + 1)
+
+    for attr, value in (vars(adapter).items() if hasattr(adapter, "__dict__") else ()):
+        yield from visit(value, attr, 1)
+
+
+def _holds(state, value: torch.Tensor) -> bool:
+    """Whether some tensor in the nested state has value's shape and values (NaN equal to NaN;
+    a state tensor of another dtype compares after a cast to value's)."""
+    return any(tuple(t.shape) == tuple(value.shape) and _same(t.detach().to(value.dtype), value)
+               for _, t in _tensors(state))
+
+
+def _check_densified_alike(a: Adapter, b: Adapter, ra, rb, when: str, loaded_differs: Optional[str],
+                           counts_reason: str) -> None:
+    """AssertionError unless the saved adapter `a` and the loaded `b` densified alike (reports ra,
+    rb): the same counts, then the same positions(), then equal state_dicts; the message says
+    which of them differs and why it may (loaded_differs: how b's state_dict differed from the
+    saved one right after loading, None when it did not)."""
+    if loaded_differs is not None:
+        why = f"right after loading, {loaded_differs}"
+    else:
+        why = ("the two adapters held equal state_dicts and densified from the same global torch RNG state, so densify "
+               "reads something state_dict() does not carry (a random generator of the adapter's own, say: save its "
+               "state)")
+    went = f"{when} went {rb.before} -> {rb.after}"
+    if (ra.before, ra.after) != (rb.before, rb.after):
+        raise AssertionError(f"{went} where the saved adapter went {ra.before} -> {ra.after}: {counts_reason}; {why}")
+    pa, pb = a.positions().detach(), b.positions().detach()
+    if pa.shape != pb.shape:
+        raise AssertionError(f"{went} as the saved adapter did, but its positions() are {list(pb.shape)} where the "
+                             f"saved adapter's are {list(pa.shape)}")
+    if not torch.equal(pa, pb):
+        raise AssertionError(f"{went} as the saved adapter did, but put its primitives elsewhere (positions() differ "
+                             f"by up to {float((pa - pb).abs().max()):.3g}): {why}")
+    differs = _state_difference(a.state_dict(), b.state_dict(), "the saved adapter's", "the loaded adapter's")
+    if differs is not None:
+        raise AssertionError(f"{went} as the saved adapter did, to the same positions, but then {differs}: {why}")
 
 
 def check_hard_cameras(make_adapter: MakeAdapter, scene: Scene) -> None:
@@ -473,16 +732,78 @@ def check_distributed_support(make_adapter: MakeAdapter, scene: Scene, rtol: flo
             f"gradient_parameters() must name every trainable tensor (it names {sorted(params)})")
 
 
+def _leaves(obj, key: str = ""):
+    """(path, value) for every value in a nested dict / list / tuple (a state_dict): tensors and
+    everything else that is not a non-empty container (an empty one is a value of its own)."""
+    if isinstance(obj, dict) and obj:
+        for k, v in obj.items():
+            yield from _leaves(v, f"{key}[{k!r}]")
+    elif isinstance(obj, (list, tuple)) and obj:
+        for i, v in enumerate(obj):
+            yield from _leaves(v, f"{key}[{i}]")
+    else:
+        yield key, obj
+
+
 def _tensors(obj, key: str = ""):
     """(path, tensor) for every tensor in a nested dict / list / tuple (a state_dict)."""
-    if isinstance(obj, torch.Tensor):
-        yield key, obj
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _tensors(v, f"{key}[{k!r}]")
-    elif isinstance(obj, (list, tuple)):
-        for i, v in enumerate(obj):
-            yield from _tensors(v, f"{key}[{i}]")
+    for path, value in _leaves(obj, key):
+        if isinstance(value, torch.Tensor):
+            yield path, value
+
+
+_PLAIN = (bool, int, float, complex, str, bytes, type(None))
+
+
+def _equal_entries(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Elementwise x == y of two tensors of one shape and dtype, on the CPU, NaN equal to NaN."""
+    x, y = x.detach().cpu(), y.detach().cpu()
+    same = x == y
+    if x.is_floating_point() or x.is_complex():
+        same |= x.isnan() & y.isnan()
+    return same
+
+
+def _same(x: torch.Tensor, y: torch.Tensor) -> bool:
+    """Same dtype, shape and values (NaN equal to NaN)."""
+    return x.dtype == y.dtype and x.shape == y.shape and bool(_equal_entries(x, y).all())
+
+
+def _short(value) -> str:
+    """A value as a message names it: a tensor by dtype and shape, a plain value by repr."""
+    if isinstance(value, torch.Tensor):
+        return f"a {str(value.dtype).replace('torch.', '')} tensor {list(value.shape)}"
+    text = repr(value) if isinstance(value, _PLAIN + (dict, list, tuple)) else f"a {type(value).__name__}"
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _state_difference(want, got, want_label: str, got_label: str) -> Optional[str]:
+    """None when two state_dicts hold the same entries (the same paths; tensors of the same shape,
+    dtype and values, NaN equal to NaN; numbers, strings and None equal; other objects of the
+    same type), else a phrase naming the first entry, in want's order, that differs."""
+    w, g = dict(_leaves(want)), dict(_leaves(got))
+    for key in list(w) + [k for k in g if k not in w]:
+        if key not in g:
+            return f"entry {key} ({_short(w[key])}) is in {want_label} but not in {got_label}"
+        if key not in w:
+            return f"entry {key} ({_short(g[key])}) is in {got_label} but not in {want_label}"
+        x, y = w[key], g[key]
+        if isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor):
+            if x.dtype != y.dtype or x.shape != y.shape:
+                return f"entry {key} is {_short(x)} in {want_label} but {_short(y)} in {got_label}"
+            same = _equal_entries(x, y)
+            if not bool(same.all()):
+                gap = (x.detach().cpu() - y.detach().cpu())[~same].abs().max() if x.is_floating_point() else None
+                by = "" if gap is None else f", by up to {float(gap):.3g}"
+                return (f"entry {key} differs between {want_label} and {got_label} (in {int((~same).sum())} of "
+                        f"{x.numel()} values{by})")
+        elif isinstance(x, _PLAIN) and isinstance(y, _PLAIN):
+            nan = isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y)
+            if not (nan or x == y):
+                return f"entry {key} is {_short(x)} in {want_label} but {_short(y)} in {got_label}"
+        elif type(x) is not type(y):
+            return f"entry {key} is {_short(x)} in {want_label} but {_short(y)} in {got_label}"
+    return None
 
 
 CHECKS = [
@@ -494,6 +815,7 @@ CHECKS = [
     check_optimizer_descends,
     check_summed_equals_accumulated,
     check_stats_and_densify,
+    check_densify_keeps_optimizer_state,
     check_the_cap_holds,
     check_state_dict_round_trip,
     check_hard_cameras,
