@@ -388,3 +388,37 @@ def test_bundled_scene_loads_identically_in_both_layouts():
     ia, ib = np.lexsort(a.xyz.numpy().T), np.lexsort(b.xyz.numpy().T)
     assert torch.allclose(a.xyz[ia], b.xyz[ib], atol=1e-5)
     assert torch.allclose(a.rgb[ia], b.rgb[ib], atol=1e-6)
+
+
+def test_a_camera_line_with_too_few_parameters_names_its_model_and_count(tmp_path):
+    """pycolmap says only "Check failed: camera.VerifyParams()"; a PINHOLE camera has fx fy cx cy."""
+    info = write_model(tmp_path, fmt="txt")
+    file = info["model_dir"] / "cameras.txt"
+    lines = file.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if line.strip() and not line.startswith("#"))
+    fields = lines[k].split()
+    model = fields[1]
+    lines[k] = " ".join(fields[:-1])
+    file.write_text("\n".join(lines) + "\n")
+    count = {"PINHOLE": 4, "SIMPLE_PINHOLE": 3, "SIMPLE_RADIAL": 4, "OPENCV": 8}[model]
+    with pytest.raises(ValueError, match=rf"cameras.txt:{k + 1}: camera {fields[0]} is a {model} camera, which has "
+                                         rf"{count} parameters .*the line gives {count - 1}"):
+        load_colmap(tmp_path)
+
+
+def test_image_lines_without_their_points_lines_are_refused_not_halved(tmp_path):
+    """A model written by hand from known poses with one line per image: pycolmap reads every
+    other image and takes the rest for 2D points. The loader counts the records itself (ten
+    images here) and refuses; with an empty line after each, every image loads."""
+    info = write_model(tmp_path, fmt="txt")
+    file = info["model_dir"] / "images.txt"
+    records = [line for line in file.read_text().splitlines()
+               if not line.startswith("#") and len(line.split()) >= 10 and line.split()[-1].endswith(".png")]
+    assert len(records) == 10
+    file.write_text("# hand-written\n" + "\n".join(records) + "\n")
+    with pytest.raises(ValueError, match=r"images.txt(:\d+: the line after image .* is an image record|: 10 lines look like "
+                                         r"image records .* but pycolmap read 5 images): COLMAP.s text format follows"):
+        load_colmap(tmp_path)
+    file.write_text("# hand-written\n" + "".join(f"{line}\n\n" for line in records))
+    scene = load_colmap(tmp_path)
+    assert len(scene.train_cameras) + len(scene.test_cameras) == 10

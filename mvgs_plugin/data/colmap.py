@@ -155,10 +155,17 @@ def _finite_fields(file: Path, number: int, fields: Sequence[str], what: str) ->
             raise ValueError(f"{file}:{number}: {what}: {text!r} is not a finite number")
 
 
+# parameters of each COLMAP camera model (COLMAP's src/colmap/sensor/models.h), for a text model's
+# error message
+PARAMETER_COUNTS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8,
+                    "OPENCV_FISHEYE": 8, "FULL_OPENCV": 12, "FOV": 5, "SIMPLE_RADIAL_FISHEYE": 4, "RADIAL_FISHEYE": 5,
+                    "THIN_PRISM_FISHEYE": 12, "RAD_TAN_THIN_PRISM_FISHEYE": 16}
+
+
 def check_text_model(model_dir: Path) -> None:
     """Check a text model's records line by line, so an error names the file, the line and the
     value (pycolmap's own says "Check failed" or names a rig that does not exist): every
-    camera's and pose's numbers finite, every image's camera listed in cameras.txt, every
+    camera's parameter count its model's and its numbers finite, every pose's numbers finite, every image's camera listed in cameras.txt, every
     point's position finite. Only for a text model (a binary one is walked by
     check_binary_counts). _read_model runs it when pycolmap refuses a model, not before: on a
     model pycolmap reads it would double the load time (1.97 s against pycolmap's 2.24 s for
@@ -175,6 +182,10 @@ def check_text_model(model_dir: Path) -> None:
             raise ValueError(f"{cameras}:{number}: a camera needs CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got "
                              f"{len(fields)} field(s)")
         ids.add(fields[0])
+        want = PARAMETER_COUNTS.get(fields[1])
+        if want is not None and len(fields) - 4 != want:
+            raise ValueError(f"{cameras}:{number}: camera {fields[0]} is a {fields[1]} camera, which has {want} parameters "
+                             f"after CAMERA_ID MODEL WIDTH HEIGHT; the line gives {len(fields) - 4}")
         _finite_fields(cameras, number, fields[4:], f"the parameters of camera {fields[0]}")
     with open(images, encoding="utf-8", errors="replace") as fh:
         lines = iter(enumerate(fh, 1))
@@ -190,7 +201,10 @@ def check_text_model(model_dir: Path) -> None:
             if fields[8] not in ids:
                 raise ValueError(f"{images}:{number}: image {' '.join(fields[9:])!r} names camera {fields[8]}, which "
                                  f"{cameras} does not list (it lists {', '.join(sorted(ids, key=str)) or 'none'})")
-            next(lines, None)  # the image's 2D points: the next line, even a blank one
+            following = next(lines, None)  # the image's 2D points: the next line, even a blank one
+            if following is not None and _image_record(following[1].split(maxsplit=10)):
+                raise ValueError(f"{images}:{following[0]}: the line after image {' '.join(fields[9:])!r} should hold its 2D "
+                                 f"points but is an image record: {POINTS_LINE_HINT}")
     points = model_dir / "points3D.txt"
     if points.is_file():
         for number, fields in _text_lines(points):
@@ -214,23 +228,61 @@ def _read_model(pycolmap, model_dir: Path):
                          f"one format; convert it (colmap model_converter --output_type {fmt.upper()}), or remove it "
                          "to load the model without points")
     try:
-        if fmt in have["points3D"]:
-            return pycolmap.Reconstruction(str(model_dir))
-        with tempfile.TemporaryDirectory(prefix="mvgs_colmap_") as tmp:
-            for f in model_dir.iterdir():
-                if f.is_file() and f.suffix == f".{fmt}":
-                    try:  # the model's files as they are (images.bin may be large)
-                        os.symlink(f.resolve(), Path(tmp) / f.name)
-                    except OSError:  # no symlinks here (some Windows setups)
-                        shutil.copyfile(f, Path(tmp) / f.name)
-            if fmt == "bin":
-                (Path(tmp) / "points3D.bin").write_bytes(struct.pack("<Q", 0))
-            else:
-                (Path(tmp) / "points3D.txt").write_text("")
-            return pycolmap.Reconstruction(tmp)
+        rec = _read(pycolmap, model_dir, fmt, have)
     except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
         check_text_model(model_dir)  # a text model: the file, line and value, when these checks find them
         raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+    if fmt == "txt":
+        _check_image_lines(model_dir / "images.txt", len(rec.images))
+    return rec
+
+
+def _check_image_lines(file: Path, read: int) -> None:
+    """Raise when images.txt holds more image records than pycolmap read. COLMAP's text format
+    follows every image line with one line of its 2D points (empty when it has none); a file
+    written by hand without those lines loads every other image, the others taken for points,
+    and pycolmap says nothing. A record: an integer id, seven numbers, an integer camera id and
+    a name that is not a number (a line of 2D points is numbers only). Only the first eleven
+    fields of a line are split, so a model with long point lines is read once, quickly."""
+    with open(file, encoding="utf-8", errors="replace") as fh:
+        records = sum(_image_record(line.split(maxsplit=10)) for line in fh)
+    if records > read:
+        raise ValueError(f"{file}: {records} lines look like image records (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME) "
+                         f"but pycolmap read {read} images: {POINTS_LINE_HINT}")
+
+
+POINTS_LINE_HINT = ("COLMAP's text format follows every image line with a line of its 2D points, an empty line when it "
+                    "has none; without it the next image is read as points. Add an empty line after each image line")
+
+
+def _image_record(fields: Sequence[str]) -> bool:
+    """Whether a split images.txt line is an image record: an integer id, seven fields, an
+    integer camera id and a name that is not a number."""
+    if len(fields) < 10 or fields[0].startswith("#") or not (fields[0].isdigit() and fields[8].isdigit()):
+        return False
+    try:
+        float(fields[9])
+    except ValueError:
+        return True
+    return False
+
+
+def _read(pycolmap, model_dir: Path, fmt: str, have: dict):
+    """pycolmap's reading of the model, with an empty points file when it has none."""
+    if fmt in have["points3D"]:
+        return pycolmap.Reconstruction(str(model_dir))
+    with tempfile.TemporaryDirectory(prefix="mvgs_colmap_") as tmp:
+        for f in model_dir.iterdir():
+            if f.is_file() and f.suffix == f".{fmt}":
+                try:  # the model's files as they are (images.bin may be large)
+                    os.symlink(f.resolve(), Path(tmp) / f.name)
+                except OSError:  # no symlinks here (some Windows setups)
+                    shutil.copyfile(f, Path(tmp) / f.name)
+        if fmt == "bin":
+            (Path(tmp) / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+        else:
+            (Path(tmp) / "points3D.txt").write_text("")
+        return pycolmap.Reconstruction(tmp)
 
 
 def _intrinsics(cam) -> tuple[np.ndarray, Distortion]:
