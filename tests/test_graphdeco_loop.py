@@ -290,6 +290,35 @@ def test_background_points_reach_the_loops_initial_model(tmp_path):
         assert (expected > plain) == (data == bundled and n > 0)
 
 
+def test_the_command_line_resumes_a_checkpoint_and_reports_the_budget_it_ran(tmp_path):
+    """--checkpoint-iterations / --start-checkpoint (train.py's flags): a run of 240 steps on the
+    64 px forward scene (four densifications, an opacity reset at 50), checkpointed at 120 and
+    resumed from it in a new process, ends with the model the uninterrupted run ends with; and
+    metrics.json gives compact's budget from the data (the forward rig's pixels / 213, which the
+    flag does not say) and the preset's threshold width."""
+    import subprocess
+
+    def run(out, *flags):
+        subprocess.run([sys.executable, str(ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"), "--data", str(FORWARD),
+                        "--steps", "240", "--threads", "1", "--out", str(out), *flags], check=True, capture_output=True, text=True)
+        return json.loads((out / "metrics.json").read_text())
+
+    whole = run(tmp_path / "whole", "--checkpoint-iterations", "120")
+    assert (tmp_path / "whole" / "chkpnt120.pth").is_file() and whole["densify_calls"] > 0 and whole["resets"]
+    resumed = run(tmp_path / "resumed", "--start-checkpoint", str(tmp_path / "whole" / "chkpnt120.pth"))
+    assert resumed["psnr"] == whole["psnr"] and resumed["num_gaussians"] == whole["num_gaussians"]
+    assert resumed["densify_calls"] < whole["densify_calls"]  # it did only the second half
+    # compact on the bundled 360-degree rig (none on a forward one): 48 views of 128 x 128 pixels / 213
+    out = tmp_path / "compact"
+    subprocess.run([sys.executable, str(ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"), "--preset", "compact",
+                    "--steps", "2", "--threads", "1", "--out", str(out)], check=True, capture_output=True, text=True)
+    compact = json.loads((out / "metrics.json").read_text())
+    assert compact["max_gaussians"] == 48 * 128 * 128 // 213 and compact["threshold_width"] == 800.0
+    bad = subprocess.run([sys.executable, str(ROOT / "examples" / "graphdeco_loop" / "train_mvgs.py"),
+                          "--start-checkpoint", str(tmp_path / "none.pth")], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--start-checkpoint" in bad.stderr and "no such file" in bad.stderr
+
+
 def rules_ctx(scene, prune_large=True):
     return SimpleNamespace(grad_threshold=2e-4, scene_extent=scene.extent, scene_center=scene.center,
                            prune_large=prune_large, max_primitives=None, boxes=None, max_new_from_boxes=None)

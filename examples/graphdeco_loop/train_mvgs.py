@@ -237,7 +237,8 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         gaussians.restore(model_params, clock_length, opacity_lr=opacity_lr)
         schedule.load_state_dict(schedule_state)  # MVGS
         torch.set_rng_state(rng)
-    log = {"densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": [],
+    log = {"max_gaussians": schedule.config.max_gaussians, "threshold_width": schedule.config.grad_threshold_width,  # MVGS
+           "densify": [], "reset": [], "from_boxes": 0, "dropped_by_budget": 0, "counts": [], "clocks": [],
            "spared_by_reset": 0, "kept_by_distance": 0}
     # 3DGS's -w: on a white background one more reset where densification starts (iteration ==
     # densify_from_iter in train.py), so the initial points' colours do not stand in for the background
@@ -294,6 +295,7 @@ def training(scene, iterations: int, preset: str = "default", seed: int = 0, che
         log["clocks"].append(plan.clock)
 
         if iteration in checkpoint_iterations:
+            out.mkdir(parents=True, exist_ok=True)
             save_checked((gaussians.capture(), iteration, schedule.state_dict(), torch.get_rng_state(), grad_sq),
                          str(out / f"chkpnt{iteration}.pth"))
     return gaussians, log
@@ -350,7 +352,15 @@ if __name__ == "__main__":
                     help="Adam's learning rate on the opacity logits: 2.5e-2 is graphdeco's train.py today, 5e-2 its "
                          "2023 release's and train_3dgs.py's; with a few thousand steps (resets 300 apart) 5e-2 lets "
                          "opacities recover between resets (docs/gsplat_loop.md) (default: 2.5e-2)")
+    ap.add_argument("--checkpoint-iterations", type=int_at_least(1, MAX_STEPS), nargs="+", default=[], metavar="N",
+                    help="also write --out/chkpnt<N>.pth after these iterations (graphdeco's --checkpoint_iterations; "
+                         "default: none)")
+    ap.add_argument("--start-checkpoint", type=Path, default=None, metavar="PATH",
+                    help="continue from a chkpnt<N>.pth this script wrote, with the flags it was written with "
+                         "(graphdeco's --start_checkpoint; default: start fresh)")
     args = ap.parse_args()
+    if args.start_checkpoint is not None and not args.start_checkpoint.is_file():
+        ap.error(f"--start-checkpoint {args.start_checkpoint}: no such file")
     try:  # a scene without points gets them (triangulated, else drawn where the cameras look)
         scene = load_scene(args.data, images=args.images, background=scene_background(args),
                            background_points=args.background_points)  # MVGS: the far background's shell
@@ -365,12 +375,14 @@ if __name__ == "__main__":
     cpu, wall = time.process_time(), time.perf_counter()
     model, log = training(scene, args.steps, args.preset, seed=args.seed, views=args.views,
                           world_size_rule=args.world_size_rule, reset_scope=args.opacity_reset_scope,
-                          opacity_lr=args.opacity_lr, **random_bg, **budget)
+                          opacity_lr=args.opacity_lr, checkpoint_iterations=set(args.checkpoint_iterations),
+                          start_checkpoint=args.start_checkpoint, out=args.out or Path("out/graphdeco_loop"),
+                          **random_bg, **budget)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     metrics = {"psnr": evaluate(model, scene), "num_gaussians": model.get_xyz.shape[0], "most_held": max(log["counts"]),
-               "max_gaussians": args.max_gaussians, "background_points": args.background_points,
+               "max_gaussians": log["max_gaussians"], "background_points": args.background_points,
                "world_size_rule": args.world_size_rule, "opacity_reset_scope": args.opacity_reset_scope,
-               "opacity_lr": args.opacity_lr, "threshold_width": args.threshold_width, "preset": args.preset, "steps": args.steps, "seed": args.seed,
+               "opacity_lr": args.opacity_lr, "threshold_width": log["threshold_width"], "preset": args.preset, "steps": args.steps, "seed": args.seed,
                "densify_calls": len(log["densify"]), "resets": log["reset"], "from_boxes": log["from_boxes"],
                "dropped_by_budget": log["dropped_by_budget"],
                "spared_by_reset": log["spared_by_reset"], "kept_by_distance": log["kept_by_distance"], "cpu_seconds": cpu, "train_seconds": wall}

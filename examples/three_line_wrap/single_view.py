@@ -19,6 +19,7 @@ from mvgs_plugin import MVGSConfig, ViewSchedule
 from mvgs_plugin.losses import photometric_loss
 
 from mvgs_plugin.cli import BUNDLED, HelpFormatter, int_at_least, load_scene, scene_folder  # noqa: E402
+from mvgs_plugin.config import MAX_SEED
 
 
 def train(scene, steps: int, seed: int = 0, **config) -> GS3DAdapter:
@@ -52,6 +53,10 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, default=BUNDLED, help="scene folder (default: the bundled tabletop scene)")
     ap.add_argument("--steps", type=int_at_least(1), default=300, help="training steps")
+    ap.add_argument("--seed", type=int_at_least(0, MAX_SEED), default=0, help="torch's seed and the schedule's")
+    ap.add_argument("--threads", type=int_at_least(0), default=0, help="torch threads (0: torch's default)")
     args = ap.parse_args()
-    model = train(load_scene(args.data), args.steps)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model = train(load_scene(args.data), args.steps, args.seed)
     print(f"trained {model.num_primitives()} Gaussians in {args.steps} steps")
