@@ -185,7 +185,9 @@ def test_the_cli_keeps_the_shell_for_random_backgrounds_only(rgba_scene, tmp_pat
 
 
 def test_a_scene_of_photographs_keeps_the_3dgs_cube():
-    # borders of many colours: no backdrop, so the plain cube (3DGS's random init) as before
+    # borders of many colours: no backdrop, so the 3DGS cube, not carved (since 2026-12-01 swept
+    # along pixel rays, tests/test_sweep_init.py; this one colour inside every frame ties every
+    # depth, and ties go to random depths)
     cams = orbit()
     scene = argparse.Namespace(train_cameras=cams, background=(1.0, 1.0, 1.0), center=torch.zeros(3), extent=3.0,
                                image=framed_images((0.3, 0.6, 0.2), lambda uid: (uid / 8.0, 0.2, 0.9), cams))

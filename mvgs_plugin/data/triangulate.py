@@ -42,7 +42,7 @@ import torch
 from ..camera import Camera
 from ..densify.mvad import camera_axes
 from .images import may_have_alpha
-from .init import (CANDIDATES_PER_POINT, _silhouettes_read, init_region, on_silhouettes, photo_consistent, random_init_points,
+from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, cube_span, init_region, pose_distance, sweep_rays, on_silhouettes, photo_consistent, random_init_points,
                    silhouettes_of)
 from .scene import PointCloud, Scene
 
@@ -66,8 +66,8 @@ DEPTH_MARGIN = 1.5
 # pycolmap extraction: images larger than this (longest side) are downscaled for SIFT
 MAX_IMAGE_SIZE = 1600
 # bump when the cached result would change (2: fill and fall-back carved to silhouettes on a backdrop;
-# 3: silhouettes from alpha)
-_VERSION = 3
+# 3: silhouettes from alpha; 4: the fill one point per ray, ray_sweep's rule)
+_VERSION = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,25 +99,11 @@ class InitPoints:
     seconds: float = 0.0
 
 
-def _pose_distance(cameras: Sequence[Camera]) -> torch.Tensor:
-    """[V, V] how far apart two views are: centre distance over the rig's median spacing plus
-    the angle between their optical axes (radians): near views first, whichever way the rig is
-    laid out (an orbit, a grid, a walk)."""
-    centres = torch.stack([c.center for c in cameras]).to(torch.float64)
-    axes = camera_axes(cameras).to(torch.float64)
-    axes = axes / torch.linalg.norm(axes, dim=1, keepdim=True)
-    d = torch.cdist(centres, centres)
-    off = d[~torch.eye(len(cameras), dtype=torch.bool)]
-    scale = float(off.median()) if off.numel() and float(off.median()) > 0 else 1.0
-    angle = torch.arccos((axes @ axes.T).clamp(-1.0, 1.0))
-    return d / scale + angle
-
-
 def view_pairs(cameras: Sequence[Camera], exhaustive_max: int = EXHAUSTIVE_MAX,
                neighbours: int = NEIGHBOURS, time_neighbours: int = TIME_NEIGHBOURS) -> list[tuple[int, int]]:
     """Index pairs (i < j) of the views to match. Views with a time (a dynamic scene): each with
     its ``time_neighbours`` nearest in time. Otherwise every pair up to ``exhaustive_max`` views,
-    else each view with its ``neighbours`` nearest by :func:`_pose_distance`."""
+    else each view with its ``neighbours`` nearest by :func:`~mvgs_plugin.data.init.pose_distance`."""
     n = len(cameras)
     times = [c.time for c in cameras]
     if all(t is not None for t in times) and n > 1:
@@ -127,7 +113,7 @@ def view_pairs(cameras: Sequence[Camera], exhaustive_max: int = EXHAUSTIVE_MAX,
     elif n <= exhaustive_max:
         pairs = {(i, j) for i in range(n) for j in range(i + 1, n)}
     else:
-        dist = _pose_distance(cameras)
+        dist = pose_distance(cameras)
         dist.fill_diagonal_(math.inf)
         near = torch.topk(dist, min(neighbours, n - 1), dim=1, largest=False).indices
         pairs = {tuple(sorted((i, int(j)))) for i in range(n) for j in near[i]}
@@ -274,11 +260,18 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     Per training view (downsampled to at most ``max_width`` across): the tracks it sees give a
     depth range (their 5th and 95th percentile widened by DEPTH_MARGIN; all tracks' range for a
     view that sees fewer than 5) and a coverage mask (pixels within COVER_RADIUS of a projected
-    track). CANDIDATES_PER_POINT x n candidates are drawn on rays through uncovered pixels,
-    uniform in disparity within that view's range; the n whose colour agrees best across the
-    views are kept with their mean colour. On a still object on a backdrop
-    (:func:`~mvgs_plugin.data.init.silhouettes_of`) only the candidates inside the views' silhouettes
-    (:func:`~mvgs_plugin.data.init.on_silhouettes`) are: a ray through a backdrop pixel has nothing
+    track). n rays through uncovered pixels (a view at random, weighted by its uncovered pixels)
+    each get one point, at the depth within that view's range (SWEEP_DEPTHS of them, uniform in
+    disparity) whose colour its nearest views agree on best (:func:`~mvgs_plugin.data.init.sweep_rays`,
+    the rule of :func:`~mvgs_plugin.data.init.ray_sweep`; until 2026-12-01 the n most
+    photo-consistent of CANDIDATES_PER_POINT x n candidates, which gathered on plain surfaces and
+    the sky). On a rig round the scene (the 3DGS cube's region) the rays go through every pixel
+    and search the whole ray inside the cube, as ray_sweep does: a few hundred tracks cover most
+    of the pixels there (54-91 % at 64 px), and a fill kept off them crowded the rest; on the
+    generated tabletop and arc scenes tracks plus a fill of uncovered pixels trained 1.3 and 2.2
+    dB below tracks plus a fill of all pixels (plain 3DGS, 1000 steps). On a still object on a backdrop (:func:`~mvgs_plugin.data.init.silhouettes_of`)
+    that older rule stays, with only the candidates inside the views' silhouettes
+    (:func:`~mvgs_plugin.data.init.on_silhouettes`): a ray through a backdrop pixel has nothing
     on it, and a point in that air, backdrop-coloured from every side, is as photo-consistent as a
     point can be. Returns (xyz, rgb [k, 3] float64, description), k = n but where the silhouettes
     leave fewer candidates.
@@ -308,41 +301,74 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     for depths in ranges:
         lo, hi = (float(depths.quantile(0.05)), float(depths.quantile(0.95))) if depths.numel() >= 5 else (lo_all, hi_all)
         bounds.append((max(lo / DEPTH_MARGIN, 1e-6), hi * DEPTH_MARGIN))
-    # candidates: a view at random (weighted by its free pixels), a free pixel in it, a depth
-    total = CANDIDATES_PER_POINT * n
     weights = torch.tensor([float(m.sum()) for m in free], dtype=torch.float64)
     if not weights.sum() > 0:
         weights = torch.ones(len(free), dtype=torch.float64)
         free = [torch.ones_like(m) for m in free]
+    share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
+    backdrop = silhouettes_of(scene)
+    if backdrop is None:  # a ray through each of n free pixels, its point where the views agree (init.ray_sweep)
+        region = init_region(cameras, scene.center, float(scene.extent))
+        if region.kind == "cube":  # round the scene: rays through every pixel, the tracks' or not (docstring)
+            free = [torch.ones_like(m) for m in free]
+            weights = torch.tensor([float(m.sum()) for m in free], dtype=torch.float64)
+        pick = torch.multinomial(weights / weights.sum(), n, replacement=True, generator=generator)
+        pixels = torch.empty(n, 2, dtype=torch.float64)
+        near, far = torch.empty(n, dtype=torch.float64), torch.empty(n, dtype=torch.float64)
+        for i, (cam, small_cam, mask) in enumerate(zip(cameras, small, free)):
+            rows = (pick == i).nonzero().flatten()
+            if rows.numel() == 0:
+                continue
+            at = _pixels_in(mask, rows.numel(), generator)
+            pixels[rows] = at * torch.tensor([cam.width / small_cam.width, cam.height / small_cam.height], dtype=torch.float64)
+            origin, direction = cam.rays(pixels[rows])
+            if region.kind == "cube":  # round the scene: the whole ray inside the cube, as ray_sweep
+                near[rows], far[rows] = cube_span(origin, direction, region)
+            else:
+                axis = cam.camera_to_world[:3, 2] / torch.linalg.norm(cam.camera_to_world[:3, 2])
+                cos = (direction @ axis.to(direction.dtype)).clamp_min(1e-6)  # a depth z lies z / cos along the ray
+                near[rows], far[rows] = bounds[i][0] / cos, bounds[i][1] / cos
+        kept, rgb, scored = sweep_rays(cameras, scene.image, pick, pixels, near, far, generator,
+                                       disparity=region.kind != "cube", max_width=max_width, mask=getattr(scene, "mask", None))
+        where = (f"one on each of {n} rays through the training views' pixels, at the depth (of {SWEEP_DEPTHS} in the cube)"
+                 if region.kind == "cube" else
+                 f"where no track projects ({share:.0%} of the pixels at {max_width} px), one on each of {n} rays through "
+                 f"them, at the depth (of {SWEEP_DEPTHS} between the tracks' depths)")
+        return kept, rgb, f"{n} fill points {where} the nearest views agree on best ({int(scored.sum())} scored)"
+    # an object on a backdrop: candidates, a view at random (weighted by its free pixels), a free pixel in it, a depth
+    total = CANDIDATES_PER_POINT * n
     pick = torch.multinomial(weights / weights.sum(), total, replacement=True, generator=generator)
     candidates = torch.empty(total, 3, dtype=torch.float64)
     for i, (cam, mask) in enumerate(zip(small, free)):
         rows = (pick == i).nonzero().flatten()
         if rows.numel() == 0:
             continue
-        cells = mask.flatten().nonzero().flatten()
-        cell = cells[torch.randint(cells.numel(), (rows.numel(),), generator=generator)]
-        jitter = torch.rand(rows.numel(), 2, generator=generator, dtype=torch.float64)
-        pixels = torch.stack([(cell % cam.width).to(torch.float64), (cell // cam.width).to(torch.float64)], 1) + jitter
-        origin, direction = cam.rays(pixels)
+        origin, direction = cam.rays(_pixels_in(mask, rows.numel(), generator))
         axis = cam.camera_to_world[:3, 2] / torch.linalg.norm(cam.camera_to_world[:3, 2])
         cos = (direction @ axis.to(direction.dtype)).clamp_min(1e-6)
         near, far = bounds[i]
         disparity = 1.0 / far + torch.rand(rows.numel(), generator=generator, dtype=torch.float64) * (1.0 / near - 1.0 / far)
         candidates[rows] = origin + direction * (1.0 / disparity / cos)[:, None]
-    backdrop, carved = silhouettes_of(scene), ""
-    if backdrop is not None:
-        inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None),
-                                coverage=getattr(scene, "coverage", None))
-        candidates = candidates[inside]
-        n = min(n, candidates.shape[0])
-        carved = (f", {candidates.shape[0]} of them inside the views' silhouettes"
-                  f"{_silhouettes_read(cameras, getattr(scene, 'coverage', None))} on the backdrop {[round(v, 3) for v in backdrop]}")
+    inside = on_silhouettes(candidates, cameras, scene.image, backdrop, max_width, mask=getattr(scene, "mask", None),
+                            coverage=getattr(scene, "coverage", None))
+    candidates = candidates[inside]
+    n = min(n, candidates.shape[0])
+    carved = (f", {candidates.shape[0]} of them inside the views' silhouettes"
+              f"{_silhouettes_read(cameras, getattr(scene, 'coverage', None))} on the backdrop {[round(v, 3) for v in backdrop]}")
     kept, rgb, seen = photo_consistent(candidates, cameras, scene.image, n, max_width, mask=getattr(scene, "mask", None))
-    share = float(sum(float(m.sum()) for m in free)) / float(sum(m.numel() for m in free))
     return kept, rgb, (f"{n} fill points where no track projects ({share:.0%} of the pixels at {max_width} px), the "
                        f"most photo-consistent of {total} candidates between the tracks' depths{carved} "
                        f"({seen} seen by >= 3 views)")
+
+
+def _pixels_in(mask: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+    """[count, 2] pixel coordinates (x, y) drawn uniformly in the pixels ``mask`` [H, W] keeps,
+    each anywhere inside its pixel."""
+    cells = mask.flatten().nonzero().flatten()
+    cell = cells[torch.randint(cells.numel(), (count,), generator=generator)]
+    width = mask.shape[1]
+    corner = torch.stack([(cell % width).to(torch.float64), (cell // width).to(torch.float64)], 1)
+    return corner + torch.rand(count, 2, generator=generator, dtype=torch.float64)
 
 
 def _cache_key(scene: Scene, method: str, n: int, seed: int) -> str:
