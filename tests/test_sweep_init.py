@@ -176,3 +176,28 @@ def test_the_triangulations_fill_round_the_scene_sweeps_every_pixels_ray_in_the_
     # the tracks' side of the sphere (x > 0.5) holds points in proportion to what the views see of it
     facing = on & (xyz[:, 0] > 0.5)
     assert float(facing.double().sum() / on.double().sum()) > 0.15, float(facing.double().sum() / on.double().sum())
+
+
+def test_pixels_a_mask_ignores_give_no_colour():
+    """A red square (a passer-by) painted into every view and ignored by the views' masks: without
+    the masks some points take its red, with them none does, and every ray still gets a point."""
+    cams = ring()
+
+    def painted(cam, factor=1):
+        img = image(cam, factor).clone()
+        h, w = img.shape[:2]
+        img[h // 4: h // 2, w // 4: w // 2] = torch.tensor([1.0, 0.0, 0.0])
+        return img
+
+    def mask(cam, factor=1):
+        small = cam.scaled(factor) if factor != 1 else cam
+        m = torch.ones(small.height, small.width, 1)
+        m[small.height // 4: small.height // 2, small.width // 4: small.width // 2] = 0.0
+        return m
+
+    region = init_region(cams, scene_of(cams).center, scene_of(cams).extent)
+    red = lambda rgb: int(((rgb[:, 0] > 0.9) & (rgb[:, 1:] < 0.1).all(1)).sum())  # the texture and sky have none
+    _, rgb, _ = ray_sweep(region, cams, painted, 2000, torch.Generator().manual_seed(0))
+    assert red(rgb) > 20, red(rgb)
+    xyz, rgb, said = ray_sweep(region, cams, painted, 2000, torch.Generator().manual_seed(0), mask=mask)
+    assert red(rgb) == 0 and xyz.shape == (2000, 3) and bool(torch.isfinite(xyz).all())

@@ -390,7 +390,9 @@ def ray_sweep(region: InitRegion, cameras: Sequence[Camera], image, n: int, gene
     place hidden behind something else do not count against it; seen by fewer than MIN_VIEWS - 1
     of them: not scored. The best-scored candidate of each ray is kept, coloured by its pixel and
     the views of that smaller half; a ray none of whose candidates can be scored keeps one at
-    random (3DGS's cube along that ray) with its pixel's colour.
+    random (3DGS's cube along that ray) with its pixel's colour (a ray through a pixel a mask
+    ignores is not scored, and its point takes the mean colour of the views that see it, grey
+    when none does).
 
     Why one per ray and not the n best of all candidates (the frusta rule): a candidate in free
     space in front of the sky, or anywhere over a plain wall, is as consistent as one on a
@@ -445,11 +447,12 @@ def sweep_rays(cameras: Sequence[Camera], image, pick: torch.Tensor, pixels: tor
         t = 1.0 / (1.0 / hi + slices[rows] * (1.0 / lo - 1.0 / hi)) if disparity else lo + slices[rows] * (hi - lo)
         candidates = (origins[:, None, :] + directions[:, None, :] * t[..., None]).reshape(-1, 3)
         views = [cam] + [cameras[int(j)] for j in near_views[i]]
-        colours, seen = [], []
+        colours, seen, keeps = [], [], []
         for colour, inside, kept, _ in _lookups(candidates, views, image, max_width, mask):
             colours.append(colour)
             seen.append(inside & kept)
-        own = colours[0]  # the ray's pixel, at the lookups' level
+            keeps.append(kept)
+        own, own_kept = colours[0], keeps[0]  # the ray's pixel, at the lookups' level, and whether a mask keeps it
         colours = torch.stack(colours[1:], 1) if v > 1 else own.new_zeros(own.shape[0], 0, 3)  # [r x depths, neighbours, 3]
         others = torch.stack(seen[1:], 1) if v > 1 else torch.zeros(own.shape[0], 0, dtype=torch.bool)
         count = others.sum(1)
@@ -458,15 +461,20 @@ def sweep_rays(cameras: Sequence[Camera], image, pick: torch.Tensor, pixels: tor
         used = (count // 2).clamp_min(2)
         within = torch.arange(gap.shape[1])[None, :] < used[:, None]
         score = torch.where(within, gap, torch.zeros_like(gap)).sum(1) / used
-        score = torch.where(count >= MIN_VIEWS - 1, score, torch.full_like(score, math.inf)).reshape(r, depths)
+        score = torch.where((count >= MIN_VIEWS - 1) & own_kept, score, torch.full_like(score, math.inf)).reshape(r, depths)
         best = score.min(1).values
         ok = torch.isfinite(best)
         # ties (a plain wall, the sky, a synthetic colour field) go to a random one of them, not the nearest
         at = torch.where(score <= best[:, None], tie_break[rows], torch.full_like(score, -1.0)).argmax(1)
         chosen = torch.arange(r) * depths + torch.where(ok, at, fallback[rows])
         agreeing = (within & torch.isfinite(gap))[chosen] & ok[:, None]
+        # a ray through a pixel a mask ignores is not scored, and takes its colour from the views that see its point
+        agreeing |= ~own_kept[chosen, None] & others[chosen].gather(1, order[chosen])
         picked = colours[chosen][torch.arange(r)[:, None], order[chosen]]
-        mean = (own[chosen] + (picked * agreeing[..., None]).sum(1)) / (1 + agreeing.sum(1))[:, None]
+        mine = own_kept[chosen].to(own.dtype)
+        total = own[chosen] * mine[:, None] + (picked * agreeing[..., None]).sum(1)
+        weight = mine + agreeing.sum(1)
+        mean = torch.where(weight[:, None] > 0, total / weight.clamp_min(1)[:, None], torch.full_like(total, 0.5))
         xyz[rows], rgb[rows], scored[rows] = candidates[chosen], mean.to(torch.float64), ok
     return xyz, rgb.clamp(0.0, 1.0), scored
 
