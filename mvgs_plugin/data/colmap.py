@@ -165,8 +165,9 @@ PARAMETER_COUNTS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADI
 def check_text_model(model_dir: Path) -> None:
     """Check a text model's records line by line, so an error names the file, the line and the
     value (pycolmap's own says "Check failed" or names a rig that does not exist): every
-    camera's parameter count its model's and its numbers finite, every pose's numbers finite, every image's camera listed in cameras.txt, every
-    point's position finite. Only for a text model (a binary one is walked by
+    camera's parameter count its model's and its numbers finite, every pose's numbers finite,
+    every image's camera listed in cameras.txt and the line after each image not another image
+    (its 2D points), every point's position finite. Only for a text model (a binary one is walked by
     check_binary_counts). _read_model runs it when pycolmap refuses a model, not before: on a
     model pycolmap reads it would double the load time (1.97 s against pycolmap's 2.24 s for
     a million points)."""

@@ -40,10 +40,9 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from ..densify.mvad import camera_axes
 from .images import may_have_alpha
-from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, cube_span, init_region, pose_distance, sweep_rays, on_silhouettes, photo_consistent, random_init_points,
-                   silhouettes_of)
+from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, cube_span, init_region, on_silhouettes,
+                   photo_consistent, pose_distance, random_init_points, silhouettes_of, sweep_rays)
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
@@ -269,8 +268,9 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     and search the whole ray inside the cube, as ray_sweep does: a few hundred tracks cover most
     of the pixels there (54-91 % at 64 px), and a fill kept off them crowded the rest; on the
     generated tabletop and arc scenes tracks plus a fill of uncovered pixels trained 1.3 and 2.2
-    dB below tracks plus a fill of all pixels (plain 3DGS, 1000 steps). On a still object on a backdrop (:func:`~mvgs_plugin.data.init.silhouettes_of`)
-    that older rule stays, with only the candidates inside the views' silhouettes
+    dB below tracks plus a fill of all pixels (plain 3DGS, 1000 steps). On a still object on a
+    backdrop (:func:`~mvgs_plugin.data.init.silhouettes_of`) that older rule stays, with only the
+    candidates inside the views' silhouettes
     (:func:`~mvgs_plugin.data.init.on_silhouettes`): a ray through a backdrop pixel has nothing
     on it, and a point in that air, backdrop-coloured from every side, is as photo-consistent as a
     point can be. Returns (xyz, rgb [k, 3] float64, description), k = n but where the silhouettes
