@@ -592,22 +592,11 @@ def _round_trip_after_a_step(make_adapter: MakeAdapter, scene: Scene) -> None:
 
 
 def _attribute_tensors(adapter: Adapter):
-    """(path, tensor) for the tensors that do not require grad among the adapter's attributes,
-    in dicts, lists and tuples nested up to three levels deep (stats['denom'], max_radii):
-    where adapters keep their statistics."""
-    def visit(obj, path: str, depth: int):
-        if isinstance(obj, torch.Tensor):
-            if not obj.requires_grad:
-                yield path, obj
-        elif depth < 3 and isinstance(obj, dict):
-            for k, v in obj.items():
-                yield from visit(v, f"{path}[{k!r}]", depth + 1)
-        elif depth < 3 and isinstance(obj, (list, tuple)):
-            for i, v in enumerate(obj):
-                yield from visit(v, f"{path}[{i}]", depth + 1)
-
+    """(path, tensor) for the tensors that do not require grad among the adapter's attributes and
+    the dicts, lists and tuples they hold (stats['denom'], max_radii): where adapters keep their
+    statistics."""
     for attr, value in (vars(adapter).items() if hasattr(adapter, "__dict__") else ()):
-        yield from visit(value, attr, 1)
+        yield from ((path, t) for path, t in _tensors(value, attr) if not t.requires_grad)
 
 
 def _holds(state, value: torch.Tensor) -> bool:
