@@ -241,6 +241,7 @@ class ViewSchedule:
         points = getattr(scene, "points", None)
         self.primitive_count = len(points) if points is not None and len(points) else UNKNOWN_PRIMITIVES
         self._views = views_fingerprint(scene.train_cameras)  # recorded in state_dict(); the views never change
+        self._digests: Optional[List[str]] = None  # _image_digests(), made at the first state_dict() or resume
         n_views = len(scene.train_cameras)
         over = [f"stage {k} ({st.views} views at 1/{st.factor:g})" for k, st in enumerate(config.stages)
                 if st.views > n_views]
@@ -509,7 +510,18 @@ class ViewSchedule:
     def state_dict(self) -> Dict:
         return {"step": self.step_count, "sampler": self.sampler.state_dict(), "background_rng": self._bg_gen.get_state(),
                 "stage_start_count": self.stage_start_count, "initial_count": self.initial_count,
-                "views": self._views, "plan": self._plan_key(), "faint": [self.faint_views, self.faint_done]}
+                "views": self._views, "images": self._image_digests(), "plan": self._plan_key(),
+                "faint": [self.faint_views, self.faint_done]}
+
+    def _image_digests(self) -> Optional[List[str]]:
+        """Per training view, in order, the digest of its image (Scene.image_digest), or None for a
+        scene object without digests (a user's own scene class); computed once."""
+        if self._digests is None:
+            digest = getattr(self.scene, "image_digest", None)
+            if digest is None:
+                return None
+            self._digests = [digest(cam) for cam in self.scene.train_cameras]
+        return self._digests
 
     def _plan_key(self) -> Dict:
         """What a state's step count means: the stage plan and the densification clock."""
@@ -518,18 +530,24 @@ class ViewSchedule:
                 "clock": [c.densify_from, c.densify_until, c.densify_every, c.opacity_reset_every]}
 
     def check_views_of(self, state: Dict) -> None:
-        """ValueError unless a state_dict() was saved on these training views (check_same_views;
-        a state saved before views were recorded passes)."""
+        """ValueError unless a state_dict() was saved on these training views (check_same_views)
+        and their images (check_same_images); a state saved before views or images were
+        recorded, or a scene object without Scene.image_digest, passes that part."""
         saved = state.get("views") if isinstance(state, dict) else None
         if saved is not None:
             check_same_views(saved, self._views)
+        saved = state.get("images") if isinstance(state, dict) else None
+        if saved is not None:
+            mine = self._image_digests()
+            if mine is not None:
+                check_same_images(saved, mine, self.scene.train_cameras)
 
     def load_state_dict(self, state: Dict) -> None:
         """Restore a state_dict(). A state saved on other training views (names, sizes,
-        intrinsics, poses, times) is refused with a ValueError naming the first view that
-        differs, before anything is changed; so is a state saved by another stage plan or
-        densification clock (another preset, step count or views per step); states saved before
-        these were recorded load without those checks."""
+        intrinsics, poses, times, the content of their image files) is refused with a ValueError
+        naming the first view that differs, before anything is changed; so is a state saved by
+        another stage plan or densification clock (another preset, step count or views per
+        step); states saved before these were recorded load without those checks."""
         self.check_views_of(state)
         saved, mine = (state.get("plan") if isinstance(state, dict) else None), self._plan_key()
         if saved is not None and saved != mine:  # absent in states saved before it was recorded
@@ -544,6 +562,18 @@ class ViewSchedule:
         self.stage_start_count = state.get("stage_start_count")  # absent in checkpoints before stage_growth
         self.initial_count = state.get("initial_count")  # absent in checkpoints before max_gaussians
         self.faint_views, self.faint_done = state.get("faint", (0, False))  # absent before prune_faint
+
+
+def check_same_images(saved: Sequence[str], current: Sequence[str], cameras: Sequence[Camera]) -> None:
+    """ValueError unless two lists of image digests (Schedule._image_digests) agree, naming the
+    views whose images differ; the cameras were checked first (check_same_views), so the lists
+    have one entry per view of the same names."""
+    differ = [i for i, (a, b) in enumerate(zip(saved, current)) if a != b]
+    if len(saved) != len(current) or differ:
+        named = ", ".join(f"{i} ({cameras[i].name!r})" for i in differ[:3]) + (" ..." if len(differ) > 3 else "")
+        raise ValueError(f"the checkpoint was made on other images of the same cameras: {len(differ)} of "
+                         f"{len(current)} training views' image files differ in content (view {named}); resume on "
+                         "the images the checkpoint was written with")
 
 
 def views_fingerprint(cameras: Sequence[Camera]) -> List[List]:

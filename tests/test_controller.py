@@ -21,6 +21,7 @@ from mvgs_plugin.schedule import NoDensificationWarning
 from mvgs_plugin.losses import photometric_loss
 from mvgs_plugin.camera import Camera
 from mvgs_plugin.data import Scene
+from mvgs_plugin.io import load_checked, save_checked
 from mvgs_plugin.testing import check_adapter, synthetic_scene
 
 F64 = torch.float64
@@ -758,6 +759,67 @@ def test_a_checkpoint_of_other_training_views_is_refused_and_nothing_changes(sce
     with pytest.raises(ValueError, match="made on 6 training views, this run has 5") as err:
         fresh.load_checkpoint(str(path))
     assert "stages" not in str(err.value)
+
+
+def test_a_checkpoint_of_other_images_of_the_same_cameras_is_refused(scene, tmp_path):
+    """Two renders of one rig (the generator's tabletop and reflective scenes share their cameras)
+    have the same views: the checkpoint also records a digest of each training image, so a resume
+    on the other images is refused naming the views that differ, and the trainer is left as it
+    was. The digest is of the file's bytes: the same files pass, one changed pixel does not."""
+    from PIL import Image
+
+    cams, tests = list(scene.train_cameras), list(scene.test_cameras)
+    data = tmp_path / "scene"
+    data.mkdir()
+
+    def on_disk(brighter=()):
+        files = {}
+        for cam in cams + tests:
+            img = scene.image(cam).clone()
+            if cam.uid in brighter:
+                img[0, 0] = 1.0 - img[0, 0]  # one pixel of the view
+            files[cam.uid] = data / f"{cam.uid}{'b' if cam.uid in brighter else ''}.png"
+            Image.fromarray((img.numpy() * 255).round().astype("uint8")).save(files[cam.uid])
+        return Scene(cams, tests, files, points=scene.points)
+
+    first = on_disk()
+    trainer = MVGS(make(first), first, MVGSConfig.baseline().with_total_steps(10))
+    trainer.step()
+    path = tmp_path / "a.pt"
+    trainer.save_checkpoint(str(path))
+    again = on_disk()  # the same files, read by another Scene
+    resumed = MVGS(make(again), again, MVGSConfig.baseline().with_total_steps(10))
+    resumed.load_checkpoint(str(path))
+    assert resumed.step_count == 1
+
+    other = on_disk(brighter={cams[2].uid, cams[4].uid})
+    fresh = MVGS(make(other), other, MVGSConfig.baseline().with_total_steps(10))
+    before = {k: v.detach().clone() for k, v in fresh.adapter.params.items()}
+    with pytest.raises(ValueError, match=rf"other images of the same cameras: 2 of {len(cams)} training views' image "
+                                         rf"files differ in content \(view 2 \('{cams[2].name}'\), 4 \('{cams[4].name}'\)\)"):
+        fresh.load_checkpoint(str(path))
+    assert fresh.step_count == 0
+    assert all(torch.equal(fresh.adapter.params[k], v) for k, v in before.items())
+
+    # Images given in memory are digested from their pixels: another tensor is another image
+    in_memory = {c.uid: scene.image(c) for c in cams + tests}
+    darker = {**in_memory, cams[1].uid: in_memory[cams[1].uid] * 0.5}
+    trainer = MVGS(make(scene), Scene(cams, tests, in_memory, points=scene.points),
+                   MVGSConfig.baseline().with_total_steps(10))
+    trainer.step()
+    trainer.save_checkpoint(str(path))
+    fresh = MVGS(make(scene), Scene(cams, tests, darker, points=scene.points), MVGSConfig.baseline().with_total_steps(10))
+    with pytest.raises(ValueError, match=rf"1 of {len(cams)} training views' image files differ in content \(view 1 "):
+        fresh.load_checkpoint(str(path))
+
+    # A checkpoint written before the digests were recorded loads without that check
+    state = load_checked(path)
+    state["schedule"].pop("images")
+    old = tmp_path / "old.pt"
+    save_checked(state, old)
+    fresh = MVGS(make(scene), Scene(cams, tests, darker, points=scene.points), MVGSConfig.baseline().with_total_steps(10))
+    fresh.load_checkpoint(str(old))
+    assert fresh.step_count == 1
 
 
 def test_a_checkpoint_of_another_length_is_refused_naming_both_plans(scene, tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import warnings
 from pathlib import Path
 from typing import Mapping, Optional, Sequence, Union
@@ -159,6 +160,7 @@ class Scene:
             self._by_uid[cam.uid] = cam
         self._sources: dict[int, ImageSource] = {}
         self._cache: dict[tuple[int, float], torch.Tensor] = {}
+        self._digests: dict[int, str] = {}  # image_digest(), per camera uid
         for uid, cam in self._by_uid.items():
             if uid not in images:
                 raise ValueError(f"no image given for camera {cam.name!r} (uid {uid})")
@@ -362,6 +364,26 @@ class Scene:
         if isinstance(src, UndistortedImage):
             return src.path
         return None if isinstance(src, torch.Tensor) else Path(src)
+
+    def image_digest(self, cam: Camera) -> str:
+        """A digest of the content ``cam``'s image comes from: the bytes of its file (a file taken
+        with lens distortion: the distorted file), or of its tensor given in memory; 16 hex
+        digits of SHA-1, computed once. A checkpoint records the training views' digests, so
+        resuming it on other images with the same cameras (another render of a rig, a folder of
+        re-exposed photos) is refused rather than trained on silently. The file is hashed as it
+        is, not decoded: the same pixels saved again in another format give another digest."""
+        base, _ = self._level(cam, 1)
+        if base.uid not in self._digests:
+            src = self._sources[base.uid]
+            h = hashlib.sha1()
+            if isinstance(src, torch.Tensor):
+                h.update(self._cache[(base.uid, 1.0)].numpy().tobytes())
+            else:
+                with open(src.path if isinstance(src, UndistortedImage) else src, "rb") as f:
+                    for block in iter(lambda: f.read(1 << 20), b""):
+                        h.update(block)
+            self._digests[base.uid] = h.hexdigest()[:16]
+        return self._digests[base.uid]
 
     def mask_file(self, cam: Camera) -> Optional[Path]:
         """The file the mask of ``cam`` is read from (a mask taken with lens distortion: the
