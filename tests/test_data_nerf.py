@@ -155,6 +155,52 @@ def test_a_cmyk_jpeg_reads_as_its_rgb_not_as_rgba(tmp_path):
     assert np.allclose(read_rgb(tmp_path / "a.png", background=(0.0, 0.0, 0.0)).numpy(), pixels / 255.0 * a, atol=1e-6)
 
 
+def test_transparency_in_a_trns_chunk_is_alpha(tmp_path):
+    """PNGs whose transparency is a tRNS chunk, not a channel: a palette with an alpha per entry
+    (pngquant's and Pillow's quantize output from RGBA renders), an RGB and a grey image with a
+    colour key. Each is composited by that alpha, its alpha is read, and the NeRF loader sees an
+    RGBA scene (white behind it); the expected values are the palette's and keys' own numbers."""
+    from PIL import Image
+
+    from mvgs_plugin.data.images import read_alpha, read_rgb
+
+    palette = np.array([[200, 10, 30], [0, 255, 0], [0, 0, 0], [40, 80, 120]], np.uint8)
+    entry_alpha = np.array([255, 128, 0, 64], np.uint8)
+    rng = np.random.default_rng(0)
+    index = rng.integers(0, 4, size=(H, W), dtype=np.uint8)
+    want_a = entry_alpha[index][..., None] / 255.0
+    want = palette[index] / 255.0 * want_a + 1.0 * (1 - want_a)  # on white
+    for split, n in (("train", 4), ("test", 2)):
+        (tmp_path / split).mkdir()
+        for k in range(n):
+            img = Image.fromarray(index, "P")
+            img.putpalette(palette.reshape(-1).tolist())
+            img.save(tmp_path / split / f"r_{k:03d}.png", transparency=entry_alpha.tobytes())
+    written = write_blender(tmp_path / "cams")  # the cameras; their jsons name the same file paths
+    for split in ("train", "test"):
+        (tmp_path / f"transforms_{split}.json").write_text((tmp_path / "cams" / f"transforms_{split}.json").read_text())
+    with Image.open(tmp_path / "train" / "r_000.png") as img:
+        assert img.mode == "P" and "transparency" in img.info
+    assert np.allclose(read_alpha(tmp_path / "train" / "r_000.png").numpy(), want_a, atol=1e-6)
+    scene = load_nerf_synthetic(tmp_path)
+    assert scene.background == (1.0, 1.0, 1.0) and scene.background_origin.startswith("white: RGBA"), \
+        scene.background_origin
+    assert np.allclose(scene.image(scene.camera("train/r_001.png")).numpy(), want, atol=1e-6)
+    assert written  # (the random RGBA images write_blender put in cams/ are not read)
+    # an RGB and a grey PNG with a colour key: the key's pixels are transparent, the rest opaque
+    rgb = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+    rgb[: H // 2] = (7, 8, 9)
+    Image.fromarray(rgb).save(tmp_path / "key.png", transparency=(7, 8, 9))
+    keyed = (rgb == (7, 8, 9)).all(-1)[..., None]
+    got = read_rgb(tmp_path / "key.png", background=(0.0, 0.5, 1.0)).numpy()
+    assert np.allclose(got, np.where(keyed, np.array([0.0, 0.5, 1.0]), rgb / 255.0), atol=1e-6)
+    assert np.array_equal(read_alpha(tmp_path / "key.png").numpy() == 0.0, keyed)
+    grey = np.where(np.arange(W)[None, :] < W // 3, 0, 77 + np.arange(W)[None, :]).astype(np.uint8).repeat(H, 0)
+    Image.fromarray(grey, "L").save(tmp_path / "grey.png", transparency=0)
+    got = read_rgb(tmp_path / "grey.png", background=(1.0, 1.0, 1.0)).numpy()
+    assert np.allclose(got, np.where(grey[..., None] == 0, 1.0, np.repeat(grey[..., None], 3, -1) / 255.0), atol=1e-6)
+
+
 def test_center_extent_and_optional_points(tmp_path):
     written = write_blender(tmp_path)
     scene = load_nerf_synthetic(tmp_path)

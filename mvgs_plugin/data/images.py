@@ -97,7 +97,9 @@ def _decode(path: Path) -> np.ndarray:
     import skimage.io
 
     _warn_16_bit_colour(path)
-
+    keyed = _transparency_as_alpha(path) if path.suffix.lower() == ".png" and may_have_alpha(path) else None
+    if keyed is not None:
+        return keyed
     try:
         arr = skimage.io.imread(str(path))
     except Exception as err:  # the imaging backends raise many unrelated types
@@ -109,6 +111,23 @@ def _decode(path: Path) -> np.ndarray:
     if arr.ndim == 3 and arr.shape[2] == 4:  # four channels are RGBA only if the file says so
         arr = _four_channels_as_rgb(path, arr)
     return arr
+
+
+def _transparency_as_alpha(path: Path) -> Optional[np.ndarray]:
+    """The file as RGBA (grey: LA) when its transparency is a tRNS chunk and not a channel: a
+    palette PNG with alpha (what pngquant and Pillow's quantize write from RGBA renders), an RGB
+    or grey PNG with a colour key; None for any other file. skimage.io decodes those to their
+    colour alone, and the pixels they mark transparent would keep whatever colour was stored
+    under them (black, as a rule), composited on no background and hidden from the silhouettes."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            if "transparency" not in img.info or img.mode not in ("P", "RGB", "L"):
+                return None
+            return np.asarray(img.convert("LA" if img.mode == "L" else "RGBA"))
+    except Exception:  # not a file Pillow opens: the other reader reports it
+        return None
 
 
 def _four_channels_as_rgb(path: Path, arr: np.ndarray) -> np.ndarray:
