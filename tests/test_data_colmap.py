@@ -2,6 +2,7 @@
 own projection, hand-computed splits and normalisation, and one bad input per test."""
 
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -190,6 +191,40 @@ def test_a_model_without_its_points_file_loads_without_points(tmp_path, fmt):
     (info["model_dir"] / f"images.{fmt}").unlink()
     with pytest.raises(FileNotFoundError, match=f"needs cameras and images files of one format.*found cameras.{fmt}"):
         load_colmap(tmp_path)
+
+
+@pytest.mark.parametrize("fmt", ["bin", "txt"])
+@pytest.mark.parametrize("dangling", ["image", "2D point"])
+def test_points_whose_tracks_name_what_the_images_file_lacks_load_without_their_tracks(tmp_path, fmt, dangling):
+    """Frames deleted from a model by hand (their image records gone, the points' tracks still
+    naming them), or images' 2D points stripped: pycolmap refuses the model. It loads with the
+    same cameras as the model before the edit and the points' own positions and colours, with a
+    warning that says why; the model's files are left byte for byte as they were."""
+    info = write_model(tmp_path, fmt=fmt)
+    full = load_colmap(tmp_path)
+    image_id, point2d = (99, 0) if dangling == "image" else (min(info["names"]), 5)  # no image has 2D points here
+    points = info["model_dir"] / f"points3D.{fmt}"
+    if fmt == "txt":
+        lines = points.read_text().splitlines()
+        points.write_text("\n".join(line if line.startswith("#") else f"{line.rstrip()} {image_id} {point2d}"
+                                     for line in lines) + "\n")
+    else:  # COLMAP's binary layout, written here: id, xyz, rgb, error, track length, (image id, 2D point index)
+        body = b"".join(struct.pack("<Q3d3BdQII", k + 1, *p, *c, -1.0, 1, image_id, point2d)
+                        for k, (p, c) in enumerate(zip(info["xyz"].tolist(), info["rgb"].tolist())))
+        points.write_bytes(struct.pack("<Q", len(info["xyz"])) + body)
+    with pytest.raises(Exception):
+        pycolmap.Reconstruction(str(info["model_dir"]))
+    before = {f.name: f.read_bytes() for f in info["model_dir"].iterdir()}
+    with pytest.warns(UserWarning, match=f"cannot read the model with its points3D.{fmt} .*: its tracks name images or "
+                                         "2D points the images file does not have .* its 25 points' positions and "
+                                         "colours are kept"):
+        scene = load_colmap(tmp_path)
+    assert {f.name: f.read_bytes() for f in info["model_dir"].iterdir()} == before
+    assert [c.name for c in scene.cameras] == [c.name for c in full.cameras]
+    for a, b in zip(scene.cameras, full.cameras):
+        assert torch.equal(a.world_to_camera, b.world_to_camera) and torch.equal(a.K, b.K)
+    assert np.allclose(scene.points.xyz.numpy(), info["xyz"], atol=1e-6)
+    assert np.allclose(scene.points.rgb.numpy(), info["rgb"] / 255.0, atol=1e-6)
 
 
 def test_quaternions_rounded_in_images_txt_are_normalised_as_colmap_does(tmp_path):

@@ -228,14 +228,59 @@ def _read_model(pycolmap, model_dir: Path):
         raise ValueError(f"{model_dir}: points3D.{have['points3D'][0]} beside cameras.{fmt} and images.{fmt}: pycolmap reads "
                          f"one format; convert it (colmap model_converter --output_type {fmt.upper()}), or remove it "
                          "to load the model without points")
+    points = None
     try:
         rec = _read(pycolmap, model_dir, fmt, have)
     except Exception as err:  # pycolmap raises ValueError/RuntimeError with a C++ message
         check_text_model(model_dir)  # a text model: the file, line and value, when these checks find them
-        raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+        rec = _without_tracks(pycolmap, model_dir, fmt, have) if fmt in have["points3D"] else None
+        if rec is None:
+            raise ValueError(f"cannot read the COLMAP model in {model_dir}: {err}") from None
+        points = _point_positions(model_dir / f"points3D.{fmt}")
+        warnings.warn(f"{model_dir}: pycolmap cannot read the model with its points3D.{fmt} ({err}): its tracks name "
+                      "images or 2D points the images file does not have (frames deleted from the model by hand, or "
+                      f"2D points stripped); the cameras and images are read without it, and its {len(points)} points' "
+                      "positions and colours are kept, their tracks not used", stacklevel=3)
     if fmt == "txt":
         _check_image_lines(model_dir / "images.txt", len(rec.images))
-    return rec
+    return rec, points
+
+
+def _without_tracks(pycolmap, model_dir: Path, fmt: str, have: dict):
+    """The model read with an empty points file, or None when pycolmap refuses it even so (the
+    fault is not in the points)."""
+    try:
+        return _read(pycolmap, model_dir, fmt, {**have, "points3D": []})
+    except Exception:
+        return None
+
+
+def _point_positions(file: Path) -> Optional[PointCloud]:
+    """Positions and colours of a points3D file's points, read without pycolmap (their tracks are
+    skipped): for a model whose tracks do not match its images (_read_model). None for a file
+    with no points."""
+    xyz, rgb = [], []
+    if file.suffix == ".bin":
+        r = _Reader(file)
+        for i in range(r.u64("the record count")):
+            head = r.take(43, f"point {i}")
+            xyz.append(struct.unpack("<3d", head[8:32]))
+            rgb.append(tuple(head[32:35]))
+            r.take(8 * r.u64(f"point {i}'s track length"), f"point {i}'s track")
+    else:
+        for number, fields in _text_lines(file):
+            if len(fields) < 8:
+                raise ValueError(f"{file}:{number}: a point needs POINT3D_ID X Y Z R G B ERROR TRACK[], got "
+                                 f"{len(fields)} field(s)")
+            _finite_fields(file, number, fields[1:4], f"the position of point {fields[0]}")
+            colour = [int(float(v)) for v in fields[4:7]]
+            if not all(0 <= c <= 255 for c in colour):
+                raise ValueError(f"{file}:{number}: point {fields[0]}'s colour {fields[4:7]} is not three values in [0, 255]")
+            xyz.append(tuple(float(v) for v in fields[1:4]))
+            rgb.append(colour)
+    if not xyz:
+        return None
+    return PointCloud(xyz=torch.tensor(xyz, dtype=torch.float64), rgb=torch.tensor(rgb, dtype=torch.float64) / 255.0)
 
 
 def _check_image_lines(file: Path, read: int) -> None:
@@ -269,12 +314,14 @@ def _image_record(fields: Sequence[str]) -> bool:
 
 
 def _read(pycolmap, model_dir: Path, fmt: str, have: dict):
-    """pycolmap's reading of the model, with an empty points file when it has none."""
+    """pycolmap's reading of the model, with an empty points file in place of its own when it
+    has none (``have["points3D"]`` empty: _without_tracks asks so of a model that has one)."""
     if fmt in have["points3D"]:
         return pycolmap.Reconstruction(str(model_dir))
     with tempfile.TemporaryDirectory(prefix="mvgs_colmap_") as tmp:
         for f in model_dir.iterdir():
-            if f.is_file() and f.suffix == f".{fmt}":
+            # the model's points file is not linked: the empty one below would be written through the link
+            if f.is_file() and f.suffix == f".{fmt}" and f.stem != "points3D":
                 try:  # the model's files as they are (images.bin may be large)
                     os.symlink(f.resolve(), Path(tmp) / f.name)
                 except OSError:  # no symlinks here (some Windows setups)
@@ -440,7 +487,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     import pycolmap
 
     check_binary_counts(model_dir)
-    rec = _read_model(pycolmap, model_dir)
+    rec, read_points = _read_model(pycolmap, model_dir)
 
     records, undistortions, sources, resized = [], {}, {}, {}
     for image_id, image in rec.images.items():
@@ -501,7 +548,7 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     if masks:
         LOG.info("%s: %d of %d images have a mask: the loss and the test metrics count the pixels it keeps",
                  path, len(masks), len(records))
-    return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()}, points=_points(rec, model_dir), background=background,
+    return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()}, points=read_points or _points(rec, model_dir), background=background,
                  source=path, masks=masks)
 
 
