@@ -721,15 +721,20 @@ class GS4DAdapter(GS3DAdapter):
         write_gaussian_ply(Path(path), p["means"], p["sh0"], p["shN"], p["opacities"], p["scales"], p["quats"])
 
     def save_deformation(self, path: str) -> None:
-        """The deformation field alone (weights, box, shape), written atomically; with the
-        canonical PLY it is the whole trained model."""
+        """The deformation field alone (weights, box, shape, and whether it moves the Gaussians:
+        the fine stage), written atomically; with the canonical PLY it is the whole trained model."""
         c = self.gs4d_config
         weights = {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()}
-        data = {"format": _DEFORMATION_FORMAT, "field": weights, **{k: getattr(c, k) for k in _FIELD_SHAPE_KEYS}}
+        data = {"format": _DEFORMATION_FORMAT, "field": weights, "active": bool(self.deformation_active),
+                **{k: getattr(c, k) for k in _FIELD_SHAPE_KEYS}}
         save_atomic(data, path)
 
     def load_deformation(self, path: str) -> None:
-        """Load a save_deformation() file into this model (its field shape must match)."""
+        """Load a save_deformation() file into this model (its field shape must match). A field
+        saved in the fine stage (every trained model's: the field moves the Gaussians) puts this
+        model in the fine stage too, whatever its step (set_step(coarse_steps + 1) when it is
+        before it), so a model rebuilt from its two files renders each time as the trained one
+        did; a file written before the stage was recorded counts as fine."""
         data = torch.load(path, weights_only=True, map_location="cpu")  # copied onto the field's device below
         if not isinstance(data, dict) or data.get("format") != _DEFORMATION_FORMAT:
             raise ValueError(f"{path} is not a {_DEFORMATION_FORMAT} file")
@@ -740,6 +745,8 @@ class GS4DAdapter(GS3DAdapter):
                 raise ValueError(f"{path}: field {k} is {theirs!r}, this model has {mine!r}")
         self._build_field(data["field"]["bounds"])
         self.field.load_state_dict(data["field"])
+        if data.get("active", True) and not self.deformation_active:
+            self.set_step(self.gs4d_config.coarse_steps + 1)
 
     def __repr__(self) -> str:
         stage = "fine" if self.deformation_active else "coarse"

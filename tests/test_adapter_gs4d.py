@@ -347,12 +347,28 @@ def test_exports_canonical_baked_and_deformation(tmp_path):
     baked.active_sh_degree = a.active_sh_degree
     assert torch.allclose(baked.render([cam], torch.ones(1, 3)).images, want, atol=1e-6)
     assert (tmp_path / "t.ply").read_bytes() == (tmp_path / "t_cam.ply").read_bytes()
-    # canonical PLY + deformation file = the model
+    # canonical PLY + deformation file = the model: it renders each time as the trained one,
+    # without being told the step the run ended at (a model built from files starts at step 0)
     b = GS4DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0, config=a.gs4d_config)
-    assert b.gs4d_config == a.gs4d_config
+    assert b.gs4d_config == a.gs4d_config and not b.deformation_active
     b.load_deformation(str(tmp_path / "deformation.pt"))
-    b.set_step(a._step)
-    assert torch.allclose(b.render([cam], torch.ones(1, 3)).images, want, atol=1e-6)
+    assert b.deformation_active
+    for t in (0.0, 0.65, 1.0):
+        at = cam_at(0, t)
+        assert torch.allclose(b.render([at], torch.ones(1, 3)).images, a.render([at], torch.ones(1, 3)).images,
+                              atol=1e-6), t
+    # a field saved in the coarse stage (not trained) leaves the Gaussians where they are
+    coarse = GS4DAdapter.from_canonical(gaussians(25), tiny_config(zero_init_heads=False))
+    randomize_field(coarse.field, scale=0.2)
+    assert not coarse.deformation_active
+    coarse.save_deformation(str(tmp_path / "coarse.pt"))
+    c = GS4DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0, config=a.gs4d_config)
+    c.load_deformation(str(tmp_path / "coarse.pt"))
+    assert not c.deformation_active
+    static = GS3DAdapter.from_ply(tmp_path / "canonical.ply", scene_extent=2.0)
+    static.active_sh_degree = c.active_sh_degree
+    assert torch.allclose(c.render([cam], torch.ones(1, 3)).images, static.render([cam], torch.ones(1, 3)).images,
+                          atol=1e-6)
     with pytest.raises(ValueError, match=r"t must be in \[0, 1\]"):
         a.export_at_time(str(tmp_path / "bad.ply"), 1.5)
 
