@@ -31,7 +31,7 @@ import torch
 
 from mvgs_plugin.adapters.gs3d import GS3DConfig
 from mvgs_plugin.config import MAX_PRIMITIVES, MAX_SEED, PRESETS, MVGSConfig, Stage
-from mvgs_plugin.controller import MVGS, ConfigMismatch
+from mvgs_plugin.controller import MVGS, ConfigMismatch, StageMismatch
 from mvgs_plugin.data import load_scene
 from mvgs_plugin.data.init import SHELL_RADIUS
 from mvgs_plugin.data.triangulate import INIT_METHODS
@@ -660,8 +660,8 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
 
 
 def late_views_hint(args, scene, config: MVGSConfig) -> str:
-    """For a refused --resume of train_4dgs.py whose checkpoint has another stage plan than this
-    run's `config`: when that plan is the one another --late-views value (1 to 8, the values one
+    """For a --resume of train_4dgs.py refused for its stage plan alone (StageMismatch: the same
+    model, views and images) whose checkpoint has another stage plan than this run's `config`: when that plan is the one another --late-views value (1 to 8, the values one
     would run) gives this command line, a hint naming it; else "" (also when the plans agree and
     the refusal is about something else). The plan depends only on the flags config_from_args
     reads, so it is rebuilt from them."""
@@ -782,7 +782,8 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
         except ConfigMismatch as err:  # the Python advice (strict=False, from_dict) is not a command line's
             raise _other_settings(args, "settings", err.differences, "this run") from err
         except ValueError as err:  # another run's checkpoint, a damaged file: the user's to fix
-            raise UsageError(f"--resume {args.resume}: {err}{late_views_hint(args, scene, config)}") from err
+            hint = late_views_hint(args, scene, config) if isinstance(err, StageMismatch) else ""
+            raise UsageError(f"--resume {args.resume}: {err}{hint}") from err
         saved = model_settings(adapter)  # an adapter's load_state_dict takes the checkpoint's model config
         rig_rule = getattr(args, "means_lr_rule", None) is None  # "auto" chose for the rig: the checkpoint's rule stays
         differ = [(k, saved[k], asked[k]) for k in asked if k in saved and saved[k] != asked[k]

@@ -78,6 +78,12 @@ _LEVEL_DECAY = 0.9
 _LEVEL_FLOOR = 0.01
 
 
+class StageMismatch(ValueError):
+    """load_checkpoint's refusal of a checkpoint made with another stage plan (the model, views
+    and images being the same), so a command line can say which of its flags would give that
+    plan."""
+
+
 class ConfigMismatch(ValueError):
     """load_checkpoint's refusal of a checkpoint made with another MVGSConfig: `differences`
     lists (field, checkpoint value, this run's value), so a command line can word its advice."""
@@ -507,7 +513,7 @@ class MVGS:
         if saved.stages != self.config.stages:
             def plan(stages):
                 return ", ".join(f"{st.steps} steps of {st.views} view(s) at 1/{st.factor:g}" for st in stages)
-            raise ValueError(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages} "
+            raise StageMismatch(f"checkpoint was made with stages {saved.stages}, this run has {self.config.stages} "
                              f"(the checkpoint's plan: {plan(saved.stages)}; this run's: {plan(self.config.stages)}). "
                              "The plan follows the preset and the run's length (--steps / --budget), and the "
                              "flags that change its levels or views (--resolution-scale, --views, --stages, "
@@ -570,5 +576,7 @@ class MVGS:
             self.load_state_dict(state, strict)
         except ConfigMismatch as exc:
             raise ConfigMismatch(f"cannot load checkpoint {path!r}: {exc}", exc.differences) from exc
+        except StageMismatch as exc:
+            raise StageMismatch(f"cannot load checkpoint {path!r}: {exc}") from exc
         except ValueError as exc:
             raise ValueError(f"cannot load checkpoint {path!r}: {exc}") from exc

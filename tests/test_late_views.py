@@ -237,3 +237,29 @@ def test_a_given_late_views_that_adds_nothing_says_so(tmp_path, capsys):
     assert "late-views" not in capsys.readouterr().err
     spent = config_from_args(example.parse_args(data + ["--late-views", "2"]))
     assert spent.stages[-1].views == 2 and "changes nothing" not in capsys.readouterr().err
+
+
+def test_a_resume_refused_for_another_model_gets_no_late_views_hint(tmp_path, capsys):
+    """The hint is for a checkpoint of this model refused for its stage plan alone: one written by
+    another script (here a 3DGS model) whose plan happens to be the one --late-views 1 gives is
+    refused as another model, and adding --late-views 1 would not resume it, so it is not said."""
+    import torch
+
+    from mvgs_plugin.data import load_scene
+    from mvgs_plugin.io import save_checked
+    from test_example_resume import _dnerf
+
+    example = _example("train_4dgs.py")
+    data = ["--data", str(_dnerf(tmp_path / "moving")), "--steps", "600", "--threads", "1", "--no-progress",
+            "--out", str(tmp_path / "out")]
+    scene = load_scene(tmp_path / "moving", init=None)
+    plain = config_from_args(example.parse_args(data + ["--late-views", "1"]), scene)
+    assert plain.stages != config_from_args(example.parse_args(data), scene).stages
+    checkpoint = tmp_path / "gs3d.pt"
+    save_checked({"config": plain.to_dict(), "schedule": {}, "torch_rng": torch.get_rng_state(),
+                  "adapter": {"format": "mvgs-gs3d/1"}}, str(checkpoint))
+    with pytest.raises(SystemExit) as err:
+        example.main(data + ["--resume", str(checkpoint)])
+    said = capsys.readouterr().err
+    assert err.value.code == 2 and "the checkpoint holds a 'mvgs-gs3d/1' model and this run trains a 'mvgs-gs4d/1'" in said
+    assert "--late-views" not in said, said
