@@ -211,6 +211,14 @@ class DensifyTally:
         self.totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0, "peak_primitives": count}
         self._stepped = False
 
+    def resume(self, record: dict) -> None:
+        """Continue the totals a checkpoint recorded (MVGS.record) over the steps before it; a
+        checkpoint written before they were recorded leaves them counting from the resume."""
+        for key, value in record.items():
+            if key in self.totals:
+                self.totals[key] = value
+                self._stepped = True
+
     def add(self, info) -> None:
         t = self.totals
         t["peak_primitives"] = max(t["peak_primitives"], info.num_primitives) if self._stepped else info.num_primitives
@@ -794,8 +802,10 @@ def train_and_evaluate(adapter, scene, config: MVGSConfig, args, dist):
 
     written = []  # steps this process checkpointed at (a checkpoint.pt left by an earlier run is not this run's)
 
-    tally = DensifyTally(trainer.adapter.num_primitives())  # over the steps this process ran
-    trainer.densify_totals = tally.totals
+    tally = DensifyTally(trainer.adapter.num_primitives())  # over the run's steps (a resume's too: below)
+    if trainer.step_count:  # resumed: the checkpoint's record of the steps before it
+        tally.resume(trainer.record)
+    trainer.densify_totals = trainer.record = tally.totals  # the record saves with each checkpoint
 
     def periodic(info) -> None:  # on every rank (save_checkpoint is collective), at the same steps
         tally.add(info)

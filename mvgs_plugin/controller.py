@@ -203,6 +203,9 @@ class MVGS:
             require_support(adapter)
         self.distributed = distributed
         self._loss_level: Optional[float] = None  # running loss per view; None before the first step
+        # a caller's running totals over the run (str -> number: the examples' densification tally),
+        # saved with every checkpoint and put back by a resume, so a resumed run's record is the whole run's
+        self.record: Dict[str, float] = {}
 
     def _warn_other_clock(self, adapter) -> None:
         """Warn when the model's own schedules are on another clock than this run's (its config
@@ -493,6 +496,7 @@ class MVGS:
             "schedule": self.schedule.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "adapter": adapter_state,
+            "record": dict(self.record),
         }
 
     def load_state_dict(self, state: Dict, strict: bool = True) -> None:
@@ -539,6 +543,7 @@ class MVGS:
             torch.set_rng_state(backup[1])
             self.adapter.load_state_dict(backup[2])
             raise
+        self.record = dict(state.get("record") or {})  # absent in checkpoints before it was kept
         if self.distributed is not None and not self.distributed.is_main:
             stats = self.adapter.statistics()
             self.adapter.load_statistics({name: torch.zeros_like(t) if how == "sum" else t.clone()

@@ -126,6 +126,8 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch, scrip
     assert [i.step for i in infos] == list(range(every + 1, steps + 1))  # only the steps after the checkpoint
     for key in ("psnr", "ssim", "steps", "work", "num_gaussians"):
         assert resumed[key] == whole[key], (key, resumed[key], whole[key])
+    # the densification record is the whole run's, not the resumed part's (the checkpoint carries it)
+    assert resumed["densification"] == whole["densification"], (resumed["densification"], whole["densification"])
     assert [v["psnr"] for v in resumed["per_view"]] == [v["psnr"] for v in whole["per_view"]]
     assert (tmp_path / "resumed" / "point_cloud.ply").read_bytes() == (tmp_path / "whole" / "point_cloud.ply").read_bytes()
     saved = json.loads((tmp_path / "resumed" / "metrics.json").read_text())
