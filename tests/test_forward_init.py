@@ -108,7 +108,7 @@ def test_cameras_over_a_ground_tilted_every_way_get_the_frusta_not_the_cube_abou
     extent = 1.1 * float(torch.linalg.norm(centers - centre, dim=1).max())
     assert float(centre[2]) - extent > 2.0  # the 3DGS cube stays 2 or more above the ground
     region = init_region(cams, centre, extent)
-    why = "meet nowhere in front" if heading == "random" else "outside the 3DGS cube"
+    why = "meet nowhere in front" if heading == "random" else "outside the ball in the 3DGS cube"
     assert region.kind == "frusta" and why in region.description, region.description
     pts = region.sample(4000, torch.Generator().manual_seed(1))
     assert float((pts[:, 2].abs() < 0.5).double().mean()) > 0.01  # samples at the ground (the cube has none)

@@ -201,3 +201,68 @@ def test_pixels_a_mask_ignores_give_no_colour():
     assert red(rgb) > 20, red(rgb)
     xyz, rgb, said = ray_sweep(region, cams, painted, 2000, torch.Generator().manual_seed(0), mask=mask)
     assert red(rgb) == 0 and xyz.shape == (2000, 3) and bool(torch.isfinite(xyz).all())
+
+
+def turn(cam, R):
+    """``cam`` in a world turned by the rotation R [3, 3] about the origin (same image, same uid)."""
+    w2c = cam.world_to_camera.clone()
+    w2c[:3, :3] = w2c[:3, :3] @ R.T
+    return Camera(uid=cam.uid, name=cam.name, K=cam.K, world_to_camera=w2c, width=cam.width, height=cam.height,
+                  time=cam.time)
+
+
+def rotation(axis, degrees):
+    a = torch.tensor(axis, dtype=torch.float64)
+    a = a / torch.linalg.norm(a)
+    k = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]], dtype=torch.float64)
+    t = math.radians(degrees)
+    return torch.eye(3, dtype=torch.float64) + math.sin(t) * k + (1 - math.cos(t)) * k @ k
+
+
+def test_the_sweeps_span_is_where_the_ray_meets_the_ball_round_the_cube():
+    """sweep_span against the closed form: where a ray starts outside the ball of radius sqrt(3) x
+    half, its span's ends lie on that sphere; from inside, it starts SWEEP_NEAR x half off the
+    camera; a ray that misses the ball gets twice the half size."""
+    from mvgs_plugin.data.init import SWEEP_NEAR, sweep_span
+
+    half, centre = 2.0, torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+    region = InitRegion("cube", "test", center=centre, half=half)
+    gen = torch.Generator().manual_seed(0)
+    d = torch.randn(500, 3, generator=gen, dtype=torch.float64)
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    outside = centre + 6.0 * torch.nn.functional.normalize(torch.randn(500, 3, generator=gen, dtype=torch.float64), dim=1)
+    towards = torch.nn.functional.normalize(centre + 0.5 * torch.randn(500, 3, generator=gen, dtype=torch.float64) - outside,
+                                            dim=1)
+    near, far = sweep_span(outside, towards, region)
+    for t in (near, far):
+        assert torch.allclose(torch.linalg.norm(outside + towards * t[:, None] - centre, dim=1),
+                              torch.full((500,), math.sqrt(3.0) * half, dtype=torch.float64), atol=1e-9)
+    assert bool((far > near).all())
+    inside = centre + 0.3 * torch.randn(500, 3, generator=gen, dtype=torch.float64)
+    near, far = sweep_span(inside, d, region)
+    assert torch.allclose(near, torch.full_like(near, SWEEP_NEAR * half))
+    assert torch.allclose(torch.linalg.norm(inside + d * far[:, None] - centre, dim=1),
+                          torch.full((500,), math.sqrt(3.0) * half, dtype=torch.float64), atol=1e-9)
+    away = -towards  # from outside, looking away: misses
+    near, far = sweep_span(outside, away, region)
+    assert torch.allclose(far - near, torch.full_like(far, 2.0 * half))
+
+
+def test_random_init_does_not_depend_on_which_way_the_worlds_axes_point():
+    """The same ring and sphere in a world turned about an oblique axis: the points found there,
+    turned back, are the unturned world's (same seed): the sweep's search and the region's choice
+    depend on the scene, not on its axes. With the axis-aligned cube of 3DGS bounding the search
+    (the rule until 2026-12-01) the rays' spans, and so the points, changed with the turn."""
+    cams = ring()
+    R = rotation((1.0, 2.0, 3.0), 50.0)
+    by_uid = {c.uid: c for c in cams}
+    turned = [turn(c, R) for c in cams]
+    scene, other = scene_of(cams), scene_of(turned)
+    other.image = lambda cam, factor=1: image(by_uid[cam.uid], factor)  # the world turned with its cameras
+    xyz, rgb, said = random_init_points(scene, 2000, torch.Generator().manual_seed(0))
+    xyz_t, rgb_t, said_t = random_init_points(other, 2000, torch.Generator().manual_seed(0))
+    assert "pixel rays" in said and "pixel rays" in said_t
+    back = xyz_t @ R  # R^T applied to each row
+    same = torch.linalg.norm(back - xyz, dim=1) < 1e-6
+    assert float(same.double().mean()) > 0.99, float(same.double().mean())
+    assert torch.allclose(rgb[same], rgb_t[same], atol=1e-5)

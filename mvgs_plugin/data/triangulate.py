@@ -41,8 +41,9 @@ import torch
 
 from ..camera import Camera
 from .images import may_have_alpha
-from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, cube_span, init_region, on_silhouettes,
-                   photo_consistent, pose_distance, random_init_points, silhouettes_of, sweep_rays)
+from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, init_region, on_silhouettes,
+                   photo_consistent, pose_distance, random_init_points, silhouettes_of, sweep_rays,
+                   sweep_span)
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
@@ -65,8 +66,8 @@ DEPTH_MARGIN = 1.5
 # pycolmap extraction: images larger than this (longest side) are downscaled for SIFT
 MAX_IMAGE_SIZE = 1600
 # bump when the cached result would change (2: fill and fall-back carved to silhouettes on a backdrop;
-# 3: silhouettes from alpha; 4: the fill one point per ray, ray_sweep's rule)
-_VERSION = 4
+# 3: silhouettes from alpha; 4: the fill one point per ray, ray_sweep's rule; 5: its search in the ball round the cube)
+_VERSION = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -265,7 +266,7 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     the rule of :func:`~mvgs_plugin.data.init.ray_sweep`; until 2026-12-01 the n most
     photo-consistent of CANDIDATES_PER_POINT x n candidates, which gathered on plain surfaces and
     the sky). On a rig round the scene (the 3DGS cube's region) the rays go through every pixel
-    and search the whole ray inside the cube, as ray_sweep does: a few hundred tracks cover most
+    and search the whole ray about the cube (:func:`~mvgs_plugin.data.init.sweep_span`), as ray_sweep does: a few hundred tracks cover most
     of the pixels there (54-91 % at 64 px), and a fill kept off them crowded the rest; on the
     generated tabletop and arc scenes tracks plus a fill of uncovered pixels trained 1.3 and 2.2
     dB below tracks plus a fill of all pixels (plain 3DGS, 1000 steps). On a still object on a
@@ -322,15 +323,15 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
             at = _pixels_in(mask, rows.numel(), generator)
             pixels[rows] = at * torch.tensor([cam.width / small_cam.width, cam.height / small_cam.height], dtype=torch.float64)
             origin, direction = cam.rays(pixels[rows])
-            if region.kind == "cube":  # round the scene: the whole ray inside the cube, as ray_sweep
-                near[rows], far[rows] = cube_span(origin, direction, region)
+            if region.kind == "cube":  # round the scene: the whole ray about the cube, as ray_sweep
+                near[rows], far[rows] = sweep_span(origin, direction, region)
             else:
                 axis = cam.camera_to_world[:3, 2] / torch.linalg.norm(cam.camera_to_world[:3, 2])
                 cos = (direction @ axis.to(direction.dtype)).clamp_min(1e-6)  # a depth z lies z / cos along the ray
                 near[rows], far[rows] = bounds[i][0] / cos, bounds[i][1] / cos
         kept, rgb, scored = sweep_rays(cameras, scene.image, pick, pixels, near, far, generator,
                                        disparity=region.kind != "cube", max_width=max_width, mask=getattr(scene, "mask", None))
-        where = (f"one on each of {n} rays through the training views' pixels, at the depth (of {SWEEP_DEPTHS} in the cube)"
+        where = (f"one on each of {n} rays through the training views' pixels, at the depth (of {SWEEP_DEPTHS} in the ball round the cube)"
                  if region.kind == "cube" else
                  f"where no track projects ({share:.0%} of the pixels at {max_width} px), one on each of {n} rays through "
                  f"them, at the depth (of {SWEEP_DEPTHS} between the tracks' depths)")
