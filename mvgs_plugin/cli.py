@@ -203,12 +203,14 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=No
 class DensifyTally:
     """What densification did over a run's steps, from each StepInfo (metrics.json
     "densification"; benchmarks/bench_equal_compute.py): calls, cloned, split, pruned, faint (the
-    prune_faint cut's rows) and the largest count a step ended with (`count`, the model before the
+    prune_faint cut's rows), budget_cut (the rows a Gaussian budget cut before a step rendered:
+    a loaded model above it, at the first step) and the largest count a step ended with (`count`, the model before the
     first step, only until a step has run: a budget's first cut comes at the first step, so the
     points loaded above the budget are not a count the run held)."""
 
     def __init__(self, count: int):
-        self.totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0, "peak_primitives": count}
+        self.totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0, "budget_cut": 0,
+                       "peak_primitives": count}
         self._stepped = False
 
     def resume(self, record: dict) -> None:
@@ -223,6 +225,7 @@ class DensifyTally:
         t = self.totals
         t["peak_primitives"] = max(t["peak_primitives"], info.num_primitives) if self._stepped else info.num_primitives
         self._stepped = True
+        t["budget_cut"] += int(getattr(info, "budget_cut", 0))
         if info.densify is not None:
             t["calls"] += 1
             for key in ("cloned", "split", "pruned"):

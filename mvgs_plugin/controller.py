@@ -137,6 +137,7 @@ class StepInfo:
     mvad_fired: bool = False
     loss_seconds: float = 0.0
     adapter_seconds: float = 0.0
+    budget_cut: int = 0  # rows the Gaussian budget cut before the step rendered (a model above max_gaussians)
 
     @property
     def controller_seconds(self) -> float:
@@ -237,11 +238,13 @@ class MVGS:
         """Runs the next training step and returns what it did."""
         t_step = time.perf_counter()
         budget = self.config.max_gaussians
-        cut = self.schedule.initial_cut(self.adapter.num_primitives())
+        before = self.adapter.num_primitives()
+        cut = self.schedule.initial_cut(before)
         if cut is not None:  # the run's first step: a larger model is cut to its initial share of the budget
             self._shrink_to(cut.max_primitives)
-        elif budget is not None and self.adapter.num_primitives() > budget:
+        elif budget is not None and before > budget:
             self._shrink_to(budget)
+        budget_cut = before - self.adapter.num_primitives()
         self.schedule.primitive_count = self.adapter.num_primitives()
         plan = self.schedule.next()
         adapter = self.adapter
@@ -293,7 +296,7 @@ class MVGS:
             seconds=time.perf_counter() - t_step, render_seconds=seconds["render"],
             backward_seconds=seconds["backward"], comm_seconds=seconds["comm"],
             mvad_fired=ctx is not None and ctx.grad_threshold < self.schedule.base_threshold(plan),
-            loss_seconds=seconds["loss"], adapter_seconds=seconds["adapter"],
+            loss_seconds=seconds["loss"], adapter_seconds=seconds["adapter"], budget_cut=budget_cut,
         )
 
     def _shrink_to(self, budget: int) -> None:

@@ -79,10 +79,12 @@ def test_a_larger_initial_model_is_cut_before_the_first_render(scene):
     means0 = trainer.adapter.params["means"].detach().clone()
     counts = watch_renders(trainer)
     tally = DensifyTally(trainer.adapter.num_primitives())  # metrics.json's "densification"
-    assert tally.totals["peak_primitives"] > budget  # the points as loaded
+    loaded = trainer.adapter.num_primitives()
+    assert tally.totals["peak_primitives"] == loaded > budget  # the points as loaded
     tally.add(trainer.step())
     assert counts[0] == budget
     assert tally.totals["peak_primitives"] == budget  # the most the run held: the loaded points are not counted
+    assert tally.totals["budget_cut"] == loaded - budget  # ... and what the cut took is recorded
     kept = trainer.adapter.params["means"].detach()
     # the first step moved the means a little: match each kept row to its nearest initial one
     nearest = torch.cdist(kept.double(), means0.double()).argmin(1)
