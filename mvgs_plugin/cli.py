@@ -203,10 +203,10 @@ def model_config(config: MVGSConfig, seed: int, max_gaussians=None, rasterize=No
 class DensifyTally:
     """What densification did over a run's steps, from each StepInfo (metrics.json
     "densification"; benchmarks/bench_equal_compute.py): calls, cloned, split, pruned, faint (the
-    prune_faint cut's rows), budget_cut (the rows a Gaussian budget cut before a step rendered:
-    a loaded model above it, at the first step) and the largest count a step ended with (`count`, the model before the
-    first step, only until a step has run: a budget's first cut comes at the first step, so the
-    points loaded above the budget are not a count the run held)."""
+    prune_faint cut's rows), budget_cut (the rows a Gaussian budget cut before a step rendered: a
+    loaded model above it, at the first step) and the largest count a step ended with (`count`,
+    the model before the first step, only until a step has run: a budget's first cut comes at the
+    first step, so the points loaded above the budget are not a count the run held)."""
 
     def __init__(self, count: int):
         self.totals = {"calls": 0, "cloned": 0, "split": 0, "pruned": 0, "faint": 0, "budget_cut": 0,
@@ -672,9 +672,10 @@ def config_from_args(args, scene=None, **preset_overrides) -> MVGSConfig:
 
 def late_views_hint(args, scene, config: MVGSConfig) -> str:
     """For a --resume of train_4dgs.py refused for its stage plan alone (StageMismatch: the same
-    model, views and images) whose checkpoint has another stage plan than this run's `config`: when that plan is the one another --late-views value (1 to 8, the values one
-    would run) gives this command line, a hint naming it; else "" (also when the plans agree and
-    the refusal is about something else). The plan depends only on the flags config_from_args
+    model, views and images), whose checkpoint has another stage plan than this run's `config`:
+    when that plan is the one another --late-views value (1 to 8, the values one would run) gives
+    this command line, a hint naming it; else "" (also when the plans agree and the refusal is
+    about something else). The plan depends only on the flags config_from_args
     reads, so it is rebuilt from them."""
     late = getattr(args, "late_views", None)
     if late is None:

@@ -239,7 +239,8 @@ def _read_model(pycolmap, model_dir: Path):
         points = _point_positions(model_dir / f"points3D.{fmt}")
         warnings.warn(f"{model_dir}: pycolmap cannot read the model with its points3D.{fmt} ({err}): its tracks name "
                       "images or 2D points the images file does not have (frames deleted from the model by hand, or "
-                      f"2D points stripped); the cameras and images are read without it, and its {len(points)} points' "
+                      f"2D points stripped); the cameras and images are read without it, and its "
+                      f"{0 if points is None else len(points)} points' "
                       "positions and colours are kept, their tracks not used", stacklevel=3)
     if fmt == "txt":
         _check_image_lines(model_dir / "images.txt", len(rec.images))
@@ -273,9 +274,11 @@ def _point_positions(file: Path) -> Optional[PointCloud]:
                 raise ValueError(f"{file}:{number}: a point needs POINT3D_ID X Y Z R G B ERROR TRACK[], got "
                                  f"{len(fields)} field(s)")
             _finite_fields(file, number, fields[1:4], f"the position of point {fields[0]}")
+            _finite_fields(file, number, fields[4:7], f"the colour of point {fields[0]}")
             colour = [int(float(v)) for v in fields[4:7]]
             if not all(0 <= c <= 255 for c in colour):
-                raise ValueError(f"{file}:{number}: point {fields[0]}'s colour {fields[4:7]} is not three values in [0, 255]")
+                raise ValueError(f"{file}:{number}: point {fields[0]}'s colour {fields[4:7]} is not three values "
+                                 "in [0, 255]")
             xyz.append(tuple(float(v) for v in fields[1:4]))
             rgb.append(colour)
     if not xyz:
@@ -548,8 +551,8 @@ def load_colmap(path, images_dir=None, test_every: Optional[int] = 8,
     if masks:
         LOG.info("%s: %d of %d images have a mask: the loss and the test metrics count the pixels it keeps",
                  path, len(masks), len(records))
-    return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()}, points=read_points or _points(rec, model_dir), background=background,
-                 source=path, masks=masks)
+    return Scene(train_cams, test_cams, {uid: sources.get(uid, f) for uid, f in files.items()},
+                 points=read_points or _points(rec, model_dir), background=background, source=path, masks=masks)
 
 
 def _masks(path: Path, images_dir: Path, records: list, files: dict, sources: dict) -> dict:

@@ -427,9 +427,9 @@ def ray_sweep(region: InitRegion, cameras: Sequence[Camera], image, n: int, gene
     xyz, rgb, scored = sweep_rays(cameras, image, pick, pixels, near, far, generator, max_width=max_width, mask=mask,
                                   depths=depths, neighbours=neighbours)
     return xyz, rgb, (
-        f"one point on each of {n} pixel rays of the {len(cameras)} training views, at the depth of {depths} in the ball round the cube "
-        f"whose colour the {min(neighbours, len(cameras) - 1)} nearest views agree on best ({int(scored.sum())} rays "
-        "scored, the rest at a random depth)")
+        f"one point on each of {n} pixel rays of the {len(cameras)} training views, at the depth of {depths} in the ball "
+        f"round the cube whose colour the {min(neighbours, len(cameras) - 1)} nearest views agree on best "
+        f"({int(scored.sum())} rays scored, the rest at a random depth)")
 
 
 def sweep_rays(cameras: Sequence[Camera], image, pick: torch.Tensor, pixels: torch.Tensor, near: torch.Tensor,

@@ -266,10 +266,11 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
     the rule of :func:`~mvgs_plugin.data.init.ray_sweep`; until 2026-12-01 the n most
     photo-consistent of CANDIDATES_PER_POINT x n candidates, which gathered on plain surfaces and
     the sky). On a rig round the scene (the 3DGS cube's region) the rays go through every pixel
-    and search the whole ray about the cube (:func:`~mvgs_plugin.data.init.sweep_span`), as ray_sweep does: a few hundred tracks cover most
-    of the pixels there (54-91 % at 64 px), and a fill kept off them crowded the rest; on the
-    generated tabletop and arc scenes tracks plus a fill of uncovered pixels trained 1.3 and 2.2
-    dB below tracks plus a fill of all pixels (plain 3DGS, 1000 steps). On a still object on a
+    and search the whole ray about the cube (:func:`~mvgs_plugin.data.init.sweep_span`), as
+    ray_sweep does: a few hundred tracks cover most of the pixels there (54-91 % at 64 px), and
+    a fill kept off them crowded the rest; on the generated tabletop and arc scenes tracks plus a
+    fill of uncovered pixels trained 1.3 and 2.2 dB below tracks plus a fill of all pixels (plain
+    3DGS, 1000 steps). On a still object on a
     backdrop (:func:`~mvgs_plugin.data.init.silhouettes_of`) that older rule stays, with only the
     candidates inside the views' silhouettes
     (:func:`~mvgs_plugin.data.init.on_silhouettes`): a ray through a backdrop pixel has nothing
@@ -331,7 +332,8 @@ def fill_points(scene: Scene, xyz: torch.Tensor, n: int, generator: torch.Genera
                 near[rows], far[rows] = bounds[i][0] / cos, bounds[i][1] / cos
         kept, rgb, scored = sweep_rays(cameras, scene.image, pick, pixels, near, far, generator,
                                        disparity=region.kind != "cube", max_width=max_width, mask=getattr(scene, "mask", None))
-        where = (f"one on each of {n} rays through the training views' pixels, at the depth (of {SWEEP_DEPTHS} in the ball round the cube)"
+        where = (f"one on each of {n} rays through the training views' pixels, at the depth (of {SWEEP_DEPTHS} in the "
+                 "ball round the cube)"
                  if region.kind == "cube" else
                  f"where no track projects ({share:.0%} of the pixels at {max_width} px), one on each of {n} rays through "
                  f"them, at the depth (of {SWEEP_DEPTHS} between the tracks' depths)")
