@@ -99,6 +99,14 @@ class _Reader:
                              f"(the records end at offset {self.at})")
 
 
+def _point_record(r: _Reader, i: int) -> memoryview:
+    """Point i of points3D.bin at the reader's place: its first 43 bytes (id, xyz, rgb, error),
+    its track skipped."""
+    head = r.take(43, f"point {i}")
+    r.take(8 * r.u64(f"point {i}'s track length"), f"point {i}'s track")
+    return head
+
+
 def check_binary_counts(model_dir: Path) -> None:
     """Walk the binary model files record by record, checking every count against the bytes
     that are there, before pycolmap reads them: a corrupt or crafted count (2^40 points, a
@@ -120,8 +128,7 @@ def check_binary_counts(model_dir: Path) -> None:
         known = True
         for i in range(count):
             if name == "points3D.bin":
-                r.take(43, f"point {i}")
-                r.take(8 * r.u64(f"point {i}'s track length"), f"point {i}'s track")
+                _point_record(r, i)
             elif name == "images.bin":
                 r.take(64, f"image {i}")
                 r.name(f"image {i}'s name")
@@ -264,10 +271,9 @@ def _point_positions(file: Path) -> Optional[PointCloud]:
     if file.suffix == ".bin":
         r = _Reader(file)
         for i in range(r.u64("the record count")):
-            head = r.take(43, f"point {i}")
+            head = _point_record(r, i)
             xyz.append(struct.unpack("<3d", head[8:32]))
             rgb.append(tuple(head[32:35]))
-            r.take(8 * r.u64(f"point {i}'s track length"), f"point {i}'s track")
     else:
         for number, fields in _text_lines(file):
             if len(fields) < 8:

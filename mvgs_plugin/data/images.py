@@ -97,7 +97,7 @@ def _decode(path: Path) -> np.ndarray:
     import skimage.io
 
     _warn_16_bit_colour(path)
-    keyed = _transparency_as_alpha(path) if path.suffix.lower() == ".png" and may_have_alpha(path) else None
+    keyed = _transparency_as_alpha(path) if path.suffix.lower() == ".png" else None
     if keyed is not None:
         return keyed
     try:
@@ -118,7 +118,8 @@ def _transparency_as_alpha(path: Path) -> Optional[np.ndarray]:
     palette PNG with alpha (what pngquant and Pillow's quantize write from RGBA renders), an RGB
     or grey PNG with a colour key; None for any other file. skimage.io decodes those to their
     colour alone, and the pixels they mark transparent would keep whatever colour was stored
-    under them (black, as a rule), composited on no background and hidden from the silhouettes."""
+    under them (black, as a rule), composited on no background and hidden from the silhouettes.
+    Pillow parses the header chunks only (tRNS comes before the pixels), so the look is cheap."""
     from PIL import Image
 
     try:
