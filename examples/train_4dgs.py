@@ -1,5 +1,6 @@
 """Train a 4DGS model (canonical Gaussians + HexPlane deformation) with MVGS, or as the plain
-4DGS baseline, on a dynamic scene in the D-NeRF layout, and evaluate it.
+4DGS baseline, on a dynamic scene (the D-NeRF layout, a HyperNeRF capture, or a multi-camera
+video in DyNeRF's layout: docs/data.md), and evaluate it.
 
     python tools/make_scene.py --variant moving --out scenes/moving   # the scene
     python examples/train_4dgs.py --data scenes/moving --preset baseline --steps 600 --out out/4dgs
@@ -37,6 +38,7 @@ from mvgs_plugin.cli import (
     scene_from_args, world_size_arg, late_views_arg, resolve_late_views, UsageError,
 )
 from mvgs_plugin.data.load import scene_layout
+from mvgs_plugin.data.llff import is_video
 from mvgs_plugin.data.nerf import is_dynamic
 
 ORIGINAL_COARSE_FRACTION = 3000 / 23000  # 4DGS on D-NeRF: 3000 coarse + 20000 fine steps
@@ -48,14 +50,17 @@ LATE_VIEWS = 2
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=scene_folder, required=True,
-                    help="dynamic scene in the D-NeRF layout (frames with 'time'); required")
+                    help="dynamic scene: the D-NeRF layout (frames with 'time'), a HyperNeRF capture, or a "
+                         "multi-camera video (DyNeRF / Neu3D: poses_bounds.npy and frames in cam00/images/, ...); "
+                         "required")
     world_size_arg(common_args(ap, "out/train_4dgs"))  # --steps: coarse + fine together
     late_views_arg(ap, LATE_VIEWS)
     # 4DGS
     ap.add_argument("--coarse-fraction", type=float_above(0, inclusive=True, high=0.999999), default=ORIGINAL_COARSE_FRACTION,
                     help="share of the steps in the static coarse stage, in [0, 1) (default: 3000/23000, the original's)")
-    ap.add_argument("--time-spread", choices=["random", "stratified"], default="stratified",
-                    help="how the M views of a step spread over time (MVGSConfig.time_spread)")
+    ap.add_argument("--time-spread", choices=["random", "stratified", "instant"], default="stratified",
+                    help="how the M views of a step spread over time (MVGSConfig.time_spread); instant: M cameras "
+                         "of one time, for a multi-camera video (one deformation for the M views)")
     ap.add_argument("--init-random", type=int_at_least(0, MAX_INIT_POINTS), default=0,
                     help="extra random initial points (the scene's points may miss the moving objects)")
     ap.add_argument("--init-box", type=float_above(-math.inf), nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -106,13 +111,15 @@ def run(args, dist) -> dict:
     if args.init_box is not None and args.init_random == 0:
         raise UsageError(f"--init-box {' '.join(f'{v:g}' for v in args.init_box)}: the box places the --init-random "
                          "points, and --init-random is 0, so it would change nothing; give --init-random N too")
-    try:  # a static NeRF-layout scene, before it is read (and its points triangulated)
-        static = scene_layout(args.data) == "nerf" and not is_dynamic(args.data)
+    try:  # a static NeRF-layout or LLFF scene, before it is read (and its points triangulated)
+        layout = scene_layout(args.data)
+        static = (layout == "nerf" and not is_dynamic(args.data)) or (layout == "llff" and not is_video(args.data))
     except ValueError as err:  # a malformed transforms_train.json, named
         raise UsageError(f"--data {args.data}: {err}") from err
     if static:
-        raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene in the D-NeRF layout (transforms_train.json "
-                         "whose frames carry a 'time')")
+        raise UsageError(f"--data {args.data}: 4DGS needs a dynamic scene: the D-NeRF layout (transforms_train.json "
+                         "whose frames carry a 'time'), a HyperNeRF capture (dataset.json, camera/) or a multi-camera "
+                         "video (poses_bounds.npy and frames in cam00/, cam01/, ...)")
     scene = scene_from_args(args, dynamic_model=True)
     untimed = [c.name for c in scene.train_cameras + scene.test_cameras if c.time is None]
     if untimed:

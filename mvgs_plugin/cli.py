@@ -478,7 +478,8 @@ def common_args(ap: argparse.ArgumentParser, out: str) -> argparse.ArgumentParse
                     help="a COLMAP scene's image folder, relative to --data: a copy downscaled by one factor, such "
                          "as Mip-NeRF 360's images_4, scales the cameras to it (default: --data/images when there is "
                          "one, else --data); for a nerfstudio transforms.json, the downscaled copy of its images/ "
-                         "(images_2, images_4, ...) read in its place")
+                         "(images_2, images_4, ...) read in its place; for LLFF still images, the copy of images/ "
+                         "(images_4); for a HyperNeRF capture, rgb/1x, rgb/4x, ... (default rgb/2x, as 4DGS)")
     ap.add_argument("--init-cache", type=Path, default=None, metavar="DIR",
                     help="folder the triangulation (features and points) is kept in and read back from by the next "
                          "run (default: OUT/init; the scene folder is never written unless DIR is in it)")

@@ -384,8 +384,9 @@ class MVGSConfig:
         None when --stages gives the plan; with_late_views() drops it (train_4dgs.py's plan at
         --steps, whose late stage spends the warm-up's saving).
     time_spread: how a step's views spread over time in a dynamic scene (cameras with a time):
-        "random" (the epoch shuffle decides) or "stratified" (the M views come from M bins of
-        nearly equal count along the sorted training times, one view per bin; see sampler.py).
+        "random" (the epoch shuffle decides), "stratified" (the M views come from M bins of
+        nearly equal count along the sorted training times, one view per bin) or "instant" (a
+        synchronized rig: the M views are M cameras at one time, deformed once; see sampler.py).
 
     mvad: multi-view augmented densification, an MVADConfig (off by default).
     crd: cross-ray densification, a CRDConfig (off by default).
@@ -447,7 +448,7 @@ class MVGSConfig:
                 setattr(self, group, kind(**value))
             elif not isinstance(value, kind):
                 raise ValueError(f"{group} must be a {kind.__name__}, got {value!r}")
-        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "time_spread": ("random", "stratified"),
+        choices = {"reduction": ("sum", "mean"), "stats_from": ("all", "last"), "time_spread": ("random", "stratified", "instant"),
                    "forward_rig": ("pyramid", "finest"), "views_scaling": ("none", "sqrt"),
                    "budget_rigs": ("all", "round"),
                    "densify_rank": ("consistency", "gradient")}

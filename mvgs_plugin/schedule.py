@@ -223,7 +223,7 @@ class ViewSchedule:
             warnings.warn(no_densification_message(config), NoDensificationWarning, stacklevel=2)
         self.plan = StagePlan(config.stages, config.restart_per_stage,
                               config.step_work if config.counts_work else None)
-        times = [c.time for c in scene.train_cameras] if config.time_spread == "stratified" else None
+        times = [c.time for c in scene.train_cameras] if config.time_spread != "random" else None
         self.sampler = ViewSampler(len(scene.train_cameras), seed=config.seed, times=times,
                                    time_spread=config.time_spread)
         self._bg_gen = torch.Generator().manual_seed(config.seed + 1)

@@ -126,3 +126,46 @@ def test_bad_config(field, value, pattern):
 def test_bad_stage():
     with pytest.raises(ValueError, match="Stage.views must be a positive int, got 0"):
         Stage(1, 0, 10)
+
+
+def _rig(cameras, instants):
+    """Times of a synchronized rig's views, camera by camera (view c * instants + k at time k)."""
+    return [k / (instants - 1) for c in range(cameras) for k in range(instants)]
+
+
+@pytest.mark.parametrize("cameras, m", [(8, 4), (8, 3), (5, 2), (4, 4)])
+def test_instant_steps_hold_views_of_one_time_and_cover_every_view(cameras, m):
+    instants = 6
+    times = _rig(cameras, instants)
+    s = ViewSampler(len(times), seed=3, times=times, time_spread="instant")
+    steps = instants * -(-cameras // m)  # one epoch of visits
+    seen = collections.Counter()
+    for _ in range(steps):
+        step = s.sample(m)
+        assert len(step) == m and len(set(step)) == m  # M distinct views
+        assert len({times[i] for i in step}) == 1  # all of one instant
+        seen.update(step)
+    assert set(seen) == set(range(len(times)))  # every view in an epoch
+    assert max(seen.values()) <= 2  # a view repeats only to fill an instant's last visit
+    if cameras % m == 0:
+        assert set(seen.values()) == {1}
+
+
+def test_instant_is_resumable_and_caps_m_to_an_instant():
+    times = _rig(3, 4)
+    a = ViewSampler(len(times), seed=5, times=times, time_spread="instant")
+    for _ in range(5):
+        a.sample(2)
+    b = ViewSampler(len(times), seed=99, times=times, time_spread="instant")
+    b.load_state_dict(a.state_dict())
+    assert [a.sample(2) for _ in range(9)] == [b.sample(2) for _ in range(9)]
+    with pytest.warns(UserWarning, match="an instant holds 3 views"):
+        step = a.sample(5)
+    assert len(step) == 3 and len({times[i] for i in step}) == 1
+
+
+def test_instant_refuses_a_scene_without_shared_times():
+    with pytest.raises(ValueError, match='"instant" needs views that share a time .* 10 distinct times'):
+        ViewSampler(10, times=[k / 9 for k in range(10)], time_spread="instant")
+    with pytest.raises(ValueError, match='"instant" needs one time per view'):
+        ViewSampler(4, times=None, time_spread="instant")

@@ -32,6 +32,12 @@ Variants (``--variant``):
 * ``moving``: D-NeRF layout. The objects translate and rotate with time; every frame has a
   ``time`` in [0, 1] that runs along the rig, so test views are unseen (camera, time) pairs;
   ``transforms_val.json`` equals test. Its sparse points lie on the static ground only.
+* ``multicam``: a multi-camera video in DyNeRF's (Neu3D's) layout: the moving objects filmed by
+  9 fixed cameras on a 100 degree arc in front of them (3.6 away, 18 / 34 degrees high,
+  alternating), each 12 frames at times k / 11; ``poses_bounds.npy`` (LLFF's rows, one per
+  camera) and ``camNN/images/NNNN.png``; cam00, the middle camera, is the held-out one, as in
+  DyNeRF. No points, no jsons, no COLMAP model (DyNeRF ships none). ``--n-train`` is the
+  training cameras, ``--n-test`` the frames.
 * ``forward``: forward-facing (LLFF-like) capture of the default scene in front of a vertical
   brick back wall (value-noise mottled, behind the objects, so every view sees geometry
   everywhere, no sky). 32 train + 8 test views on a jittered 8 x 5 grid, 1.4 wide x 0.7 high,
@@ -109,10 +115,13 @@ from typing import Optional
 
 import numpy as np
 
-VARIANTS = ("default", "reflective", "sparse", "moving", "forward", "clutter", "forward-clutter", "corridor",
+VARIANTS = ("default", "reflective", "sparse", "moving", "multicam", "forward", "clutter", "forward-clutter", "corridor",
             "room", "room-walk", "arc", "aerial", "thin", "object", "object-reflective", "object-dark")
 FORWARD_VARIANTS = ("forward", "forward-clutter", "corridor")
 ROOM_VARIANTS = ("room", "room-walk")
+MOVING_VARIANTS = ("moving", "multicam")  # the objects move with time
+# multicam: fixed cameras on an arc in front of the moving objects, filming together
+MULTICAM_ARC_DEG, MULTICAM_ELEV_DEG, MULTICAM_DIST, MULTICAM_FRAMES = 100.0, (18.0, 34.0), 3.6, 12
 CLUTTER_CONTENT = ("clutter", "forward-clutter", "arc", "aerial")  # the clutter scene's primitives and light
 ALPHA_VARIANTS = ("object", "object-reflective", "object-dark")  # RGBA images: the backdrop (the hidden sky) is transparent
 REFLECTIVE_MATERIALS = ("reflective", "object-reflective")  # a mirror ball, rough metals, glossy plastic
@@ -191,9 +200,12 @@ class View:
     width: int
     height: int
     time: float = 0.0
+    camera: int = -1  # multicam: the camera (its folder camNN), and index is the frame
 
     @property
     def name(self) -> str:
+        if self.camera >= 0:
+            return f"cam{self.camera:02d}/images/{self.index:04d}"
         return f"{self.split}/r_{self.index:03d}"
 
     @property
@@ -468,10 +480,31 @@ def image_size(variant: str, size: int) -> tuple[int, int]:
     return size, size
 
 
+def views_multicam(n_train: int, frames: int, K, width: int, height: int) -> list[View]:
+    """A synchronized rig: ``n_train`` + 1 fixed cameras on an arc of MULTICAM_ARC_DEG in front of
+    the scene (elevations alternating), each filming ``frames`` frames at times k / (frames - 1);
+    the middle camera is cam00, the held-out one (DyNeRF's convention), the others cam01, ...
+    in order along the arc."""
+    n = n_train + 1
+    order = [n // 2] + [k for k in range(n) if k != n // 2]  # arc slot of cam00, cam01, ...
+    views = []
+    for cam, slot in enumerate(order):
+        az = math.radians(-MULTICAM_ARC_DEG / 2 + MULTICAM_ARC_DEG * slot / max(n - 1, 1))
+        el = math.radians(MULTICAM_ELEV_DEG[slot % 2])
+        c = TARGET + MULTICAM_DIST * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        w2c = look_at_w2c(c, TARGET)
+        for k in range(frames):
+            views.append(View("test" if cam == 0 else "train", k, w2c, K, width, height,
+                              k / max(frames - 1, 1), camera=cam))
+    return views
+
+
 def make_views(variant: str, n_train: int, n_test: int, size: int) -> list[View]:
     width, height = image_size(variant, size)
     K = intrinsics(width, height=height)
     views: list[View] = []
+    if variant == "multicam":
+        return views_multicam(n_train, n_test, K, width, height)
     if variant == "sparse":
         train, test = rig_sparse(n_train, n_test)
         for i, c in enumerate(train):
@@ -679,7 +712,7 @@ def objects_at(variant: str, t: float) -> Objects:
         metal_centre=np.array([-0.60, -0.45, 0.30]), metal_radius=0.30,
         box_centre=np.array([-0.25, 0.55, 0.28]), box_half=0.28, box_yaw_deg=30.0,
         cyl_base=np.array([0.60, 0.55, 0.0]), cyl_radius=0.18, cyl_height=0.75)
-    if variant == "moving":
+    if variant in MOVING_VARIANTS:
         # translate and rotate over t in [0, 1]; everything stays on or above the table
         obj.ball_centre = obj.ball_centre + np.array([-0.35 * t, 0.25 * math.sin(math.pi * t), 0.0])
         obj.metal_centre = obj.metal_centre + np.array([0.0, 0.0, 0.45 * math.sin(math.pi * t)])
@@ -1018,9 +1051,9 @@ class SceneBuilder:
         return out
 
     def scene(self, t: float = 0.0):
-        key = t if self.variant == "moving" else 0.0
+        key = t if self.variant in MOVING_VARIANTS else 0.0
         if key not in self._cache:
-            if self.variant == "moving":
+            if self.variant in MOVING_VARIANTS:
                 self._cache.clear()  # one time at a time: keep memory flat
             self._cache[key] = self.mi.load_dict(self.scene_dict(key))
         return self._cache[key]
@@ -1231,7 +1264,7 @@ def sample_surface(variant: str, n: int, rng: np.random.Generator) -> np.ndarray
     its back wall (most of the ground lies outside its views anyway); clutter has its own
     objects.
     """
-    if variant == "moving":
+    if variant in MOVING_VARIANTS:
         return sample_ground(n, rng)
     if variant in CLUTTER_CONTENT:
         return sample_clutter(n, rng)
@@ -1348,6 +1381,19 @@ def write_transforms(out: str, views: list[View], variant: str) -> None:
             frames.append(f)
         with open(os.path.join(out, f"transforms_{name}.json"), "w") as fh:
             json.dump({**header, "frames": frames}, fh, indent=2)
+
+
+def write_poses_bounds(out: str, views: list[View]) -> None:
+    """LLFF's poses_bounds.npy, one row per camera (cam00, cam01, ...): the camera-to-world axes
+    in LLFF's order (down, right, back), its centre, (height, width, focal), near and far."""
+    rows = []
+    for cam in sorted({v.camera for v in views}):
+        v = next(v for v in views if v.camera == cam)
+        c2w = v.c2w  # OpenCV: x right, y down, z forward
+        m = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3],
+                      np.array([v.height, v.width, v.K[0, 0]], dtype=float)], axis=1)
+        rows.append(np.concatenate([m.reshape(-1), [0.5 * MULTICAM_DIST, 2.0 * MULTICAM_DIST]]))
+    np.save(os.path.join(out, "poses_bounds.npy"), np.asarray(rows, dtype=np.float64))
 
 
 def write_colmap(out: str, views: list[View], pts, colours, vis, train) -> None:
@@ -1506,10 +1552,11 @@ def parse_args(argv=None):
                     help="scene variant (see the module docstring)")
     ap.add_argument("--n-train", type=int, default=None,
                     help="train views; None means 48, or 10 for --variant sparse, 32 for "
-                         "the forward-facing variants (forward, forward-clutter, corridor)")
+                         "the forward-facing variants (forward, forward-clutter, corridor); multicam: the "
+                         "training cameras (8)")
     ap.add_argument("--n-test", type=int, default=None,
                     help="test views, interleaved with train; None means 12, or 8 for "
-                         "the forward-facing variants")
+                         "the forward-facing variants; multicam: the frames each camera films (12)")
     ap.add_argument("--size", type=int, default=128, help="image width = height in pixels (arc: the width of its 4:3 images; aerial: the height of its 3:4 ones)")
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel")
     ap.add_argument("--seed", type=int, default=0, help="Monte Carlo and point-sampling seed")
@@ -1528,11 +1575,13 @@ def parse_args(argv=None):
                     help="render markers through the written cameras; print pixel errors")
     args = ap.parse_args(argv)
     if args.n_train is None:
-        args.n_train = 32 if args.variant in FORWARD_VARIANTS else {"sparse": 10}.get(args.variant, 48)
+        args.n_train = 32 if args.variant in FORWARD_VARIANTS else {"sparse": 10, "multicam": 8}.get(args.variant, 48)
     if args.n_test is None:
-        args.n_test = 8 if args.variant in FORWARD_VARIANTS else 12
+        args.n_test = 8 if args.variant in FORWARD_VARIANTS else {"multicam": MULTICAM_FRAMES}.get(args.variant, 12)
     if args.max_track == 1 or args.max_track < 0:
         ap.error(f"--max-track must be 0 (unlimited) or >= 2, got {args.max_track}")
+    if args.variant == "multicam" and args.n_test < 2:
+        ap.error(f"--variant multicam films --n-test frames per camera: at least 2, got {args.n_test}")
     if args.n_train < 2 or args.n_test < 0 or args.size < 8 or args.spp < 1:
         ap.error(f"bad sizes: n_train={args.n_train} n_test={args.n_test} size={args.size} "
                  f"spp={args.spp}")
@@ -1541,8 +1590,8 @@ def parse_args(argv=None):
 
 def generate(mi, args, builder, views) -> None:
     out = args.out
-    for split in ("train", "test"):
-        os.makedirs(os.path.join(out, split), exist_ok=True)
+    for v in views:
+        os.makedirs(os.path.dirname(os.path.join(out, v.name)), exist_ok=True)
     images = {}
     t0 = time.time()
     for k, v in enumerate(views):
@@ -1552,6 +1601,11 @@ def generate(mi, args, builder, views) -> None:
         write_png(mi, os.path.join(out, v.name + ".png"), png)
         images[v.name] = png[..., :3]  # the points' colours (with alpha: the object's own, straight)
         print(f"  [{k + 1}/{len(views)}] {v.name}  {time.time() - t0:.1f}s", flush=True)
+    if args.variant == "multicam":  # DyNeRF's layout: poses_bounds.npy, frames per camera, no points
+        write_poses_bounds(out, views)
+        print(f"wrote {len(views)} frames of {len({v.camera for v in views})} cameras to {out} "
+              f"(render {time.time() - t0:.1f}s)")
+        return
     rng = np.random.default_rng(args.seed)
     pts, colours, vis, train = make_points(mi, builder, views, images, args.n_points, rng,
                                            args.max_track)

@@ -10,6 +10,8 @@ import torch
 
 from .colmap import load_colmap
 from .images import check_background
+from .hypernerf import is_hypernerf, load_hypernerf
+from .llff import is_llff, load_llff
 from .nerf import is_dynamic, load_dnerf, load_nerf_synthetic
 from .scene import Scene
 
@@ -19,12 +21,17 @@ LOG = logging.getLogger("mvgs_plugin")
 def scene_layout(path) -> Optional[str]:
     """The layout load_scene reads a folder as: "nerf" (transforms_train.json, or one
     transforms.json in a folder without a COLMAP model), "colmap" (sparse/, or cameras.bin /
-    cameras.txt at the top), or None."""
+    cameras.txt at the top), "hypernerf" (dataset.json and camera/), "llff" (LLFF's
+    poses_bounds.npy and none of those), or None."""
     path = Path(path)
     colmap = (path / "sparse").exists() or (path / "cameras.bin").exists() or (path / "cameras.txt").exists()
     if (path / "transforms_train.json").exists() or (not colmap and (path / "transforms.json").exists()):
         return "nerf"
-    return "colmap" if colmap else None
+    if colmap:
+        return "colmap"
+    if is_hypernerf(path):
+        return "hypernerf"
+    return "llff" if is_llff(path) else None
 
 
 def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_000, init_seed: int = 0,
@@ -33,8 +40,11 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
                background_radius: Optional[float] = None) -> Scene:
     """A scene folder, its format told by its files: NeRF-synthetic or D-NeRF
     (transforms_train.json, or one transforms.json as instant-ngp and nerfstudio write it; D-NeRF
-    when its frames carry a time) or COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
-    the top). Raises ValueError naming the folder when it does not exist or holds neither.
+    when its frames carry a time), COLMAP (sparse/, sparse/0, or cameras.bin / cameras.txt at
+    the top) or LLFF's poses_bounds.npy with still images or a multi-camera video's frames
+    (DyNeRF / Neu3D, as 4DGS trains on it: :func:`~mvgs_plugin.data.llff.load_llff`), or a
+    HyperNeRF / Nerfies capture (dataset.json, camera/, rgb/2x: :mod:`~mvgs_plugin.data.hypernerf`). Raises
+    ValueError naming the folder when it does not exist or holds none of them.
 
     ``background``: "auto" (the NeRF loaders' rule, see :func:`load_nerf_synthetic`: RGBA on
     white, images without alpha on the colour their borders show; a COLMAP scene drops alpha and
@@ -91,9 +101,16 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         if folder is not None and not folder.is_dir():
             raise ValueError(f"images folder {folder} does not exist (images={str(images)!r}, relative to {path})")
         scene = load_colmap(path, images_dir=folder, background=None if background == "auto" else background)
+    elif layout in ("llff", "hypernerf"):
+        if images is not None and Path(images).is_absolute():
+            raise ValueError(f"images={str(images)!r}: an {layout} scene reads an image folder inside {path} "
+                             f"({'images_4' if layout == 'llff' else 'rgb/4x'})")
+        scene = (load_llff if layout == "llff" else load_hypernerf)(path, images=images)
+        if background not in (None, "auto"):
+            scene.background, scene.background_origin = background, "given"
     else:
-        raise ValueError(f"{path} is neither a COLMAP scene (sparse/) nor a NeRF-synthetic one (transforms_train.json, "
-                         "or one transforms.json)")
+        raise ValueError(f"{path} is neither a COLMAP scene (sparse/), a NeRF-synthetic one (transforms_train.json, "
+                         "or one transforms.json), a HyperNeRF one (dataset.json, camera/) nor an LLFF one (poses_bounds.npy)")
     LOG.info("%s: background %s", path, scene.background_origin)
     if scene.points is None and init is not None:
         from .triangulate import initial_points
@@ -103,8 +120,10 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         LOG.info("%s: %s", path, made.description)
     if background_points and scene.points is not None:
         from .scene import PointCloud
+        from .triangulate import synchronized_instant
 
-        xyz, rgb, said = background_shell(scene.train_cameras, scene.center, background_points, scene.image,
+        views = synchronized_instant(scene.train_cameras) or scene.train_cameras  # a video: its first instant
+        xyz, rgb, said = background_shell(views, scene.center, background_points, scene.image,
                                           points=scene.points.xyz, mask=scene.mask,
                                           backdrop=scene.background if backdrop_drawn else None,
                                           radius=SHELL_RADIUS if background_radius is None else background_radius)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
 import warnings
+from collections import OrderedDict
 from pathlib import Path
 from typing import Mapping, Optional, Sequence, Union
 
@@ -106,6 +108,28 @@ def _file_source(cam: Camera, src, check_size: bool, what: str):
     return src
 
 
+def default_cache_bytes() -> int:
+    """How many bytes of decoded images a Scene holds by default: half the machine's memory
+    (8 GiB where the system does not say). A scene whose images do not fit (a multi-camera video,
+    a capture at full resolution) reads the least recently used ones again when asked."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 << 30
+
+
+def _check_cache_bytes(value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"cache_bytes must be an int >= 0 (bytes of decoded images to hold), got {value!r}")
+    return value
+
+
+def _from_file(sources: Mapping, key: tuple) -> bool:
+    """Whether the cached image ``key`` = (uid, factor) can be made again from a file: any level
+    below full resolution, and a full-resolution image not given in memory."""
+    return key[1] != 1.0 or not isinstance(sources[key[0]], torch.Tensor)
+
+
 class Scene:
     """Cameras and images of one scene.
 
@@ -125,6 +149,9 @@ class Scene:
             nerfstudio's ``mask_path``), a float [H, W] or [H, W, 1] tensor of weights in [0, 1],
             or an :class:`~mvgs_plugin.data.distortion.UndistortedImage` (a mask file taken with
             the lens distortion of its image). A camera without one counts every pixel.
+        cache_bytes: decoded images read from files held at most (None:
+            :func:`default_cache_bytes`, half the machine's memory); beyond it the least recently
+            used are let go and read again when asked. Images given in memory are always held.
 
     Attributes:
         center: [3] float64 and extent (float): see :func:`camera_normalization`.
@@ -137,7 +164,8 @@ class Scene:
     def __init__(self, train_cameras: Sequence[Camera], test_cameras: Sequence[Camera],
                  images: Mapping[int, ImageSource], points: Optional[PointCloud] = None,
                  background: Optional[Sequence[float]] = None, check_sizes: bool = True,
-                 source: Optional[Path] = None, masks: Optional[Mapping[int, ImageSource]] = None) -> None:
+                 source: Optional[Path] = None, masks: Optional[Mapping[int, ImageSource]] = None,
+                 cache_bytes: Optional[int] = None) -> None:
         self.train_cameras = list(train_cameras)
         self.test_cameras = list(test_cameras)
         self.points = points
@@ -159,7 +187,11 @@ class Scene:
                                  f"{self._by_uid[cam.uid].name!r})")
             self._by_uid[cam.uid] = cam
         self._sources: dict[int, ImageSource] = {}
-        self._cache: dict[tuple[int, float], torch.Tensor] = {}
+        # decoded images by (uid, factor), least recently used first; those read from files are let
+        # go beyond cache_bytes (read again when asked), those given in memory stay
+        self._cache: OrderedDict[tuple[int, float], torch.Tensor] = OrderedDict()
+        self._cache_used = 0  # bytes of the file-read images held
+        self.cache_bytes = default_cache_bytes() if cache_bytes is None else _check_cache_bytes(cache_bytes)
         self._digests: dict[int, str] = {}  # image_digest(), per camera uid
         for uid, cam in self._by_uid.items():
             if uid not in images:
@@ -298,7 +330,8 @@ class Scene:
 
         ``cam`` is the scene's full-resolution camera (its uid selects the image); the result is
         float32 [H', W', 3] in [0, 1] with (W', H') = ``cam.scaled(factor)``'s size, made once
-        per (camera, factor) with :func:`~mvgs_plugin.data.images.downsample` and cached.
+        per (camera, factor) with :func:`~mvgs_plugin.data.images.downsample` and cached (within
+        ``cache_bytes``: one let go is made again when asked).
         The cached tensor itself is returned: do not modify it in place. Asked for a level
         below full resolution, only that level is kept: the full image is read, downsampled
         and let go (a 4K capture trained at 1/4 holds 1/16 of its pixels). An image with a mask
@@ -308,18 +341,34 @@ class Scene:
         """
         base, factor = self._level(cam, factor)
         key = (base.uid, factor)
-        if key not in self._cache:
-            if factor == 1.0:
-                return self._full(base)
-            full = self._full(base, keep=False)
-            small = base.scaled(factor)
-            if base.uid in self._mask_sources:
-                mean, _ = masked_downsample(full, self._full_mask(base, keep=False),
-                                            lambda x: downsample(x, small.width, small.height))
-                self._cache[key] = mean.clamp(0.0, 1.0)
-            else:
-                self._cache[key] = downsample(full, small.width, small.height)
-        return self._cache[key]
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        if factor == 1.0:
+            return self._full(base)
+        full = self._full(base, keep=False)
+        small = base.scaled(factor)
+        if base.uid in self._mask_sources:
+            mean, _ = masked_downsample(full, self._full_mask(base, keep=False),
+                                        lambda x: downsample(x, small.width, small.height))
+            img = mean.clamp(0.0, 1.0)
+        else:
+            img = downsample(full, small.width, small.height)
+        return self._remember(key, img)
+
+    def _remember(self, key: tuple[int, float], img: torch.Tensor) -> torch.Tensor:
+        """Cache an image read from a file, letting the least recently used such images go while
+        the held ones exceed ``cache_bytes`` (the one just made stays)."""
+        self._cache[key] = img
+        self._cache_used += img.numel() * img.element_size()
+        if self._cache_used > self.cache_bytes:
+            for old in [k for k in self._cache if k != key]:
+                if self._cache_used <= self.cache_bytes:
+                    break
+                if _from_file(self._sources, old):
+                    gone = self._cache.pop(old)
+                    self._cache_used -= gone.numel() * gone.element_size()
+        return img
 
     def read(self, cam: Camera) -> torch.Tensor:
         """The full-resolution image of ``cam``, read now and not cached (a cached one is returned
@@ -340,7 +389,9 @@ class Scene:
     def _full(self, cam: Camera, keep: bool = True) -> torch.Tensor:
         """The full-resolution image, cached when ``keep`` (else read and not held)."""
         key = (cam.uid, 1.0)
-        if key not in self._cache:
+        if key in self._cache:
+            self._cache.move_to_end(key)
+        else:
             src, mask = self._sources[cam.uid], self._mask_sources.get(cam.uid)
             if isinstance(src, UndistortedImage):
                 img = src.read_masked(self.background, mask) if isinstance(mask, UndistortedImage) else src.read(self.background)
@@ -351,7 +402,7 @@ class Scene:
                                  f"but its camera {cam.name!r} expects {cam.width}x{cam.height}")
             if not keep:
                 return img
-            self._cache[key] = img
+            return self._remember(key, img)
         return self._cache[key]
 
     def image_file(self, cam: Camera) -> Optional[Path]:
@@ -404,10 +455,28 @@ class Scene:
         src = self._sources[base.uid]
         return src.undistortion if isinstance(src, UndistortedImage) else None
 
+    def subset(self, cameras: Sequence[Camera], untimed: bool = False) -> "Scene":
+        """A scene whose training views are ``cameras`` (some of this scene's, any split) and with
+        no test views, reading the same image and mask sources with the same background (no
+        points). ``untimed``: the cameras without their time (a synchronized rig's views of one
+        instant, seen as a still scene)."""
+        cams = []
+        for cam in cameras:
+            base = self._by_uid.get(getattr(cam, "uid", None))
+            if base is None:
+                raise KeyError(f"camera {cam!r} is not part of this scene")
+            cams.append(dataclasses.replace(base, time=None) if untimed else base)
+        images = {c.uid: (self._full(c) if isinstance(self._sources[c.uid], torch.Tensor) else self._sources[c.uid])
+                  for c in cams}
+        masks = {c.uid: self._mask_sources[c.uid] for c in cams if c.uid in self._mask_sources}
+        sub = Scene(cams, [], images, background=self.background, check_sizes=False, source=self.source, masks=masks)
+        sub.background_origin = self.background_origin
+        return sub
+
     def clear_cache(self) -> None:
         """Forget decoded images, masks and coverage loaded from files (in-memory ones are kept)."""
-        self._cache = {k: v for k, v in self._cache.items()
-                       if k[1] == 1.0 and isinstance(self._sources[k[0]], torch.Tensor)}
+        self._cache = OrderedDict((k, v) for k, v in self._cache.items() if not _from_file(self._sources, k))
+        self._cache_used = 0
         self._mask_cache = {k: v for k, v in self._mask_cache.items()
                             if k[1] == 1.0 and isinstance(self._mask_sources.get(k[0]), torch.Tensor)}
         self._coverage_cache = {}

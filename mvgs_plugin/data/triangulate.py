@@ -47,7 +47,7 @@ from .init import (CANDIDATES_PER_POINT, SWEEP_DEPTHS, _silhouettes_read, init_r
 from .scene import PointCloud, Scene
 
 __all__ = ["INIT_METHODS", "Tracks", "InitPoints", "triangulate", "fill_points", "initial_points",
-           "view_pairs", "MIN_TRACKS", "EXHAUSTIVE_MAX", "NEIGHBOURS", "TIME_NEIGHBOURS"]
+           "view_pairs", "synchronized_instant", "synchronized_views", "MIN_TRACKS", "EXHAUSTIVE_MAX", "NEIGHBOURS", "TIME_NEIGHBOURS"]
 
 INIT_METHODS = ("triangulate", "random", "frusta", "cube")
 # fewer triangulated points than this and the scene falls back to the random rule: a handful of
@@ -59,6 +59,9 @@ EXHAUSTIVE_MAX = 60
 NEIGHBOURS = 20
 # a dynamic scene: each view is matched with this many views nearest in time (before and after)
 TIME_NEIGHBOURS = 6
+# a dynamic scene with at least this many training views at one time is a synchronized rig (a
+# multi-camera video): its points are made from the views of a few instants (synchronized_views)
+SYNCHRONIZED_MIN = 3
 # fill: a pixel (at the photo-consistency width) counts as covered by a track within this many
 # pixels of it; candidate depths span the view's track depths widened by this factor each way
 COVER_RADIUS = 2
@@ -448,6 +451,45 @@ def _random(scene: Scene, method: str, n: int, generator: torch.Generator, why: 
     return InitPoints(PointCloud(xyz, rgb), kind, why + text)
 
 
+def synchronized_instant(cameras: Sequence[Camera]) -> list[Camera]:
+    """The views of a synchronized rig's first instant: when at least SYNCHRONIZED_MIN views
+    share one time (several cameras filming together, DyNeRF / Neu3D), those of the earliest
+    time that most views share; else [] (a still scene, or one camera moving through time,
+    D-NeRF)."""
+    groups = _instants(cameras)
+    if not groups:
+        return []
+    most = max(len(g) for g in groups.values())
+    return groups[min(t for t, g in groups.items() if len(g) == most)]
+
+
+def _instants(cameras: Sequence[Camera]) -> dict:
+    """A synchronized rig's views by time (SYNCHRONIZED_MIN or more share one), else {}."""
+    groups: dict = {}
+    for cam in cameras:
+        if cam.time is not None:
+            groups.setdefault(cam.time, []).append(cam)
+    if not groups or max(len(g) for g in groups.values()) < SYNCHRONIZED_MIN:
+        return {}
+    return groups
+
+
+def synchronized_views(cameras: Sequence[Camera], max_views: int = EXHAUSTIVE_MAX) -> list[Camera]:
+    """The views a synchronized rig's points are made from: those of as many instants as
+    ``max_views`` holds (at least one), spread evenly over its times from the first; [] for a
+    scene that is not a synchronized rig. The views of one instant are a still capture of that
+    instant; several instants add what one lacks (a small rig's few views give few tracks) while
+    the count stays that of a still scene's exhaustive matching."""
+    groups = _instants(cameras)
+    if not groups:
+        return []
+    times = sorted(groups)
+    per = max(len(g) for g in groups.values())
+    k = max(1, min(len(times), max_views // per))
+    picked = sorted({times[round(i * (len(times) - 1) / (k - 1))] for i in range(k)} if k > 1 else {times[0]})
+    return [cam for t in picked for cam in groups[t]]
+
+
 def initial_points(scene: Scene, method: str = "triangulate", n: int = 10_000, seed: int = 0,
                    cache_dir=None, threads: Optional[int] = None, min_tracks: int = MIN_TRACKS,
                    fill: bool = True) -> InitPoints:
@@ -463,6 +505,9 @@ def initial_points(scene: Scene, method: str = "triangulate", n: int = 10_000, s
     * "frusta" / "cube": that region whatever the rig (frusta falls back to the cube when no
       depth is seen by half of the cameras).
 
+    A synchronized rig (a multi-camera video) is worked on as the still scene of its views at a
+    few instants (:func:`synchronized_views`), and the description says so.
+
     ``cache_dir``: a folder to keep the result (and the feature database) in, under a digest of
     the cameras, images and settings, so a second run with the same scene reads it back; None
     works in a temporary folder, removed afterwards. Nothing is written elsewhere (the scene
@@ -473,6 +518,14 @@ def initial_points(scene: Scene, method: str = "triangulate", n: int = 10_000, s
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"init point count must be a positive int, got {n!r}")
     generator = torch.Generator().manual_seed(int(seed))
+    views = synchronized_views(scene.train_cameras)
+    if views:  # a multi-camera video: its views of a few instants, matched as a still scene
+        made = initial_points(scene.subset(views, untimed=True), method, n, seed, cache_dir, threads, min_tracks, fill)
+        times = sorted({c.time for c in views})
+        said = (f"a multi-camera video: from {len(views)} of its {len(scene.train_cameras)} training views, the "
+                f"cameras' views at {len(times)} instant(s) ({', '.join(f'{t:.3g}' for t in times[:6])}"
+                f"{', ...' if len(times) > 6 else ''}) matched as a still scene: ")
+        return dataclasses.replace(made, description=said + made.description)
     if method != "triangulate":
         return _random(scene, method, n, generator)
     folder = None
