@@ -147,8 +147,8 @@ def load_llff(path, images: Optional[str] = None) -> Scene:
     folders = _camera_folders(root)
     if folders:
         if images is not None:
-            raise ValueError(f"images={images!r}: {root} is a multi-camera video (camera folders {folders[0].name}, ...), "
-                             "whose frames are read from each camera's folder")
+            raise ValueError(f"images={images!r}: {root} is a multi-camera video (camera folders "
+                             f"{folders[0].name}, ...), whose frames are read from each camera's folder")
         scene = _load_video(root, poses, rows, folders)
     else:
         scene = _load_stills(root, poses, rows, images)
@@ -157,25 +157,31 @@ def load_llff(path, images: Optional[str] = None) -> Scene:
             points = read_points_ply(root / name)
             if len(points):
                 scene.points, scene.points_origin = points, f"{len(points)} points given with the scene ({name})"
+            else:
+                warnings.warn(f"{root / name} holds 0 points: the scene has no point cloud (load_scene's init makes "
+                              "one)", stacklevel=2)
             break
     return scene
 
 
 def _load_stills(root: Path, poses: Path, rows: np.ndarray, images: Optional[str]) -> Scene:
-    folder = root / check_inside(normalize_name(images), root, f"images={images!r}") if images is not None else root / "images"
+    folder = root / "images"
+    if images is not None:
+        folder = root / check_inside(normalize_name(images), root, f"images={images!r}")
     if not folder.is_dir():
         videos = sorted(p.name for p in root.iterdir() if p.suffix.lower() in _VIDEO_SUFFIXES)
         if videos:
-            raise ValueError(f"{root}: {POSES_FILE} beside videos ({', '.join(videos[:3])}{', ...' if len(videos) > 3 else ''}) "
-                             "whose frames are not extracted: a multi-camera video is read from one folder of frames per "
-                             f"camera, e.g. mkdir -p {root}/cam00/images && ffmpeg -i {root}/{videos[0]} "
+            more = ", ..." if len(videos) > 3 else ""
+            raise ValueError(f"{root}: {POSES_FILE} beside videos ({', '.join(videos[:3])}{more}) whose frames are "
+                             "not extracted: a multi-camera video is read from one folder of frames per camera, e.g. "
+                             f"mkdir -p {root}/cam00/images && ffmpeg -i {root}/{videos[0]} "
                              f"{root}/cam00/images/%04d.png (one per video, in the rows' order)")
-        raise FileNotFoundError(f"{root}: {POSES_FILE} needs its images in {folder} (one per row, in name order) or one "
-                                "folder of frames per camera (cam00, cam01, ...)")
+        raise FileNotFoundError(f"{root}: {POSES_FILE} needs its images in {folder} (one per row, in name order) "
+                                "or one folder of frames per camera (cam00, cam01, ...)")
     files = _images_in(folder)
     if len(files) != len(rows):
-        raise ValueError(f"{poses} has {len(rows)} rows but {folder} holds {len(files)} images: LLFF pairs the rows with "
-                         "the images in name order, one each")
+        raise ValueError(f"{poses} has {len(rows)} rows but {folder} holds {len(files)} images: LLFF pairs the rows "
+                         "with the images in name order, one each")
     cams = [_camera(row, k, k, file.relative_to(root).as_posix(), file, poses, None)
             for k, (row, file) in enumerate(zip(rows, files))]
     test = [c for k, c in enumerate(cams) if k % TEST_EVERY == 0]
@@ -188,12 +194,12 @@ def _load_stills(root: Path, poses: Path, rows: np.ndarray, images: Optional[str
 
 def _load_video(root: Path, poses: Path, rows: np.ndarray, folders: list[Path]) -> Scene:
     if len(folders) != len(rows):
-        raise ValueError(f"{poses} has {len(rows)} rows but {root} holds {len(folders)} camera folders "
-                         f"({', '.join(f.name for f in folders[:4])}{', ...' if len(folders) > 4 else ''}): one per row, "
-                         "in name order")
+        named = ", ".join(f.name for f in folders[:4]) + (", ..." if len(folders) > 4 else "")
+        raise ValueError(f"{poses} has {len(rows)} rows but {root} holds {len(folders)} camera folders ({named}): one "
+                         "per row, in name order")
     if len(folders) < 2:
-        raise ValueError(f"{root}: one camera folder: a multi-camera video holds out its first camera ({folders[0].name}) "
-                         "for testing and trains on the others")
+        raise ValueError(f"{root}: one camera folder: a multi-camera video holds out its first camera "
+                         f"({folders[0].name}) for testing and trains on the others")
     frames = [_frames(f) for f in folders]
     empty = [f.name for f, fr in zip(folders, frames) if not fr]
     if empty:
