@@ -37,7 +37,7 @@ import torch
 from ..camera import Camera
 from .colmap import _downscaled, check_inside, normalize_name
 from .distortion import Distortion, UndistortedImage, shared_undistortion
-from .images import image_size
+from .images import IMAGE_SUFFIXES, image_size
 from .scene import PointCloud, Scene
 
 __all__ = ["load_hypernerf", "is_hypernerf", "RGB_FOLDERS", "POINTS_GREY"]
@@ -47,7 +47,6 @@ LOG = logging.getLogger("mvgs_plugin")
 # the image folders tried in order when none is named: 4DGS trains HyperNeRF at half size (2x)
 RGB_FOLDERS = ("rgb/2x", "rgb/1x", "rgb/4x", "rgb/8x", "rgb/16x")
 POINTS_GREY = 0.5  # points.npy carries no colour: its points start grey
-_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def is_hypernerf(path) -> bool:
@@ -91,8 +90,8 @@ def _ids(data: dict, key: str, file: Path) -> list[str]:
     return ids
 
 
-def _rgb_folder(root: Path, images: Optional[str]) -> tuple[Path, float]:
-    """(folder, downscale factor) of the images to read."""
+def _rgb_folder(root: Path, images: Optional[str]) -> Path:
+    """The folder of the images to read (a camera is scaled to its image's size when read)."""
     if images is not None:
         name = normalize_name(str(images))
         folder = root / check_inside(name, root, f"images={images!r}")
@@ -103,17 +102,15 @@ def _rgb_folder(root: Path, images: Optional[str]) -> tuple[Path, float]:
         folder = next((root / f for f in RGB_FOLDERS if (root / f).is_dir()), None)
         if folder is None:
             raise FileNotFoundError(f"{root}: no image folder ({', '.join(RGB_FOLDERS)})")
-    label = folder.name
-    factor = float(label[:-1]) if label.endswith("x") and label[:-1].replace(".", "", 1).isdigit() else 1.0
-    return folder, factor
+    return folder
 
 
 def _image_file(folder: Path, frame: str) -> Path:
-    for suffix in _SUFFIXES:
+    for suffix in IMAGE_SUFFIXES:
         file = folder / f"{frame}{suffix}"
         if file.is_file():
             return file
-    raise FileNotFoundError(f"no image for frame {frame!r} in {folder} ({', '.join(_SUFFIXES)})")
+    raise FileNotFoundError(f"no image for frame {frame!r} in {folder} ({', '.join(IMAGE_SUFFIXES)})")
 
 
 def _camera(root: Path, frame: str, uid: int, file: Path, time: float, center, scale: float,
@@ -194,7 +191,7 @@ def load_hypernerf(path, images: Optional[str] = None) -> Scene:
         scale = float(_numbers(info, "scale", (), where, default=1.0))
         if not scale > 0:
             raise ValueError(f"{where}: 'scale' must be positive, got {scale:g}")
-    folder, _ = _rgb_folder(root, images)
+    folder = _rgb_folder(root, images)
     cams: dict[str, list[Camera]] = {"train": [], "test": []}
     files, undistortions, uid = {}, {}, 0
     for part in ("train", "test"):

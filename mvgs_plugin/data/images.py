@@ -199,6 +199,8 @@ def has_transparency(path: Path) -> bool:
 
 # A rendered backdrop is one colour up to 8-bit rounding and JPEG's ringing (a few levels): a
 # border pixel within this of the border's median colour (each channel) is the backdrop ...
+# the image files the loaders that list a folder (LLFF, HyperNeRF) take, by suffix (any case)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 BORDER_TOLERANCE = 8.0 / 255.0
 # ... and the border is uniform when this share of its pixels is (an object may reach the edge
 # in some views; a photograph's border is many colours)

@@ -40,18 +40,16 @@ import numpy as np
 
 from ..camera import Camera
 from .colmap import _downscaled, check_inside, normalize_name
-from .images import image_size
-from .nerf import read_points_ply
+from .images import IMAGE_SUFFIXES, image_size
+from .nerf import TEST_EVERY, read_points_ply
 from .scene import Scene
 
-__all__ = ["load_llff", "is_llff", "is_video", "llff_rows", "POSES_FILE", "TEST_EVERY", "POINT_FILES", "IMAGE_SUFFIXES"]
+__all__ = ["load_llff", "is_llff", "is_video", "llff_rows", "POSES_FILE", "POINT_FILES"]
 
 LOG = logging.getLogger("mvgs_plugin")
 
 POSES_FILE = "poses_bounds.npy"
-TEST_EVERY = 8  # still images: every 8th from the first is a test view (3DGS's llffhold)
 POINT_FILES = ("points3d.ply", "points3D_downsample2.ply")  # ours, then 4DGS's name for Neu3D's points
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _CAMERA_FOLDER = re.compile(r"cam\d+")
 _VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv")
 # LLFF's rotation blocks come from COLMAP's quaternions in float64; one saved in float32 or rounded

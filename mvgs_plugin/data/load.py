@@ -101,10 +101,7 @@ def load_scene(path, init: Optional[str] = "triangulate", init_points: int = 10_
         if folder is not None and not folder.is_dir():
             raise ValueError(f"images folder {folder} does not exist (images={str(images)!r}, relative to {path})")
         scene = load_colmap(path, images_dir=folder, background=None if background == "auto" else background)
-    elif layout in ("llff", "hypernerf"):
-        if images is not None and Path(images).is_absolute():
-            raise ValueError(f"images={str(images)!r}: an {layout} scene reads an image folder inside {path} "
-                             f"({'images_4' if layout == 'llff' else 'rgb/4x'})")
+    elif layout in ("llff", "hypernerf"):  # their loaders refuse an images folder outside the scene folder
         scene = (load_llff if layout == "llff" else load_hypernerf)(path, images=images)
         if background not in (None, "auto"):
             scene.background, scene.background_origin = background, "given"
